@@ -1,0 +1,282 @@
+"""dct-hil command line.
+
+    dct-hil simulate --scenario launch-1st --out out/launch-1st.csv
+    dct-hil bench --steps 200000 --json bench.json --check
+
+User errors (bad options, parameter files, scenarios, a plant that blows up)
+print one line ``dct-hil: error: <cause>`` and exit 2; Ctrl-C exits 130.
+"""
+
+import argparse
+import datetime
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+
+from dct_hil import __version__
+
+TARGET_MEDIAN_US = 2.0   # step-cost target of the real-time loop (0.5 ms step)
+MAX_BENCH_STEPS = 100_000_000
+
+
+class UserError(Exception):
+    """Bad command line or environment; reported as one line, exit 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise UserError(message)
+
+
+def _duration(text):
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(x) and x >= 0):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0, got {text}")
+    return x
+
+
+def _steps(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 1 <= n <= MAX_BENCH_STEPS:
+        raise argparse.ArgumentTypeError(f"must be between 1 and {MAX_BENCH_STEPS}, got {text}")
+    return n
+
+
+def _check_writable(path, option):
+    """Fail early (before a long run) if ``path`` cannot be written."""
+    full = os.path.abspath(path)
+    folder = os.path.dirname(full)
+    if os.path.isdir(full):
+        raise UserError(f"{option} {path}: is a directory")
+    if not os.path.isdir(folder):
+        raise UserError(f"{option} {path}: directory {os.path.dirname(path) or folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK) or (
+        os.path.exists(full) and not os.access(full, os.W_OK)
+    ):
+        raise UserError(f"{option} {path}: not writable")
+
+
+def build_parser():
+    parser = _Parser(
+        prog="dct-hil",
+        description="Plant server for the VW DSG 02E dual clutch transmission.",
+    )
+    parser.add_argument("--version", action="version", version=f"dct-hil {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    sim = sub.add_parser("simulate", help="run a scenario offline, as fast as possible")
+    sim.add_argument("--scenario", required=True, metavar="NAME_OR_FILE",
+                     help="a shipped scenario name (plant/scenarios) or a CSV file")
+    sim.add_argument("--duration", type=_duration, metavar="S",
+                     help="simulated seconds (default: the scenario's length; the last row holds)")
+    sim.add_argument("--out", metavar="FILE.csv", help="write the outputs every 10 ms to this CSV")
+    sim.add_argument("--params", metavar="FILE.toml", help="parameter override file")
+    sim.set_defaults(func=cmd_simulate)
+
+    bench = sub.add_parser("bench", help="measure the cost of one plant step")
+    bench.add_argument("--steps", type=_steps, default=200_000, metavar="N",
+                       help="steps to time (default 200000)")
+    bench.add_argument("--json", default="bench.json", metavar="FILE",
+                       help="write the figures here (default bench.json)")
+    bench.add_argument("--scenario", default="launch-1st", metavar="NAME_OR_FILE",
+                       help="inputs to play while timing (default launch-1st)")
+    bench.add_argument("--params", metavar="FILE.toml", help="parameter override file")
+    bench.add_argument("--check", action="store_true",
+                       help=f"exit 1 if the median step cost is above {TARGET_MEDIAN_US} us")
+    bench.set_defaults(func=cmd_bench)
+    return parser
+
+
+# --------------------------------------------------------------------- simulate
+def cmd_simulate(args):
+    from plant.model import Plant, PlantError
+    from plant.scenario import load_scenario
+    from plant.simulate import run
+
+    if args.out:
+        _check_writable(args.out, "--out")
+    scenario = load_scenario(args.scenario)
+    plant = Plant(args.params)
+    try:
+        res = run(plant, scenario, duration_s=args.duration, out_path=args.out)
+    except KeyboardInterrupt:
+        # run() has written the rows recorded so far
+        where = f"; partial CSV in {args.out}" if args.out else ""
+        print(f"dct-hil: interrupted at t={plant.time_s:.3f} s{where}", file=sys.stderr)
+        return 130
+    except PlantError as e:
+        if args.out:
+            raise PlantError(f"{e} (outputs up to then in {args.out})") from None
+        raise
+
+    out = plant.outputs
+    print(f"scenario          {scenario.name}  ({scenario.path})")
+    print(f"simulated         {res.simulated_s:.3f} s  ({res.steps} steps of {plant.step_s * 1e3:g} ms)")
+    print(f"wall time         {res.wall_s:.3f} s")
+    print(f"real-time factor  {res.real_time_factor:.0f}x")
+    if args.out:
+        print(f"csv               {args.out}  ({len(res.data)} rows, every 10 ms)")
+    else:
+        print("csv               not written (use --out FILE.csv)")
+    print(
+        f"end state         {float(out['vehicle_speed_kmh']):.1f} km/h, "
+        f"engine {float(out['engine_speed_rpm']):.0f} rpm, "
+        f"fuel {float(out['fuel_l']):.4f} l, "
+        f"gear clashes {float(out['gear_clashes']):.0f}"
+    )
+    return 0
+
+
+# ------------------------------------------------------------------------ bench
+def bench_figures(step_ns, step_s):
+    """Summary of per-step costs (ns) in microseconds."""
+    import numpy as np
+
+    us = np.asarray(step_ns) / 1e3
+    mean = float(us.mean())
+    return {
+        "median_us": float(np.median(us)),
+        "p90_us": float(np.percentile(us, 90)),
+        "p99_us": float(np.percentile(us, 99)),
+        "p99_9_us": float(np.percentile(us, 99.9)),
+        "max_us": float(us.max()),
+        "mean_us": mean,
+        "real_time_factor": step_s * 1e6 / mean if mean > 0 else math.inf,
+        "steps_per_s": 1e6 / mean if mean > 0 else math.inf,
+    }
+
+
+def _cpu_model():
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() in ("model name", "Model", "Hardware"):
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _git(*args):
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        r = subprocess.run(["git", "-C", here, *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return r.stdout.strip() if r.returncode == 0 else None
+
+
+def machine_info():
+    from plant.model import build_info
+
+    compiler, _, flags = build_info().partition("; ")
+    commit = _git("rev-parse", "HEAD")
+    dirty = _git("status", "--porcelain", "--untracked-files=no") if commit else None
+    return {
+        "cpu": _cpu_model(),
+        "nproc": os.cpu_count(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "compiler": compiler,
+        "compiler_flags": flags,
+        "git_commit": commit,
+        "git_dirty": bool(dirty) if commit else None,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def cmd_bench(args):
+    from plant.model import Plant
+    from plant.scenario import load_scenario
+    from plant.simulate import bench
+
+    _check_writable(args.json, "--json")
+    scenario = load_scenario(args.scenario)
+    plant = Plant(args.params)
+    step_ns = bench(plant, scenario, args.steps)
+    fig = bench_figures(step_ns, plant.step_s)
+    report = {
+        "steps": args.steps,
+        "scenario": scenario.name,
+        "step_s": plant.step_s,
+        **fig,
+        "target_median_us": TARGET_MEDIAN_US,
+        "machine": machine_info(),
+    }
+    with open(args.json, "w", encoding="utf-8") as f:
+        json.dump(report, f, indent=2)
+        f.write("\n")
+
+    print(f"bench             {scenario.name}, {args.steps} steps of {plant.step_s * 1e3:g} ms")
+    print(
+        f"step cost (us)    median {fig['median_us']:.3f}, p90 {fig['p90_us']:.3f}, "
+        f"p99 {fig['p99_us']:.3f}, p99.9 {fig['p99_9_us']:.3f}, max {fig['max_us']:.1f}"
+    )
+    print(f"mean              {fig['mean_us']:.3f} us, {fig['steps_per_s']:.3g} steps/s")
+    print(f"real-time factor  {fig['real_time_factor']:.0f}x  (step / mean step cost)")
+    print(f"json              {args.json}")
+    if args.check:
+        if fig["median_us"] > TARGET_MEDIAN_US:
+            print(
+                f"dct-hil: bench check failed: median step cost {fig['median_us']:.3f} us "
+                f"is above the {TARGET_MEDIAN_US} us target",
+                file=sys.stderr,
+            )
+            return 1
+        print(f"check             passed (median <= {TARGET_MEDIAN_US} us)")
+    return 0
+
+
+# ------------------------------------------------------------------------- main
+def _one_line(text):
+    return " ".join(str(text).split())
+
+
+def _user_errors():
+    """Exception types that mean 'the user gave something unusable'."""
+    from plant.model import PlantError
+    from plant.params import ParamError
+    from plant.scenario import ScenarioError
+
+    return (UserError, ParamError, ScenarioError, PlantError, OSError)
+
+
+def main(argv=None):
+    def fail(message):
+        print(f"dct-hil: error: {_one_line(message)}", file=sys.stderr)
+        return 2
+
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.command is None:
+            raise UserError("choose a command: simulate or bench (dct-hil --help)")
+        try:
+            user_errors = _user_errors()
+        except ImportError as e:
+            return fail(f"the plant package is not built or incomplete ({e}); run scripts/setup")
+        try:
+            return args.func(args)
+        except user_errors as e:
+            if isinstance(e, OSError) and e.filename is not None:
+                return fail(f"{e.filename}: {e.strerror or e}")
+            return fail(e)
+    except UserError as e:
+        return fail(e)
+    except KeyboardInterrupt:
+        print("dct-hil: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,60 @@
+"""cffi builder for the C core (build time only; never imported at run time).
+
+setup.py names it in ``cffi_modules``; ``scripts/setup`` (or any ``pip
+install``) runs it and compiles plant/_dct_plant*.so. The cdef is the public
+headers themselves, so the C contract is written once: every preprocessor
+line is dropped except ``#define NAME <integer>``, which cffi turns into
+constants.
+"""
+
+import glob
+import os
+import re
+
+from cffi import FFI
+
+_HERE = os.path.dirname(os.path.abspath(__file__))
+_CSRC = os.path.join(_HERE, "csrc")
+_HEADERS = ("dct_plant.h", "dct_bench.h")
+_COMPILE_ARGS = ["-O2", "-std=c11", "-fno-math-errno", "-Wall", "-Wextra"]
+
+_INT_DEFINE = re.compile(
+    r"^\s*#\s*define\s+[A-Za-z_]\w*\s+-?(0[xX][0-9a-fA-F]+|\d+)[uUlL]*\s*(/\*.*\*/)?\s*$"
+)
+
+
+def cdef_text(path):
+    """The header at ``path`` with every ``#`` line dropped except integer #defines."""
+    kept = []
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if line.lstrip().startswith("#") and not _INT_DEFINE.match(line):
+                continue
+            kept.append(line)
+    return "".join(kept)
+
+
+def _rel(path):
+    # setuptools wants sources relative to the project root (the cwd when pip
+    # builds); absolute paths when the builder is loaded from elsewhere.
+    rel = os.path.relpath(path)
+    return path if rel.startswith(os.pardir) else rel
+
+
+def make_builder():
+    ffi = FFI()
+    ffi.cdef("\n".join(cdef_text(os.path.join(_CSRC, h)) for h in _HEADERS))
+    ffi.set_source(
+        "plant._dct_plant",
+        '#include "dct_plant.h"\n#include "dct_bench.h"',
+        sources=[_rel(p) for p in sorted(glob.glob(os.path.join(_CSRC, "*.c")))],
+        include_dirs=[_rel(_CSRC)],
+        extra_compile_args=_COMPILE_ARGS,
+        # recorded by dct_bench_build_info() for the benchmark report
+        define_macros=[("DCT_CFLAGS", '"%s"' % " ".join(_COMPILE_ARGS))],
+        libraries=["m"],
+    )
+    return ffi
+
+
+ffibuilder = make_builder()

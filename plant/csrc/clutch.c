@@ -1,0 +1,47 @@
+/*
+ * clutch.c - wet multi-plate clutch (K1 or K2 of the DSG 02E).
+ *
+ * Clamp force = pressure x piston area - return spring (kiss point).
+ * Capacity = surfaces x mu(slip) x effective radius x clamp force, with a
+ * Stribeck curve mu(w) = mu_k + (mu_s - mu_k) exp(-(w / w_s)^2); for wet
+ * clutches mu_k >= mu_s (a rising curve avoids shudder). Friction by the
+ * reset-integrator element; plus the viscous drag of the open wet pack.
+ */
+#include "dct_plant.h"
+#include "dct_util.h"
+
+void dct_clutch_init(const dct_clutch_params *p, dct_clutch_state *s)
+{
+    (void)p;
+    s->twist_rad = 0.0;
+}
+
+static double clutch_mu(const dct_clutch_params *p, double slip_rad_s)
+{
+    return p->mu_kinetic +
+           (p->mu_static - p->mu_kinetic) * dct_gauss(slip_rad_s / p->stribeck_speed_rad_s);
+}
+
+void dct_clutch_output_eval(const dct_clutch_params *p, const dct_clutch_state *s,
+                            const dct_clutch_input *in, dct_clutch_output *out)
+{
+    double slip = in->drive_speed_rad_s - in->driven_speed_rad_s;
+    double force = in->pressure_bar * DCT_PA_PER_BAR * p->piston_area_m2 - p->return_spring_n;
+    if (force < 0.0)
+        force = 0.0;
+    double lever = p->surfaces * p->radius_m * force;
+    double cap = lever * clutch_mu(p, slip);
+    dct_friction_eval(&p->friction, s->twist_rad, slip, cap, &out->friction);
+    out->clamp_force_n = force;
+    out->capacity_nm = lever * p->mu_static;
+    out->slide_capacity_nm = cap;
+    out->slip_rad_s = slip;
+    out->torque_nm = out->friction.torque_nm + p->drag_nms_per_rad * slip;
+}
+
+void dct_clutch_advance(const dct_clutch_params *p, dct_clutch_state *s,
+                        const dct_clutch_output *out, double h)
+{
+    s->twist_rad = dct_friction_advance(&p->friction, s->twist_rad, &out->friction,
+                                        out->slide_capacity_nm, h);
+}

@@ -1,0 +1,636 @@
+/*
+ * dct_plant.h - public API of the dct-hil powertrain plant (VW DSG 02E in a
+ * Golf Mk5 GTI by default).
+ *
+ * This header is the contract between the C core and everything else. It is
+ * read as-is by the cffi builder (plant/_build.py), so it keeps to the subset
+ * cffi parses: plain structs of double/int, integer #defines, prototypes.
+ *
+ * Conventions
+ *   - SI units inside the core (rad/s, N m, N, m, kg); the unit is in every
+ *     field name. Inputs and outputs use the units engineers read (rpm, bar,
+ *     km/h, %), also named.
+ *   - Every component is a params struct + a state struct + an input struct +
+ *     an output struct, with three functions:
+ *       init    - state at rest / at a given speed
+ *       output  - coupling outputs (torques, forces) from state and inputs;
+ *                 pure, writes only the output struct
+ *       advance - one explicit-Euler step of length h of its own states,
+ *                 followed by its discrete events (phase switches, resets)
+ *     Components are coupled only through shaft torques and speeds. The
+ *     assembly (plant.c) evaluates every output first, then advances every
+ *     component: explicit Euler over the whole state.
+ *   - State structs hold doubles only (discrete states too), so the whole
+ *     plant state is one contiguous array of doubles (dct_state).
+ *   - No component reads a clock or allocates memory. Time is a state.
+ *   - Rotation: positive = forward driving direction of the car.
+ */
+#ifndef DCT_PLANT_H
+#define DCT_PLANT_H
+
+#define DCT_CURVE_MAX 24
+#define DCT_MAP_MAX 12
+#define DCT_N_GEARS 7
+#define DCT_N_SLEEVES 4
+
+/* status codes returned by dct_plant_* */
+#define DCT_OK 0
+#define DCT_ERR_INPUT 1
+#define DCT_ERR_STATE 2
+#define DCT_ERR_PARAM 3
+
+/* synchronizer phases (eqs. 2-4 of the reference paper) */
+#define DCT_SYNC_DISENGAGED 0
+#define DCT_SYNC_SYNCHRONIZING 1
+#define DCT_SYNC_ENGAGED 2
+
+/* gear index in dct_gearbox_params.ratio[] etc.: 0..5 = gears 1..6, 6 = R */
+#define DCT_GEAR_R 6
+
+/* ------------------------------------------------------------------ */
+/* Shared tables                                                       */
+/* ------------------------------------------------------------------ */
+
+/* A torque over speed curve, linear interpolation, held flat outside. */
+typedef struct {
+    int n;                                 /* points used (filled by the loader) */
+    double speed_rpm[DCT_CURVE_MAX];
+    double torque_nm[DCT_CURVE_MAX];
+} dct_torque_curve;
+
+/* Brake specific fuel consumption map, bilinear, held flat outside. */
+typedef struct {
+    int n_speed_rpm;
+    int n_torque_nm;
+    double speed_rpm[DCT_MAP_MAX];
+    double torque_nm[DCT_MAP_MAX];
+    double bsfc_g_per_kwh[DCT_MAP_MAX][DCT_MAP_MAX]; /* [torque row][speed column] */
+} dct_bsfc_map;
+
+/* ------------------------------------------------------------------ */
+/* Friction element: reset integrator (Haessig and Friedland 1991)     */
+/* with stick-slip and a Stribeck curve. Used by clutches and brakes.  */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double stiffness_nm_per_rad;    /* stick stiffness of the reset integrator */
+    double damping_nms_per_rad;     /* stick damping */
+} dct_friction_params;
+
+typedef struct {
+    double torque_nm;     /* transmitted torque, positive when it drives the driven side forward */
+    double twist_rate_rad_s; /* d(twist)/dt: slip speed while sticking, 0 while sliding */
+    double sliding;       /* 1 while sliding at the capacity, 0 while sticking */
+} dct_friction_output;
+
+/* slip_rad_s = driving side speed - driven side speed.
+ * cap_nm: torque capacity at this slip speed (>= 0); the caller's Stribeck
+ * curve makes it the breakaway torque at zero slip, so the transmitted torque
+ * is continuous through stick -> slip -> stick. */
+void dct_friction_eval(const dct_friction_params *p, double twist_rad, double slip_rad_s,
+                       double cap_nm, dct_friction_output *out);
+/* Euler step of the twist followed by the reset to the current capacity. */
+double dct_friction_advance(const dct_friction_params *p, double twist_rad,
+                            const dct_friction_output *out, double cap_nm, double h);
+
+/* ------------------------------------------------------------------ */
+/* Engine                                                              */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double inertia_kgm2;              /* crank, flywheel and clutch drum at the clutch input */
+    dct_torque_curve full_load;       /* full-load brake torque over speed */
+    dct_torque_curve drag;            /* motoring (drag) torque over speed, <= 0 */
+    double turbocharged;              /* 1 turbo: slow boost build-up above na_torque_fraction; 0 NA */
+    double na_torque_fraction;        /* share of full-load torque available without boost */
+    double tau_rise_s;                /* torque build-up time constant (manifold filling) */
+    double tau_boost_s;               /* build-up time constant above the NA share (turbo lag) */
+    double tau_fall_s;                /* torque decay time constant */
+    double idle_speed_rpm;            /* idle governor target */
+    double idle_kp_nm_per_rpm;
+    double idle_ki_nm_per_rpm_s;
+    double idle_torque_max_nm;        /* governor authority */
+    double stall_speed_rpm;           /* below this the engine dies */
+    double rev_limit_rpm;             /* fuel cut above */
+    double drag_smoothing_rad_s;      /* drag torque fades to 0 at standstill over this speed */
+    dct_bsfc_map bsfc;
+    double fuel_density_kg_per_l;
+} dct_engine_params;
+
+typedef struct {
+    double speed_rad_s;               /* crank speed (= clutch drum speed) */
+    double combustion_torque_nm;      /* lagged combustion torque (brake torque minus drag) */
+    double idle_integral_nm;          /* idle governor integrator */
+    double fuel_g;                    /* fuel burnt */
+    double running;                   /* 1 running, 0 stalled / switched off */
+} dct_engine_state;
+
+typedef struct {
+    double accel_pedal_pct;
+    double torque_request_nm;         /* TCU torque intervention */
+    double torque_request_active;     /* 0/1 */
+    double engine_on;                 /* 0/1 ignition */
+    double load_torque_nm;            /* torque taken by the clutches (sum) */
+} dct_engine_input;
+
+typedef struct {
+    double torque_nm;                 /* brake torque on the crank (combustion + drag) */
+    double demand_nm;                 /* combustion torque demanded (before the lag) */
+    double drag_nm;                   /* drag torque at this speed (<= 0) */
+    double fuel_rate_g_s;
+    double speed_deriv_rad_s2;
+} dct_engine_output;
+
+void dct_engine_init(const dct_engine_params *p, dct_engine_state *s, double speed_rad_s, int running);
+void dct_engine_output_eval(const dct_engine_params *p, const dct_engine_state *s,
+                            const dct_engine_input *in, dct_engine_output *out);
+void dct_engine_advance(const dct_engine_params *p, dct_engine_state *s,
+                        const dct_engine_input *in, const dct_engine_output *out, double h);
+double dct_curve_eval(const dct_torque_curve *c, double speed_rpm);
+double dct_bsfc_eval(const dct_bsfc_map *m, double speed_rpm, double torque_nm);
+
+/* ------------------------------------------------------------------ */
+/* Wet multi-plate clutch (one of K1/K2)                               */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double surfaces;                  /* number of friction surfaces */
+    double radius_m;                  /* effective friction radius */
+    double mu_static;                 /* friction coefficient at zero slip */
+    double mu_kinetic;                /* friction coefficient at large slip */
+    double stribeck_speed_rad_s;      /* slip speed of the static -> kinetic transition */
+    double piston_area_m2;            /* clamp force = pressure x area - return spring */
+    double return_spring_n;           /* return spring force at the kiss point */
+    double drag_nms_per_rad;          /* viscous drag of the open wet pack */
+    double max_pressure_bar;          /* input range */
+    dct_friction_params friction;
+} dct_clutch_params;
+
+typedef struct {
+    double twist_rad;                 /* reset-integrator state */
+} dct_clutch_state;
+
+typedef struct {
+    double pressure_bar;
+    double drive_speed_rad_s;         /* engine / drum */
+    double driven_speed_rad_s;        /* input shaft */
+} dct_clutch_input;
+
+typedef struct {
+    double torque_nm;                 /* on the input shaft (+), reaction on the engine (-) */
+    double clamp_force_n;
+    double capacity_nm;               /* static capacity */
+    double slide_capacity_nm;         /* capacity at this slip (Stribeck) */
+    double slip_rad_s;
+    dct_friction_output friction;
+} dct_clutch_output;
+
+void dct_clutch_init(const dct_clutch_params *p, dct_clutch_state *s);
+void dct_clutch_output_eval(const dct_clutch_params *p, const dct_clutch_state *s,
+                            const dct_clutch_input *in, dct_clutch_output *out);
+void dct_clutch_advance(const dct_clutch_params *p, dct_clutch_state *s,
+                        const dct_clutch_output *out, double h);
+
+/* ------------------------------------------------------------------ */
+/* Synchronizer (hybrid three-phase model, eqs. 1-6)                   */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double cone_mu;                   /* cone friction coefficient */
+    double cone_radius_m;             /* mean cone radius r_s */
+    double cone_half_angle_deg;       /* alpha */
+    double tanh_speed_rad_s;          /* omega_0 of eq. 3 */
+    double stiffness_nm_per_rad;      /* k: shaft and gear, at the output shaft */
+    double damping_nms_per_rad;       /* b */
+    double sleeve_mass_kg;            /* sleeve + fork + rail */
+    double sleeve_damping_ns_per_m;
+    double cone_travel_mm;            /* neutral to cone contact */
+    double engaged_travel_mm;         /* neutral to full engagement */
+    double detent_force_n;            /* neutral detent */
+    double lock_speed_rad_s;          /* blocker releases below this slip */
+    double blocker_force_max_n;       /* fork force that overpowers the blocker */
+    double clash_speed_rad_s;         /* engaging above this slip counts as a clash */
+    double dog_friction_mu;           /* dog-tooth friction: holds an engaged gear under load */
+    double dog_radius_m;
+} dct_sync_params;
+
+typedef struct {
+    double position_m;                /* sleeve travel, + towards the first gear of the pair */
+    double velocity_m_s;
+    double phase;                     /* DCT_SYNC_* */
+    double side;                      /* +1 first gear, -1 second gear, 0 none */
+    double twist_rad;                 /* theta_r */
+    double clashes;                   /* engagements with a large speed difference */
+} dct_sync_state;
+
+typedef struct {
+    double fork_force_n;
+    double slip_pos_rad_s;            /* first gear speed - shaft speed */
+    double slip_neg_rad_s;            /* second gear speed - shaft speed */
+    double has_neg;                   /* 0 for the 6-N sleeve */
+} dct_sync_input;
+
+typedef struct {
+    double torque_nm;                 /* on the output shaft (+), reaction on the idle gear (-) */
+    double side;                      /* which gear carries torque_nm */
+    double slip_rad_s;                /* omega_r of the addressed gear */
+    double cone_torque_nm;            /* T_s of eq. 6 */
+} dct_sync_output;
+
+void dct_sync_init(const dct_sync_params *p, dct_sync_state *s, int side_engaged);
+void dct_sync_output_eval(const dct_sync_params *p, const dct_sync_state *s,
+                          const dct_sync_input *in, dct_sync_output *out);
+void dct_sync_advance(const dct_sync_params *p, dct_sync_state *s,
+                      const dct_sync_input *in, const dct_sync_output *out, double h);
+double dct_sync_cone_torque(const dct_sync_params *p, double force_n);
+
+/* ------------------------------------------------------------------ */
+/* Gearbox: two input shafts, two output shafts on one final drive,    */
+/* gears 1-6 and R, four sleeves                                       */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double ratio[DCT_N_GEARS];              /* gears 1..6, R (R entered positive, turns backwards) */
+    double final_drive[2];                  /* output shaft 1 (gears 1-4), output shaft 2 (5, 6, R) */
+    double mesh_efficiency[DCT_N_GEARS];    /* gear mesh + final drive, per gear */
+    double efficiency_smoothing_w;          /* power scale of the driving/coasting switch */
+    double input_shaft_inertia_kgm2[2];     /* shaft, clutch hub, fixed gears */
+    double idle_gear_inertia_kgm2[DCT_N_GEARS]; /* loose gears on the output shafts */
+    double output_shaft_inertia_kgm2[2];
+    double differential_inertia_kgm2;       /* ring gear and carrier */
+    double input_drag_nm[2];                /* constant bearing drag */
+    double input_drag_nms_per_rad[2];       /* viscous churning drag */
+    double output_drag_nm;                  /* at the differential */
+    double output_drag_nms_per_rad;
+    double idle_gear_drag_nms_per_rad;      /* loose gear needle bearing, relative speed */
+    double drag_smoothing_rad_s;
+    double max_fork_force_n;                /* input range */
+    dct_sync_params sync[DCT_N_SLEEVES];    /* sleeves 1-3, 2-4, 5-R, 6-N */
+} dct_gearbox_params;
+
+typedef struct {
+    double input_speed_rad_s[2];
+    double carrier_speed_rad_s;             /* differential carrier; output shafts follow by final drive */
+    dct_sync_state sync[DCT_N_SLEEVES];
+} dct_gearbox_state;
+
+typedef struct {
+    double clutch_torque_nm[2];
+    double fork_force_n[DCT_N_SLEEVES];
+    double load_torque_nm;                  /* taken from the carrier by the differential */
+} dct_gearbox_input;
+
+typedef struct {
+    double gear_torque_nm[DCT_N_GEARS];     /* torque each gear puts on its output shaft */
+    double input_torque_nm[2];              /* net torque on each input shaft */
+    double carrier_torque_nm;               /* net torque on the carrier */
+    double output_speed_rad_s[2];
+    double power_loss_w;
+    dct_sync_output sync[DCT_N_SLEEVES];
+    dct_sync_input sync_in[DCT_N_SLEEVES];
+} dct_gearbox_output;
+
+/* derived constants, computed once by dct_gearbox_prepare() */
+typedef struct {
+    double input_inertia_kgm2[2];           /* incl. loose gears reduced to the shaft */
+    double carrier_inertia_kgm2;            /* incl. output shafts reduced to the carrier */
+    double signed_ratio[DCT_N_GEARS];       /* R negative */
+} dct_gearbox_derived;
+
+/* gear layout of the DSG 02E: input shaft (0/1), output shaft (0/1),
+ * sleeve (0..3) and side (+1/-1) of each gear index */
+int dct_gear_input_shaft(int gear);
+int dct_gear_output_shaft(int gear);
+int dct_gear_sleeve(int gear);
+int dct_gear_side(int gear);
+int dct_sleeve_gear(int sleeve, int side);  /* -1 for none (6-N, negative side) */
+
+void dct_gearbox_prepare(const dct_gearbox_params *p, dct_gearbox_derived *d);
+void dct_gearbox_output_eval(const dct_gearbox_params *p, const dct_gearbox_derived *d,
+                             const dct_gearbox_state *s, const dct_gearbox_input *in,
+                             dct_gearbox_output *out);
+void dct_gearbox_advance(const dct_gearbox_params *p, const dct_gearbox_derived *d,
+                         dct_gearbox_state *s, const dct_gearbox_input *in,
+                         const dct_gearbox_output *out, double h);
+
+/* ------------------------------------------------------------------ */
+/* Driveline: open differential, two half-shafts (front-wheel drive)   */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double left_stiffness_nm_per_rad;
+    double left_damping_nms_per_rad;
+    double right_stiffness_nm_per_rad;
+    double right_damping_nms_per_rad;
+} dct_driveline_params;
+
+typedef struct {
+    double left_twist_rad;
+    double right_twist_rad;
+} dct_driveline_state;
+
+typedef struct {
+    double carrier_speed_rad_s;
+    double left_wheel_speed_rad_s;
+    double right_wheel_speed_rad_s;
+} dct_driveline_input;
+
+typedef struct {
+    double shaft_torque_nm;           /* each half-shaft (equal: open differential) */
+    double carrier_load_nm;           /* 2 x shaft torque, taken from the carrier */
+    double left_side_speed_rad_s;     /* differential side gears */
+    double right_side_speed_rad_s;
+} dct_driveline_output;
+
+void dct_driveline_init(const dct_driveline_params *p, dct_driveline_state *s);
+void dct_driveline_output_eval(const dct_driveline_params *p, const dct_driveline_state *s,
+                               const dct_driveline_input *in, dct_driveline_output *out);
+void dct_driveline_advance(const dct_driveline_params *p, dct_driveline_state *s,
+                           const dct_driveline_input *in, const dct_driveline_output *out, double h);
+
+/* ------------------------------------------------------------------ */
+/* Tyre: Pacejka magic formula (longitudinal, pure slip) with a        */
+/* transient-slip deflection state; spring-damper near standstill      */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double radius_m;                  /* effective rolling radius */
+    double nominal_load_n;            /* Fz0 */
+    double pcx1;                      /* shape factor C */
+    double pdx1;                      /* peak friction at Fz0 */
+    double pdx2;                      /* peak friction load dependency */
+    double pex1;                      /* curvature E at Fz0 */
+    double pex2;
+    double pkx1;                      /* slip stiffness / Fz at Fz0 */
+    double pkx2;
+    double pkx3;
+    double relaxation_length_m;
+    double low_speed_damping_ns_per_m; /* contact damping near standstill */
+    double low_speed_limit_m_s;       /* the damping fades out up to this speed */
+    double rolling_resistance;        /* coefficient */
+    double rolling_smoothing_rad_s;   /* rolling resistance fades to 0 at standstill */
+} dct_tyre_params;
+
+typedef struct {
+    double deflection_m;              /* longitudinal carcass deflection (transient slip) */
+} dct_tyre_state;
+
+typedef struct {
+    double wheel_speed_rad_s;
+    double ground_speed_m_s;          /* wheel centre speed along the road */
+    double normal_force_n;            /* on all tyres of this wheel position */
+    double count;                     /* tyres lumped in this position (1 or 2) */
+} dct_tyre_input;
+
+typedef struct {
+    double force_n;                   /* longitudinal force on the car (+ forward) */
+    double rolling_moment_nm;         /* opposes wheel rotation */
+    double slip;                      /* transient slip ratio */
+    double slip_speed_m_s;            /* omega R - V */
+    double deflection_rate_m_s;
+} dct_tyre_output;
+
+double dct_magic_formula(const dct_tyre_params *p, double slip, double normal_force_n);
+void dct_tyre_init(const dct_tyre_params *p, dct_tyre_state *s);
+void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
+                          const dct_tyre_input *in, dct_tyre_output *out);
+void dct_tyre_advance(const dct_tyre_params *p, dct_tyre_state *s,
+                      const dct_tyre_output *out, double h);
+double dct_tyre_deflection_energy(const dct_tyre_params *p, double deflection_m,
+                                  double normal_force_n, double count);
+
+/* ------------------------------------------------------------------ */
+/* Wheel with friction brake                                           */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double inertia_kgm2;              /* wheel, tyre, hub, brake disc (all wheels of the position) */
+    double brake_torque_max_nm;       /* at 100 % brake pedal */
+    dct_friction_params brake;
+} dct_wheel_params;
+
+typedef struct {
+    double speed_rad_s;
+    double brake_twist_rad;
+} dct_wheel_state;
+
+typedef struct {
+    double drive_torque_nm;           /* from the half-shaft */
+    double tyre_force_n;
+    double tyre_radius_m;
+    double rolling_moment_nm;
+    double brake_pedal_pct;
+} dct_wheel_input;
+
+typedef struct {
+    double brake_torque_nm;           /* on the wheel, opposes rotation */
+    double body_torque_nm;            /* torques the wheel takes from the body side (shaft + brake) */
+    double speed_deriv_rad_s2;
+    dct_friction_output brake;
+} dct_wheel_output;
+
+void dct_wheel_init(const dct_wheel_params *p, dct_wheel_state *s, double speed_rad_s);
+void dct_wheel_output_eval(const dct_wheel_params *p, const dct_wheel_state *s,
+                           const dct_wheel_input *in, dct_wheel_output *out);
+void dct_wheel_advance(const dct_wheel_params *p, dct_wheel_state *s,
+                       const dct_wheel_input *in, const dct_wheel_output *out, double h);
+
+/* ------------------------------------------------------------------ */
+/* Vehicle: 2D body (longitudinal, vertical, pitch), front and rear    */
+/* suspension with spindle masses, aerodynamic drag, road grade        */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double mass_kg;                   /* whole car incl. unsprung masses and driver */
+    double front_unsprung_kg;         /* both front spindles, wheels, brakes */
+    double rear_unsprung_kg;
+    double pitch_inertia_kgm2;        /* sprung mass about the CG */
+    double cg_height_m;
+    double wheelbase_m;
+    double cg_to_front_axle_m;
+    double drag_coefficient;
+    double frontal_area_m2;
+    double air_density_kg_m3;
+    double front_spring_n_per_m;      /* per axle */
+    double front_damper_ns_per_m;
+    double rear_spring_n_per_m;
+    double rear_damper_ns_per_m;
+    double front_tyre_vertical_n_per_m; /* per axle */
+    double rear_tyre_vertical_n_per_m;
+    double tyre_vertical_damping_ns_per_m; /* per axle */
+    double wheel_centre_height_m;     /* = tyre radius; lever of the tyre forces */
+    double gravity_m_s2;
+} dct_vehicle_params;
+
+typedef struct {
+    double position_m;
+    double speed_m_s;
+    double heave_m;                   /* body CG vertical, from static equilibrium on level road */
+    double heave_rate_m_s;
+    double pitch_rad;                 /* + nose up */
+    double pitch_rate_rad_s;
+    double front_spindle_m;
+    double front_spindle_rate_m_s;
+    double rear_spindle_m;
+    double rear_spindle_rate_m_s;
+} dct_vehicle_state;
+
+typedef struct {
+    double front_tyre_force_n;        /* sum of the front tyres */
+    double rear_tyre_force_n;
+    double front_wheel_torque_nm;     /* torques the front wheels take from the body side */
+    double rear_wheel_torque_nm;
+    double road_grade_pct;
+} dct_vehicle_input;
+
+typedef struct {
+    double front_normal_force_n;      /* axle */
+    double rear_normal_force_n;
+    double accel_m_s2;
+    double aero_force_n;
+    double front_suspension_force_n;
+    double rear_suspension_force_n;
+    double heave_accel_m_s2;
+    double pitch_accel_rad_s2;
+    double front_spindle_accel_m_s2;
+    double rear_spindle_accel_m_s2;
+} dct_vehicle_output;
+
+void dct_vehicle_init(const dct_vehicle_params *p, dct_vehicle_state *s, double speed_m_s);
+void dct_vehicle_output_eval(const dct_vehicle_params *p, const dct_vehicle_state *s,
+                             const dct_vehicle_input *in, dct_vehicle_output *out);
+void dct_vehicle_advance(const dct_vehicle_params *p, dct_vehicle_state *s,
+                         const dct_vehicle_input *in, const dct_vehicle_output *out, double h);
+/* static normal forces on level road, per axle */
+double dct_vehicle_static_front_n(const dct_vehicle_params *p);
+double dct_vehicle_static_rear_n(const dct_vehicle_params *p);
+/* tyre normal forces per axle from the state alone (needed before the tyres) */
+void dct_vehicle_tyre_loads(const dct_vehicle_params *p, const dct_vehicle_state *s,
+                            double road_grade_pct, double *front_n, double *rear_n);
+double dct_vehicle_energy(const dct_vehicle_params *p, const dct_vehicle_state *s,
+                          double road_grade_pct);
+
+/* ------------------------------------------------------------------ */
+/* Assembly                                                            */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double step_s;                    /* fixed step (0.5 ms) */
+    double substeps;                  /* Euler sub-steps per step (whole plant) */
+} dct_solver_params;
+
+typedef struct {
+    dct_solver_params solver;
+    dct_engine_params engine;
+    dct_clutch_params clutch[2];      /* K1 (input shaft 1: gears 1 3 5 R), K2 (2 4 6) */
+    dct_gearbox_params gearbox;
+    dct_driveline_params driveline;
+    dct_wheel_params front_wheel;     /* one front wheel */
+    dct_wheel_params rear_wheels;     /* both rear wheels lumped */
+    dct_tyre_params tyre;
+    dct_vehicle_params vehicle;
+} dct_params;
+
+/* The whole state: doubles only, one contiguous array. */
+typedef struct {
+    double time_s;
+    dct_engine_state engine;
+    dct_clutch_state clutch[2];
+    dct_gearbox_state gearbox;
+    dct_driveline_state driveline;
+    dct_wheel_state wheel[3];         /* front left, front right, rear axle */
+    dct_tyre_state tyre[3];
+    dct_vehicle_state vehicle;
+} dct_state;
+
+/* Plant inputs (what a TCU, a driver and the road give). */
+typedef struct {
+    double accel_pedal_pct;
+    double brake_pedal_pct;
+    double clutch1_pressure_bar;
+    double clutch2_pressure_bar;
+    double fork_force1_n;             /* sleeve 1-3: + gear 1, - gear 3 */
+    double fork_force2_n;             /* sleeve 2-4: + gear 2, - gear 4 */
+    double fork_force3_n;             /* sleeve 5-R: + gear 5, - gear R */
+    double fork_force4_n;             /* sleeve 6-N: + gear 6, - neutral */
+    double road_grade_pct;
+    double engine_torque_request_nm;
+    double torque_request_active;
+    double engine_on;
+} dct_inputs;
+
+/* Plant outputs, refreshed after every step. */
+typedef struct {
+    double time_s;
+    double engine_speed_rpm;
+    double engine_torque_nm;
+    double engine_running;
+    double input_shaft1_speed_rpm;
+    double input_shaft2_speed_rpm;
+    double output_shaft1_speed_rpm;
+    double output_shaft2_speed_rpm;
+    double clutch1_pressure_bar;
+    double clutch2_pressure_bar;
+    double clutch1_torque_nm;
+    double clutch2_torque_nm;
+    double clutch1_slip_rpm;
+    double clutch2_slip_rpm;
+    double clutch1_capacity_nm;
+    double clutch2_capacity_nm;
+    double vehicle_speed_kmh;
+    double vehicle_accel_mps2;
+    double distance_m;
+    double pitch_deg;
+    double heave_mm;
+    double sync1_state;
+    double sync2_state;
+    double sync3_state;
+    double sync4_state;
+    double sync1_gear;                /* gear the sleeve addresses: 1..6, -1 for R, 0 none */
+    double sync2_gear;
+    double sync3_gear;
+    double sync4_gear;
+    double fork1_position_mm;
+    double fork2_position_mm;
+    double fork3_position_mm;
+    double fork4_position_mm;
+    double gear_clashes;
+    double fuel_l;
+    double fuel_rate_lph;
+    double wheel_speed_fl_rpm;
+    double wheel_speed_fr_rpm;
+    double wheel_speed_rear_rpm;
+    double halfshaft_torque_nm;
+    double front_tyre_slip;
+    double front_axle_load_n;
+    double rear_axle_load_n;
+    double brake_torque_nm;           /* all wheels */
+    double road_grade_pct;
+    double input_clamps;              /* inputs limited to their range so far */
+} dct_outputs;
+
+/* Initial conditions for dct_plant_reset(). */
+typedef struct {
+    double vehicle_speed_kmh;
+    double sleeve_side[DCT_N_SLEEVES]; /* +1 / -1 engaged, 0 neutral */
+    double clutch_locked[2];          /* 1: engine speed follows that input shaft */
+    double engine_on;
+} dct_initial;
+
+typedef struct {
+    dct_gearbox_derived gearbox;
+    double front_static_n;            /* static axle loads on level road */
+    double rear_static_n;
+} dct_derived;
+
+typedef struct {
+    dct_params params;
+    dct_derived derived;
+    dct_state state;
+    dct_inputs inputs;
+    dct_outputs outputs;
+    int error_index;                  /* index into inputs or state of the first bad value */
+    double step_count;                /* steps since reset */
+    double input_clamps;              /* inputs limited to their range since reset */
+    dct_inputs applied;               /* the inputs as limited and used by the last step */
+} dct_plant;
+
+int dct_plant_init(dct_plant *plant);            /* checks params, prepares, resets to rest */
+int dct_plant_reset(dct_plant *plant, const dct_initial *init);
+int dct_plant_step(dct_plant *plant, int n);     /* n steps of params.solver.step_s */
+void dct_plant_update_outputs(dct_plant *plant);
+double dct_plant_energy(const dct_plant *plant); /* stored energy: kinetic + springs + gravity */
+int dct_plant_state_size(void);                   /* doubles in dct_state */
+int dct_plant_input_size(void);
+
+#endif

@@ -1,0 +1,50 @@
+/* dct_util.h - small helpers shared by the C core (internal, not part of the API). */
+#ifndef DCT_UTIL_H
+#define DCT_UTIL_H
+
+#include <math.h>
+
+#define DCT_PI 3.14159265358979323846
+#define DCT_RPM_PER_RAD_S (30.0 / DCT_PI)
+#define DCT_RAD_S_PER_RPM (DCT_PI / 30.0)
+#define DCT_PA_PER_BAR 1.0e5
+
+static inline double dct_clamp(double x, double lo, double hi)
+{
+    return x < lo ? lo : (x > hi ? hi : x);
+}
+
+static inline double dct_sq(double x) { return x * x; }
+
+static inline double dct_sign(double x) { return (x > 0.0) - (x < 0.0); }
+
+/* tanh(x / width): a sign that fades through zero over `width`. Past
+ * |x| = 20 width tanh is 1 to the last bit, so the call is skipped there:
+ * most of the time shafts turn fast and this costs a compare. */
+static inline double dct_smooth_sign(double x, double width)
+{
+    double a = x / width;
+    if (a > 20.0)
+        return 1.0;
+    if (a < -20.0)
+        return -1.0;
+    return tanh(a);
+}
+
+/* exp(-x^2), skipped where it underflows below 1e-17 */
+static inline double dct_gauss(double x)
+{
+    double q = x * x;
+    return q > 40.0 ? 0.0 : exp(-q);
+}
+
+/* 1 at 0, 0 from `width` on, smooth (raised cosine) in between */
+static inline double dct_fade(double x, double width)
+{
+    double a = fabs(x) / width;
+    if (a >= 1.0)
+        return 0.0;
+    return 0.5 * (1.0 + cos(DCT_PI * a));
+}
+
+#endif

@@ -1,0 +1,423 @@
+/*
+ * plant.c - the assembly: engine -> K1/K2 -> gearbox -> differential and
+ * half-shafts -> wheels and brakes -> tyres -> vehicle body.
+ *
+ * One sub-step of explicit Euler: every component's coupling outputs
+ * (torques, forces) are evaluated from the state at the start of the
+ * sub-step, then every component advances its own states. The step of
+ * params.solver.step_s (0.5 ms, the reference paper's real-time solver) is
+ * made of params.solver.substeps such sub-steps. No allocation, no clock:
+ * time is a state advanced by the step.
+ */
+#include <stddef.h>
+#include <string.h>
+
+#include "dct_plant.h"
+#include "dct_util.h"
+
+#define N_STATE ((int)(sizeof(dct_state) / sizeof(double)))
+#define N_INPUT ((int)(sizeof(dct_inputs) / sizeof(double)))
+
+int dct_plant_state_size(void) { return N_STATE; }
+int dct_plant_input_size(void) { return N_INPUT; }
+
+/* every coupling variable of one evaluation */
+typedef struct {
+    dct_clutch_input clutch_in[2];
+    dct_clutch_output clutch[2];
+    dct_engine_input engine_in;
+    dct_engine_output engine;
+    dct_driveline_input driveline_in;
+    dct_driveline_output driveline;
+    dct_gearbox_input gearbox_in;
+    dct_gearbox_output gearbox;
+    dct_tyre_input tyre_in[3];
+    dct_tyre_output tyre[3];
+    dct_wheel_input wheel_in[3];
+    dct_wheel_output wheel[3];
+    dct_vehicle_input vehicle_in;
+    dct_vehicle_output vehicle;
+} coupling;
+
+static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
+{
+    const dct_params *p = &pl->params;
+    const dct_state *s = &pl->state;
+    double pressure[2] = {u->clutch1_pressure_bar, u->clutch2_pressure_bar};
+
+    /* clutches: engine drum to the input shafts */
+    for (int k = 0; k < 2; k++) {
+        c->clutch_in[k].pressure_bar = pressure[k];
+        c->clutch_in[k].drive_speed_rad_s = s->engine.speed_rad_s;
+        c->clutch_in[k].driven_speed_rad_s = s->gearbox.input_speed_rad_s[k];
+        dct_clutch_output_eval(&p->clutch[k], &s->clutch[k], &c->clutch_in[k], &c->clutch[k]);
+    }
+
+    /* engine, loaded by both clutches */
+    c->engine_in.accel_pedal_pct = u->accel_pedal_pct;
+    c->engine_in.torque_request_nm = u->engine_torque_request_nm;
+    c->engine_in.torque_request_active = u->torque_request_active;
+    c->engine_in.engine_on = u->engine_on;
+    c->engine_in.load_torque_nm = c->clutch[0].torque_nm + c->clutch[1].torque_nm;
+    dct_engine_output_eval(&p->engine, &s->engine, &c->engine_in, &c->engine);
+
+    /* differential and half-shafts */
+    c->driveline_in.carrier_speed_rad_s = s->gearbox.carrier_speed_rad_s;
+    c->driveline_in.left_wheel_speed_rad_s = s->wheel[0].speed_rad_s;
+    c->driveline_in.right_wheel_speed_rad_s = s->wheel[1].speed_rad_s;
+    dct_driveline_output_eval(&p->driveline, &s->driveline, &c->driveline_in, &c->driveline);
+
+    /* gearbox */
+    c->gearbox_in.clutch_torque_nm[0] = c->clutch[0].torque_nm;
+    c->gearbox_in.clutch_torque_nm[1] = c->clutch[1].torque_nm;
+    c->gearbox_in.fork_force_n[0] = u->fork_force1_n;
+    c->gearbox_in.fork_force_n[1] = u->fork_force2_n;
+    c->gearbox_in.fork_force_n[2] = u->fork_force3_n;
+    c->gearbox_in.fork_force_n[3] = u->fork_force4_n;
+    c->gearbox_in.load_torque_nm = c->driveline.carrier_load_nm;
+    dct_gearbox_output_eval(&p->gearbox, &pl->derived.gearbox, &s->gearbox, &c->gearbox_in,
+                            &c->gearbox);
+
+    /* tyres: normal forces from the suspension state */
+    double fz_front, fz_rear;
+    dct_vehicle_tyre_loads(&p->vehicle, &s->vehicle, u->road_grade_pct, &fz_front, &fz_rear);
+    double fz[3] = {0.5 * fz_front, 0.5 * fz_front, fz_rear};
+    double count[3] = {1.0, 1.0, 2.0};
+    double shaft[3] = {c->driveline.shaft_torque_nm, c->driveline.shaft_torque_nm, 0.0};
+    for (int i = 0; i < 3; i++) {
+        c->tyre_in[i].wheel_speed_rad_s = s->wheel[i].speed_rad_s;
+        c->tyre_in[i].ground_speed_m_s = s->vehicle.speed_m_s;
+        c->tyre_in[i].normal_force_n = fz[i];
+        c->tyre_in[i].count = count[i];
+        dct_tyre_output_eval(&p->tyre, &s->tyre[i], &c->tyre_in[i], &c->tyre[i]);
+
+        c->wheel_in[i].drive_torque_nm = shaft[i];
+        c->wheel_in[i].tyre_force_n = c->tyre[i].force_n;
+        c->wheel_in[i].tyre_radius_m = p->tyre.radius_m;
+        c->wheel_in[i].rolling_moment_nm = c->tyre[i].rolling_moment_nm;
+        c->wheel_in[i].brake_pedal_pct = u->brake_pedal_pct;
+        const dct_wheel_params *wp = i < 2 ? &p->front_wheel : &p->rear_wheels;
+        dct_wheel_output_eval(wp, &s->wheel[i], &c->wheel_in[i], &c->wheel[i]);
+    }
+
+    /* body */
+    c->vehicle_in.front_tyre_force_n = c->tyre[0].force_n + c->tyre[1].force_n;
+    c->vehicle_in.rear_tyre_force_n = c->tyre[2].force_n;
+    c->vehicle_in.front_wheel_torque_nm = c->wheel[0].body_torque_nm + c->wheel[1].body_torque_nm;
+    c->vehicle_in.rear_wheel_torque_nm = c->wheel[2].body_torque_nm;
+    c->vehicle_in.road_grade_pct = u->road_grade_pct;
+    dct_vehicle_output_eval(&p->vehicle, &s->vehicle, &c->vehicle_in, &c->vehicle);
+}
+
+static void advance(dct_plant *pl, const coupling *c, double h)
+{
+    const dct_params *p = &pl->params;
+    dct_state *s = &pl->state;
+    dct_engine_advance(&p->engine, &s->engine, &c->engine_in, &c->engine, h);
+    for (int k = 0; k < 2; k++)
+        dct_clutch_advance(&p->clutch[k], &s->clutch[k], &c->clutch[k], h);
+    dct_gearbox_advance(&p->gearbox, &pl->derived.gearbox, &s->gearbox, &c->gearbox_in,
+                        &c->gearbox, h);
+    dct_driveline_advance(&p->driveline, &s->driveline, &c->driveline_in, &c->driveline, h);
+    for (int i = 0; i < 3; i++) {
+        const dct_wheel_params *wp = i < 2 ? &p->front_wheel : &p->rear_wheels;
+        dct_wheel_advance(wp, &s->wheel[i], &c->wheel_in[i], &c->wheel[i], h);
+        dct_tyre_advance(&p->tyre, &s->tyre[i], &c->tyre[i], h);
+    }
+    dct_vehicle_advance(&p->vehicle, &s->vehicle, &c->vehicle_in, &c->vehicle, h);
+    s->time_s += h;
+}
+
+static double sync_gear_number(const dct_sync_state *s, int sleeve)
+{
+    int g = dct_sleeve_gear(sleeve, (int)s->side);
+    if (g < 0 || s->phase == DCT_SYNC_DISENGAGED)
+        return 0.0;
+    return g == DCT_GEAR_R ? -1.0 : (double)(g + 1);
+}
+
+static void write_outputs(dct_plant *pl, const coupling *c)
+{
+    const dct_params *p = &pl->params;
+    const dct_state *s = &pl->state;
+    dct_outputs *o = &pl->outputs;
+    const dct_gearbox_state *g = &s->gearbox;
+    o->time_s = s->time_s;
+    o->engine_speed_rpm = s->engine.speed_rad_s * DCT_RPM_PER_RAD_S;
+    o->engine_torque_nm = c->engine.torque_nm;
+    o->engine_running = s->engine.running;
+    o->input_shaft1_speed_rpm = g->input_speed_rad_s[0] * DCT_RPM_PER_RAD_S;
+    o->input_shaft2_speed_rpm = g->input_speed_rad_s[1] * DCT_RPM_PER_RAD_S;
+    o->output_shaft1_speed_rpm = g->carrier_speed_rad_s * p->gearbox.final_drive[0] * DCT_RPM_PER_RAD_S;
+    o->output_shaft2_speed_rpm = g->carrier_speed_rad_s * p->gearbox.final_drive[1] * DCT_RPM_PER_RAD_S;
+    o->clutch1_pressure_bar = pl->applied.clutch1_pressure_bar;
+    o->clutch2_pressure_bar = pl->applied.clutch2_pressure_bar;
+    o->clutch1_torque_nm = c->clutch[0].torque_nm;
+    o->clutch2_torque_nm = c->clutch[1].torque_nm;
+    o->clutch1_slip_rpm = (s->engine.speed_rad_s - g->input_speed_rad_s[0]) * DCT_RPM_PER_RAD_S;
+    o->clutch2_slip_rpm = (s->engine.speed_rad_s - g->input_speed_rad_s[1]) * DCT_RPM_PER_RAD_S;
+    o->clutch1_capacity_nm = c->clutch[0].capacity_nm;
+    o->clutch2_capacity_nm = c->clutch[1].capacity_nm;
+    o->vehicle_speed_kmh = s->vehicle.speed_m_s * 3.6;
+    o->vehicle_accel_mps2 = c->vehicle.accel_m_s2;
+    o->distance_m = s->vehicle.position_m;
+    o->pitch_deg = s->vehicle.pitch_rad * (180.0 / DCT_PI);
+    o->heave_mm = s->vehicle.heave_m * 1e3;
+    double *state_out = &o->sync1_state, *gear_out = &o->sync1_gear, *fork_out = &o->fork1_position_mm;
+    double clashes = 0.0;
+    for (int k = 0; k < DCT_N_SLEEVES; k++) {
+        state_out[k] = g->sync[k].phase;
+        gear_out[k] = sync_gear_number(&g->sync[k], k);
+        fork_out[k] = g->sync[k].position_m * 1e3;
+        clashes += g->sync[k].clashes;
+    }
+    o->gear_clashes = clashes;
+    o->fuel_l = s->engine.fuel_g * 1e-3 / p->engine.fuel_density_kg_per_l;
+    o->fuel_rate_lph = c->engine.fuel_rate_g_s * 3.6 / p->engine.fuel_density_kg_per_l;
+    o->wheel_speed_fl_rpm = s->wheel[0].speed_rad_s * DCT_RPM_PER_RAD_S;
+    o->wheel_speed_fr_rpm = s->wheel[1].speed_rad_s * DCT_RPM_PER_RAD_S;
+    o->wheel_speed_rear_rpm = s->wheel[2].speed_rad_s * DCT_RPM_PER_RAD_S;
+    o->halfshaft_torque_nm = c->driveline.shaft_torque_nm;
+    o->front_tyre_slip = c->tyre[0].slip;
+    o->front_axle_load_n = c->vehicle.front_normal_force_n;
+    o->rear_axle_load_n = c->vehicle.rear_normal_force_n;
+    o->brake_torque_nm = c->wheel[0].brake_torque_nm + c->wheel[1].brake_torque_nm +
+                         c->wheel[2].brake_torque_nm;
+    o->road_grade_pct = pl->applied.road_grade_pct;
+    o->input_clamps = pl->input_clamps;
+}
+
+/* limit one input to [lo, hi], counting the values that had to be limited */
+static double limit(dct_plant *pl, double x, double lo, double hi)
+{
+    if (x < lo) {
+        pl->input_clamps += 1.0;
+        return lo;
+    }
+    if (x > hi) {
+        pl->input_clamps += 1.0;
+        return hi;
+    }
+    return x;
+}
+
+/* checks the inputs (non-finite: error) and writes the limited copy the
+ * components use; the caller's struct is left as it was given */
+static int apply_inputs(dct_plant *pl)
+{
+    const double *raw = (const double *)&pl->inputs;
+    for (int i = 0; i < N_INPUT; i++) {
+        if (!isfinite(raw[i])) {
+            pl->error_index = i;
+            return DCT_ERR_INPUT;
+        }
+    }
+    const dct_params *p = &pl->params;
+    const dct_inputs *u = &pl->inputs;
+    dct_inputs *a = &pl->applied;
+    double fmax = p->gearbox.max_fork_force_n;
+    a->accel_pedal_pct = limit(pl, u->accel_pedal_pct, 0.0, 100.0);
+    a->brake_pedal_pct = limit(pl, u->brake_pedal_pct, 0.0, 100.0);
+    a->clutch1_pressure_bar = limit(pl, u->clutch1_pressure_bar, 0.0, p->clutch[0].max_pressure_bar);
+    a->clutch2_pressure_bar = limit(pl, u->clutch2_pressure_bar, 0.0, p->clutch[1].max_pressure_bar);
+    a->fork_force1_n = limit(pl, u->fork_force1_n, -fmax, fmax);
+    a->fork_force2_n = limit(pl, u->fork_force2_n, -fmax, fmax);
+    a->fork_force3_n = limit(pl, u->fork_force3_n, -fmax, fmax);
+    a->fork_force4_n = limit(pl, u->fork_force4_n, -fmax, fmax);
+    a->road_grade_pct = limit(pl, u->road_grade_pct, -40.0, 40.0);
+    a->engine_torque_request_nm = limit(pl, u->engine_torque_request_nm, -200.0, 1000.0);
+    a->torque_request_active = u->torque_request_active > 0.5 ? 1.0 : 0.0;
+    a->engine_on = u->engine_on > 0.5 ? 1.0 : 0.0;
+    return DCT_OK;
+}
+
+static int check_state(dct_plant *pl)
+{
+    const double *x = (const double *)&pl->state;
+    for (int i = 0; i < N_STATE; i++) {
+        if (!isfinite(x[i])) {
+            pl->error_index = i;
+            return DCT_ERR_STATE;
+        }
+    }
+    return DCT_OK;
+}
+
+int dct_plant_step(dct_plant *pl, int n)
+{
+    coupling c;
+    int sub = (int)pl->params.solver.substeps;
+    double h = pl->params.solver.step_s / sub;
+    int st = apply_inputs(pl);
+    if (st != DCT_OK)
+        return st;
+    for (int i = 0; i < n; i++) {
+        for (int j = 0; j < sub; j++) {
+            evaluate(pl, &pl->applied, &c);
+            advance(pl, &c, h);
+        }
+        pl->step_count += 1.0;
+        st = check_state(pl);
+        if (st != DCT_OK)
+            return st;
+    }
+    if (n > 0)
+        write_outputs(pl, &c);
+    return DCT_OK;
+}
+
+void dct_plant_update_outputs(dct_plant *pl)
+{
+    coupling c;
+    evaluate(pl, &pl->applied, &c);
+    write_outputs(pl, &c);
+}
+
+static int check_params(const dct_params *p)
+{
+    if (!(p->solver.step_s > 0.0) || !(p->solver.substeps >= 1.0) || p->solver.substeps > 1000.0)
+        return DCT_ERR_PARAM;
+    if (!(p->engine.inertia_kgm2 > 0.0) || p->engine.full_load.n < 1 || p->engine.drag.n < 1 ||
+        p->engine.full_load.n > DCT_CURVE_MAX || p->engine.drag.n > DCT_CURVE_MAX)
+        return DCT_ERR_PARAM;
+    if (p->engine.bsfc.n_speed_rpm < 1 || p->engine.bsfc.n_torque_nm < 1 ||
+        p->engine.bsfc.n_speed_rpm > DCT_MAP_MAX || p->engine.bsfc.n_torque_nm > DCT_MAP_MAX)
+        return DCT_ERR_PARAM;
+    if (!(p->engine.tau_rise_s > 0.0) || !(p->engine.tau_fall_s > 0.0) || !(p->engine.tau_boost_s > 0.0))
+        return DCT_ERR_PARAM;
+    for (int k = 0; k < 2; k++) {
+        if (!(p->clutch[k].friction.stiffness_nm_per_rad > 0.0) || !(p->clutch[k].stribeck_speed_rad_s > 0.0))
+            return DCT_ERR_PARAM;
+        if (!(p->gearbox.input_shaft_inertia_kgm2[k] > 0.0) || !(p->gearbox.final_drive[k] > 0.0))
+            return DCT_ERR_PARAM;
+    }
+    for (int g = 0; g < DCT_N_GEARS; g++)
+        if (!(p->gearbox.ratio[g] > 0.0) || !(p->gearbox.mesh_efficiency[g] > 0.0))
+            return DCT_ERR_PARAM;
+    for (int k = 0; k < DCT_N_SLEEVES; k++) {
+        const dct_sync_params *sp = &p->gearbox.sync[k];
+        if (!(sp->stiffness_nm_per_rad > 0.0) || !(sp->sleeve_mass_kg > 0.0) ||
+            !(sp->tanh_speed_rad_s > 0.0) || !(sp->dog_radius_m > 0.0) ||
+            !(sp->engaged_travel_mm > sp->cone_travel_mm) || !(sp->cone_travel_mm > 0.0))
+            return DCT_ERR_PARAM;
+    }
+    if (!(p->driveline.left_damping_nms_per_rad + p->driveline.right_damping_nms_per_rad > 0.0))
+        return DCT_ERR_PARAM;
+    if (!(p->front_wheel.inertia_kgm2 > 0.0) || !(p->rear_wheels.inertia_kgm2 > 0.0) ||
+        !(p->front_wheel.brake.stiffness_nm_per_rad > 0.0) || !(p->rear_wheels.brake.stiffness_nm_per_rad > 0.0))
+        return DCT_ERR_PARAM;
+    if (!(p->tyre.radius_m > 0.0) || !(p->tyre.relaxation_length_m > 0.0) ||
+        !(p->tyre.nominal_load_n > 0.0) || !(p->tyre.low_speed_limit_m_s > 0.0))
+        return DCT_ERR_PARAM;
+    const dct_vehicle_params *v = &p->vehicle;
+    if (!(v->mass_kg > v->front_unsprung_kg + v->rear_unsprung_kg) || !(v->front_unsprung_kg > 0.0) ||
+        !(v->rear_unsprung_kg > 0.0) || !(v->wheelbase_m > v->cg_to_front_axle_m) ||
+        !(v->cg_to_front_axle_m > 0.0) || !(v->pitch_inertia_kgm2 > 0.0))
+        return DCT_ERR_PARAM;
+    return DCT_OK;
+}
+
+int dct_plant_init(dct_plant *pl)
+{
+    int st = check_params(&pl->params);
+    if (st != DCT_OK)
+        return st;
+    dct_gearbox_prepare(&pl->params.gearbox, &pl->derived.gearbox);
+    pl->derived.front_static_n = dct_vehicle_static_front_n(&pl->params.vehicle);
+    pl->derived.rear_static_n = dct_vehicle_static_rear_n(&pl->params.vehicle);
+    memset(&pl->inputs, 0, sizeof pl->inputs);
+    pl->inputs.engine_on = 1.0;
+    dct_initial init;
+    memset(&init, 0, sizeof init);
+    init.engine_on = 1.0;
+    return dct_plant_reset(pl, &init);
+}
+
+int dct_plant_reset(dct_plant *pl, const dct_initial *init)
+{
+    const dct_params *p = &pl->params;
+    dct_state *s = &pl->state;
+    const dct_gearbox_derived *d = &pl->derived.gearbox;
+    memset(s, 0, sizeof *s);
+    double v = init->vehicle_speed_kmh / 3.6;
+    double w_wheel = v / p->tyre.radius_m;
+    double w_car = w_wheel;
+    int engine_on = init->engine_on > 0.5;
+    double w_idle = engine_on ? p->engine.idle_speed_rpm * DCT_RAD_S_PER_RPM : 0.0;
+
+    /* input shafts follow an engaged gear, else the engine */
+    double w_in[2] = {-1.0, -1.0};
+    int engaged[2] = {0, 0};
+    for (int k = 0; k < DCT_N_SLEEVES; k++) {
+        int side = init->sleeve_side[k] > 0.5 ? 1 : (init->sleeve_side[k] < -0.5 ? -1 : 0);
+        int g = dct_sleeve_gear(k, side);
+        if (g < 0)
+            side = 0;
+        dct_sync_init(&p->gearbox.sync[k], &s->gearbox.sync[k], side);
+        if (g >= 0) {
+            int shaft = dct_gear_input_shaft(g);
+            w_in[shaft] = w_car * p->gearbox.final_drive[dct_gear_output_shaft(g)] * d->signed_ratio[g];
+            engaged[shaft] = 1;
+        }
+    }
+    double w_eng = w_idle;
+    for (int k = 0; k < 2; k++)
+        if (init->clutch_locked[k] > 0.5 && engaged[k]) {
+            w_eng = w_in[k];
+            break;
+        }
+    for (int k = 0; k < 2; k++)
+        s->gearbox.input_speed_rad_s[k] = engaged[k] ? w_in[k] : w_eng;
+    s->gearbox.carrier_speed_rad_s = w_car;
+    dct_engine_init(&p->engine, &s->engine, w_eng, engine_on);
+    for (int k = 0; k < 2; k++)
+        dct_clutch_init(&p->clutch[k], &s->clutch[k]);
+    dct_driveline_init(&p->driveline, &s->driveline);
+    for (int i = 0; i < 3; i++) {
+        dct_wheel_init(i < 2 ? &p->front_wheel : &p->rear_wheels, &s->wheel[i], w_wheel);
+        dct_tyre_init(&p->tyre, &s->tyre[i]);
+    }
+    dct_vehicle_init(&p->vehicle, &s->vehicle, v);
+    pl->step_count = 0.0;
+    pl->input_clamps = 0.0;
+    pl->error_index = -1;
+    pl->inputs.engine_on = engine_on ? 1.0 : 0.0;
+    int st = apply_inputs(pl);
+    if (st != DCT_OK) {
+        memset(&pl->applied, 0, sizeof pl->applied);
+        pl->applied.engine_on = pl->inputs.engine_on;
+    }
+    pl->input_clamps = 0.0;
+    dct_plant_update_outputs(pl);
+    return DCT_OK;
+}
+
+double dct_plant_energy(const dct_plant *pl)
+{
+    const dct_params *p = &pl->params;
+    const dct_state *s = &pl->state;
+    const dct_gearbox_derived *d = &pl->derived.gearbox;
+    double e = 0.5 * p->engine.inertia_kgm2 * dct_sq(s->engine.speed_rad_s);
+    for (int k = 0; k < 2; k++) {
+        e += 0.5 * d->input_inertia_kgm2[k] * dct_sq(s->gearbox.input_speed_rad_s[k]);
+        e += 0.5 * p->clutch[k].friction.stiffness_nm_per_rad * dct_sq(s->clutch[k].twist_rad);
+    }
+    e += 0.5 * d->carrier_inertia_kgm2 * dct_sq(s->gearbox.carrier_speed_rad_s);
+    for (int k = 0; k < DCT_N_SLEEVES; k++)
+        if (s->gearbox.sync[k].phase == DCT_SYNC_ENGAGED)
+            e += 0.5 * p->gearbox.sync[k].stiffness_nm_per_rad * dct_sq(s->gearbox.sync[k].twist_rad);
+    e += 0.5 * p->driveline.left_stiffness_nm_per_rad * dct_sq(s->driveline.left_twist_rad);
+    e += 0.5 * p->driveline.right_stiffness_nm_per_rad * dct_sq(s->driveline.right_twist_rad);
+    double fz_front, fz_rear;
+    dct_vehicle_tyre_loads(&p->vehicle, &s->vehicle, pl->applied.road_grade_pct, &fz_front, &fz_rear);
+    double fz[3] = {0.5 * fz_front, 0.5 * fz_front, fz_rear};
+    double count[3] = {1.0, 1.0, 2.0};
+    for (int i = 0; i < 3; i++) {
+        const dct_wheel_params *wp = i < 2 ? &p->front_wheel : &p->rear_wheels;
+        e += 0.5 * wp->inertia_kgm2 * dct_sq(s->wheel[i].speed_rad_s);
+        e += 0.5 * wp->brake.stiffness_nm_per_rad * dct_sq(s->wheel[i].brake_twist_rad);
+        e += dct_tyre_deflection_energy(&p->tyre, s->tyre[i].deflection_m, fz[i], count[i]);
+    }
+    e += dct_vehicle_energy(&p->vehicle, &s->vehicle, pl->applied.road_grade_pct);
+    return e;
+}

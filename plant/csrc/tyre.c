@@ -1,0 +1,87 @@
+/*
+ * tyre.c - longitudinal tyre force: Pacejka magic formula (pure slip, with
+ * load dependency of peak friction, curvature and slip stiffness) applied to
+ * a transient slip from a carcass deflection state (relaxation length), and
+ * a spring-damper contact near standstill.
+ *
+ *   du/dt = (w R - V) - V_ref u / sigma,  V_ref = max(|V|, |w R|)
+ *   kappa = u / sigma,  F = n MF(kappa, Fz / n) + n c_low fade(V) (w R - V)
+ *
+ * Rolling: in steady state kappa is the slip (w R - V) / V_ref. At
+ * standstill V_ref -> 0 and the deflection is a spring of stiffness
+ * K_kappa / sigma: the car stands still on its tyres without creeping, and
+ * the low-speed damping (faded out above low_speed_limit) keeps the wheel
+ * from ringing on that spring. V_ref uses the larger of the two speeds so the
+ * slip stays bounded when a wheel spins at standstill.
+ * Rolling resistance is a moment c_rr Fz R opposing the rotation.
+ * n tyres lumped in one position (the rear axle) each carry Fz / n.
+ */
+#include "dct_plant.h"
+#include "dct_util.h"
+
+double dct_magic_formula(const dct_tyre_params *p, double slip, double fz)
+{
+    if (fz <= 0.0)
+        return 0.0;
+    double dfz = (fz - p->nominal_load_n) / p->nominal_load_n;
+    double c = p->pcx1;
+    double mu = p->pdx1 + p->pdx2 * dfz;
+    double d = mu * fz;
+    double e = p->pex1 + p->pex2 * dfz;
+    if (e > 1.0)
+        e = 1.0;
+    double k = fz * (p->pkx1 + p->pkx2 * dfz) * exp(p->pkx3 * dfz);
+    double b = k / (c * d);
+    double bx = b * slip;
+    return d * sin(c * atan(bx - e * (bx - atan(bx))));
+}
+
+void dct_tyre_init(const dct_tyre_params *p, dct_tyre_state *s)
+{
+    (void)p;
+    s->deflection_m = 0.0;
+}
+
+void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
+                          const dct_tyre_input *in, dct_tyre_output *out)
+{
+    double n = in->count;
+    double v = in->ground_speed_m_s;
+    double wr = in->wheel_speed_rad_s * p->radius_m;
+    double slip_speed = wr - v;
+    double vref = fabs(v) > fabs(wr) ? fabs(v) : fabs(wr);
+    double kappa = s->deflection_m / p->relaxation_length_m;
+    double fz = in->normal_force_n > 0.0 ? in->normal_force_n : 0.0;
+    double f = n * dct_magic_formula(p, kappa, fz / n);
+    f += n * p->low_speed_damping_ns_per_m * dct_fade(v, p->low_speed_limit_m_s) * slip_speed;
+    out->force_n = f;
+    out->slip = kappa;
+    out->slip_speed_m_s = slip_speed;
+    out->deflection_rate_m_s = slip_speed - vref * s->deflection_m / p->relaxation_length_m;
+    out->rolling_moment_nm = p->rolling_resistance * fz * p->radius_m *
+                             dct_smooth_sign(in->wheel_speed_rad_s, p->rolling_smoothing_rad_s);
+}
+
+void dct_tyre_advance(const dct_tyre_params *p, dct_tyre_state *s,
+                      const dct_tyre_output *out, double h)
+{
+    (void)p;
+    s->deflection_m += h * out->deflection_rate_m_s;
+}
+
+double dct_tyre_deflection_energy(const dct_tyre_params *p, double deflection_m,
+                                  double normal_force_n, double count)
+{
+    /* integral of the magic formula force over the deflection, 4-point
+     * Gauss-Legendre on [0, u] */
+    static const double x[4] = {-0.8611363115940526, -0.3399810435848563, 0.3399810435848563,
+                                0.8611363115940526};
+    static const double w[4] = {0.3478548451374538, 0.6521451548625461, 0.6521451548625461,
+                                0.3478548451374538};
+    double u = deflection_m, sum = 0.0;
+    for (int i = 0; i < 4; i++) {
+        double ui = 0.5 * u * (x[i] + 1.0);
+        sum += w[i] * dct_magic_formula(p, ui / p->relaxation_length_m, normal_force_n / count);
+    }
+    return count * 0.5 * u * sum;
+}

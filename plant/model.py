@@ -1,0 +1,229 @@
+"""Plant: one instance of the C powertrain model, seen through NumPy.
+
+The C core owns nothing: Python allocates one ``dct_plant`` (params, state,
+inputs and outputs in one struct), fills the parameters, and the C functions
+work on it in place. ``inputs``, ``outputs`` and ``state`` are NumPy views of
+that memory, so reading an output or writing an input costs no copy and no
+FFI call; only ``step``/``reset``/``bench`` cross into C.
+"""
+
+import math
+import operator
+
+import numpy as np
+
+from plant import params as _params
+from plant._dct_plant import ffi, lib
+
+_INT_MAX = 2**31 - 1
+_DOUBLE = ffi.typeof("double")
+
+
+class PlantError(RuntimeError):
+    """The C core refused a step, a reset or the parameters (one-line message)."""
+
+
+def _struct_dtype(cname):
+    """NumPy dtype laid out exactly like the C struct ``cname`` (doubles only)."""
+    ctype = ffi.typeof(cname)
+    names, offsets = [], []
+    for name, field in ctype.fields:
+        if field.type is not _DOUBLE:
+            raise TypeError(f"{cname}.{name} is not a double; the NumPy view needs doubles only")
+        names.append(name)
+        offsets.append(field.offset)
+    return np.dtype(
+        {
+            "names": names,
+            "formats": [np.float64] * len(names),
+            "offsets": offsets,
+            "itemsize": ffi.sizeof(ctype),
+        }
+    )
+
+
+def _flat_names(ctype, prefix, offset, found):
+    """Walk a struct of doubles (nested structs, arrays) into {byte offset: dotted name}."""
+    if ctype.kind == "struct":
+        for name, field in ctype.fields:
+            path = f"{prefix}.{name}" if prefix else name
+            _flat_names(field.type, path, offset + field.offset, found)
+    elif ctype.kind == "array":
+        size = ffi.sizeof(ctype.item)
+        for i in range(ctype.length):
+            _flat_names(ctype.item, f"{prefix}[{i}]", offset + i * size, found)
+    elif ctype is _DOUBLE:
+        found[offset] = prefix
+    else:
+        raise TypeError(f"{prefix} is {ctype.cname}; the state must hold doubles only")
+
+
+def _state_names():
+    found = {}
+    _flat_names(ffi.typeof("dct_state"), "", 0, found)
+    n = ffi.sizeof("dct_state") // 8
+    if sorted(found) != [8 * i for i in range(n)]:
+        raise TypeError("dct_state is not one contiguous array of doubles")
+    return [found[8 * i] for i in range(n)]
+
+
+INPUT_DTYPE = _struct_dtype("dct_inputs")
+OUTPUT_DTYPE = _struct_dtype("dct_outputs")
+INPUT_NAMES = list(INPUT_DTYPE.names)
+# the flat views (input_values, output_values) need doubles packed without gaps
+assert INPUT_DTYPE.itemsize == 8 * len(INPUT_DTYPE.names)
+assert OUTPUT_DTYPE.itemsize == 8 * len(OUTPUT_DTYPE.names)
+OUTPUT_NAMES = list(OUTPUT_DTYPE.names)
+STATE_NAMES = _state_names()
+
+_OFF_STATE = ffi.offsetof("dct_plant", "state")
+_OFF_INPUTS = ffi.offsetof("dct_plant", "inputs")
+_OFF_OUTPUTS = ffi.offsetof("dct_plant", "outputs")
+# snapshot: everything after the parameters and their derived constants
+_SNAP_BEGIN = _OFF_STATE
+_SNAP_END = ffi.sizeof("dct_plant")
+
+
+class Plant:
+    """One powertrain plant (engine, DSG 02E, driveline, vehicle).
+
+    >>> p = Plant()                       # default parameter set
+    >>> p.inputs["accel_pedal_pct"] = 30  # writes the C struct
+    >>> p.step(2000)                      # 1 s at 0.5 ms, one FFI call
+    >>> float(p.outputs["vehicle_speed_kmh"])
+    """
+
+    input_names = INPUT_NAMES
+    output_names = OUTPUT_NAMES
+    state_names = STATE_NAMES
+
+    def __init__(self, params_path=None):
+        self.params = _params.load_params(params_path, ffi)
+        self._p = ffi.new("dct_plant *")  # zeroed; freed with this object
+        _params.fill_params(ffi, ffi.addressof(self._p[0], "params"), self.params)
+        self._check(lib.dct_plant_init(self._p))
+
+        # One buffer over the whole struct; it keeps self._p alive, so the
+        # views stay valid even if they outlive this object.
+        self._buf = ffi.buffer(self._p)
+        self.inputs = np.frombuffer(self._buf, INPUT_DTYPE, 1, _OFF_INPUTS).reshape(())
+        self.outputs = np.frombuffer(self._buf, OUTPUT_DTYPE, 1, _OFF_OUTPUTS).reshape(())
+        self.state = np.frombuffer(self._buf, np.float64, len(STATE_NAMES), _OFF_STATE)
+        # the same memory as flat float64 arrays, in input_names/output_names order
+        self.input_values = np.frombuffer(self._buf, np.float64, len(INPUT_NAMES), _OFF_INPUTS)
+        self.output_values = np.frombuffer(self._buf, np.float64, len(OUTPUT_NAMES), _OFF_OUTPUTS)
+        self.default_inputs = self.inputs.copy()  # the inputs as dct_plant_init left them
+
+    # ------------------------------------------------------------------ errors
+    def _check(self, status):
+        """Turn a C status into PlantError (the only place that does)."""
+        if status == lib.DCT_OK:
+            return
+        index = self._p.error_index
+        if status == lib.DCT_ERR_INPUT:
+            name = INPUT_NAMES[index] if 0 <= index < len(INPUT_NAMES) else f"#{index}"
+            value = getattr(self._p.inputs, name) if 0 <= index < len(INPUT_NAMES) else math.nan
+            raise PlantError(f"input {name} is not finite: {value!r}")
+        if status == lib.DCT_ERR_STATE:
+            if 0 <= index < len(STATE_NAMES):
+                name = STATE_NAMES[index]
+                value = float(ffi.cast("double *", ffi.addressof(self._p[0], "state"))[index])
+            else:
+                name, value = f"#{index}", math.nan
+            raise PlantError(
+                f"state {name} became {value!r} at t={self._p.state.time_s:.4f} s"
+            )
+        if status == lib.DCT_ERR_PARAM:
+            raise PlantError(
+                "parameter check failed: the C core rejected the parameter set "
+                "(a value outside its physical range, see check_params in plant/csrc/plant.c)"
+            )
+        raise PlantError(f"the C core returned unknown status {status}")
+
+    # --------------------------------------------------------------- stepping
+    @property
+    def time_s(self):
+        """Simulated time of the state, s."""
+        return float(self._p.state.time_s)
+
+    @property
+    def step_s(self):
+        """Fixed step of one ``step()``, s (0.5 ms by default)."""
+        return float(self._p.params.solver.step_s)
+
+    def step(self, n=1):
+        """Advance ``n`` steps in one FFI call; raises PlantError on a bad value."""
+        n = _count(n, "n")
+        if n:
+            self._check(lib.dct_plant_step(self._p, n))
+
+    def reset(self, vehicle_speed_kmh=0.0, sleeves=(0, 0, 0, 0), clutch_locked=(0, 0), engine_on=1):
+        """Restart from steady motion: speed, engaged sleeve sides (+1/-1/0), locked clutches."""
+        sleeves = [float(s) for s in sleeves]
+        clutch_locked = [float(c) for c in clutch_locked]
+        if len(sleeves) != lib.DCT_N_SLEEVES:
+            raise ValueError(f"sleeves needs {lib.DCT_N_SLEEVES} values, got {len(sleeves)}")
+        if len(clutch_locked) != 2:
+            raise ValueError(f"clutch_locked needs 2 values, got {len(clutch_locked)}")
+        init = ffi.new(
+            "dct_initial *",
+            {
+                "vehicle_speed_kmh": float(vehicle_speed_kmh),
+                "sleeve_side": sleeves,
+                "clutch_locked": clutch_locked,
+                "engine_on": float(engine_on),
+            },
+        )
+        self._check(lib.dct_plant_reset(self._p, init))
+
+    # ------------------------------------------------------------ save/restore
+    def snapshot(self):
+        """Copy of state, inputs and outputs: ``restore()`` continues identically."""
+        return self._buf[_SNAP_BEGIN:_SNAP_END]
+
+    def restore(self, snap):
+        """Go back to a ``snapshot()`` of a plant with the same parameters."""
+        snap = bytes(snap)
+        if len(snap) != _SNAP_END - _SNAP_BEGIN:
+            raise ValueError(
+                f"snapshot has {len(snap)} bytes, expected {_SNAP_END - _SNAP_BEGIN}"
+            )
+        self._buf[_SNAP_BEGIN:_SNAP_END] = snap
+
+    # ----------------------------------------------------------------- others
+    def energy(self):
+        """Stored energy (kinetic + springs + gravity), J."""
+        return float(lib.dct_plant_energy(self._p))
+
+    def update_outputs(self):
+        """Recompute the outputs from the present state and inputs."""
+        lib.dct_plant_update_outputs(self._p)
+
+    def bench(self, n, out=None):
+        """Run ``n`` single steps timed in C; returns each step's cost in ns."""
+        n = _count(n, "n")
+        if out is None:
+            out = np.empty(n)
+        elif out.dtype != np.float64 or not out.flags.c_contiguous or len(out) < n:
+            raise ValueError("out must be a contiguous float64 array of at least n items")
+        if n:
+            self._check(lib.dct_bench_steps(self._p, n, ffi.from_buffer("double[]", out)))
+        return out[:n]
+
+    def __repr__(self):
+        return f"<Plant t={self.time_s:.4f} s, step {self.step_s * 1e3:g} ms>"
+
+
+def build_info():
+    """Compiler and flags the C extension was built with."""
+    return ffi.string(lib.dct_bench_build_info()).decode()
+
+
+def _count(n, what):
+    try:
+        n = operator.index(n)
+    except TypeError:
+        raise TypeError(f"{what} must be an integer, got {n!r}") from None
+    if not 0 <= n <= _INT_MAX:
+        raise ValueError(f"{what} must be between 0 and {_INT_MAX}, got {n}")
+    return n

@@ -1,0 +1,159 @@
+/*
+ * test_components.c - the C core's component laws, checked without Python
+ * (built by `make -C plant/csrc test` with -Wall -Wextra -Werror and the
+ * address and undefined-behaviour sanitizers).
+ */
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "dct_plant.h"
+
+static int failures = 0;
+static int checks = 0;
+
+#define CHECK(cond, ...)                                   \
+    do {                                                   \
+        checks++;                                          \
+        if (!(cond)) {                                     \
+            failures++;                                    \
+            printf("FAIL %s:%d: ", __FILE__, __LINE__);    \
+            printf(__VA_ARGS__);                           \
+            printf("\n");                                  \
+        }                                                  \
+    } while (0)
+
+static void test_friction_stick_slip(void)
+{
+    dct_friction_params p = {20000.0, 40.0};
+    dct_friction_output o;
+    /* sticking: spring-damper on the twist */
+    dct_friction_eval(&p, 0.001, 0.0, 100.0, &o);
+    CHECK(fabs(o.torque_nm - 20.0) < 1e-9 && o.sliding == 0.0, "stick torque %g", o.torque_nm);
+    /* at the limit with slip in the same direction: slides at capacity */
+    dct_friction_eval(&p, 100.0 / 20000.0, 1.0, 100.0, &o);
+    CHECK(o.sliding == 1.0 && fabs(o.torque_nm - 100.0) < 1e-9, "slide torque %g", o.torque_nm);
+    /* slip reverses: sticks again, torque continuous (within c * slip) */
+    dct_friction_eval(&p, 100.0 / 20000.0, -0.01, 100.0, &o);
+    CHECK(o.sliding == 0.0 && fabs(o.torque_nm - 100.0) <= 40.0 * 0.01 + 1e-9, "re-stick %g", o.torque_nm);
+    /* capacity drop resets the twist */
+    double z = dct_friction_advance(&p, 0.004, &o, 10.0, 1e-4);
+    CHECK(fabs(z) <= 10.0 / 20000.0 + 1e-15, "reset twist %g", z);
+    /* zero capacity transmits nothing */
+    dct_friction_eval(&p, 0.0, 5.0, 0.0, &o);
+    CHECK(o.torque_nm == 0.0, "open %g", o.torque_nm);
+}
+
+static void test_curve(void)
+{
+    dct_torque_curve c;
+    memset(&c, 0, sizeof c);
+    c.n = 3;
+    c.speed_rpm[0] = 1000; c.speed_rpm[1] = 2000; c.speed_rpm[2] = 4000;
+    c.torque_nm[0] = 100; c.torque_nm[1] = 200; c.torque_nm[2] = 0;
+    CHECK(fabs(dct_curve_eval(&c, 1500) - 150) < 1e-12, "interp");
+    CHECK(fabs(dct_curve_eval(&c, 3000) - 100) < 1e-12, "interp 2");
+    CHECK(dct_curve_eval(&c, 500) == 100 && dct_curve_eval(&c, 5000) == 0, "held flat outside");
+}
+
+static dct_sync_params sync_params(void)
+{
+    dct_sync_params p;
+    memset(&p, 0, sizeof p);
+    p.cone_mu = 0.1; p.cone_radius_m = 0.04; p.cone_half_angle_deg = 6.5;
+    p.tanh_speed_rad_s = 1.0; p.stiffness_nm_per_rad = 15000; p.damping_nms_per_rad = 25;
+    p.sleeve_mass_kg = 1.5; p.sleeve_damping_ns_per_m = 200; p.cone_travel_mm = 3;
+    p.engaged_travel_mm = 8.5; p.detent_force_n = 60; p.lock_speed_rad_s = 0.5;
+    p.blocker_force_max_n = 1300; p.clash_speed_rad_s = 10.5; p.dog_friction_mu = 0.15;
+    p.dog_radius_m = 0.045;
+    return p;
+}
+
+/* a sleeve pushed onto a gear spinning freely with inertia j: the phases
+ * come in order and the gear is synchronised by the cone torque of eq. 6 */
+static void test_sync_phases(void)
+{
+    dct_sync_params p = sync_params();
+    dct_sync_state s;
+    dct_sync_init(&p, &s, 0);
+    dct_sync_input in = {400.0, 50.0, 0.0, 1.0};
+    dct_sync_output o;
+    double j = 0.05, h = 1.25e-4, t = 0.0, t_sync = -1.0, t_eng = -1.0;
+    int last_phase = 0, order_ok = 1;
+    for (int i = 0; i < 40000; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        in.slip_pos_rad_s -= h * o.torque_nm / j; /* the gear is slowed by the cone */
+        dct_sync_advance(&p, &s, &in, &o, h);
+        t += h;
+        if ((int)s.phase < last_phase)
+            order_ok = 0;
+        if (s.phase == DCT_SYNC_SYNCHRONIZING && t_sync < 0)
+            t_sync = t;
+        if (s.phase == DCT_SYNC_ENGAGED && t_eng < 0)
+            t_eng = t;
+        last_phase = (int)s.phase;
+    }
+    CHECK(order_ok && t_sync > 0 && t_eng > t_sync, "phases in order (%g, %g)", t_sync, t_eng);
+    double ts = dct_sync_cone_torque(&p, 400.0);
+    double expect = j * 50.0 / ts; /* constant torque while |w_r| >> w_0 */
+    CHECK(fabs((t_eng - t_sync) - expect) < 0.05 * expect, "sync time %g expected %g", t_eng - t_sync, expect);
+    CHECK(fabs(s.position_m - 8.5e-3) < 1e-9, "full travel %g", s.position_m);
+    CHECK(s.clashes == 0.0, "no clash");
+}
+
+static void test_sync_clash(void)
+{
+    dct_sync_params p = sync_params();
+    dct_sync_state s;
+    dct_sync_init(&p, &s, 0);
+    dct_sync_input in = {1500.0, 100.0, 0.0, 1.0}; /* above the blocker's strength */
+    dct_sync_output o;
+    for (int i = 0; i < 2000 && s.phase != DCT_SYNC_ENGAGED; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, 1.25e-4);
+    }
+    CHECK(s.phase == DCT_SYNC_ENGAGED && s.clashes == 1.0, "clash counted (%g)", s.clashes);
+}
+
+static void test_magic_formula(void)
+{
+    dct_tyre_params p;
+    memset(&p, 0, sizeof p);
+    p.radius_m = 0.316; p.nominal_load_n = 4000; p.pcx1 = 1.65; p.pdx1 = 1.1; p.pdx2 = -0.08;
+    p.pex1 = 0.3; p.pex2 = -0.1; p.pkx1 = 22; p.pkx3 = 0.1; p.relaxation_length_m = 0.25;
+    CHECK(dct_magic_formula(&p, 0.0, 4000) == 0.0, "no slip no force");
+    double k = (dct_magic_formula(&p, 1e-5, 4000) - dct_magic_formula(&p, -1e-5, 4000)) / 2e-5;
+    CHECK(fabs(k - 22 * 4000) < 1e-3 * 22 * 4000, "slip stiffness %g", k);
+    double peak = 0.0;
+    for (int i = 0; i <= 1000; i++) {
+        double f = dct_magic_formula(&p, i * 1e-3, 4000);
+        if (f > peak)
+            peak = f;
+    }
+    CHECK(fabs(peak - 1.1 * 4000) < 1.0, "peak %g", peak);
+    CHECK(dct_magic_formula(&p, -0.1, 4000) == -dct_magic_formula(&p, 0.1, 4000), "odd");
+}
+
+static void test_differential(void)
+{
+    dct_driveline_params p = {9000, 25, 7000, 25};
+    dct_driveline_state s = {0.01, 0.0};
+    dct_driveline_input in = {10.0, 9.0, 11.0};
+    dct_driveline_output o;
+    dct_driveline_output_eval(&p, &s, &in, &o);
+    double tr = 7000 * s.right_twist_rad + 25 * (o.right_side_speed_rad_s - 11.0);
+    CHECK(fabs(o.shaft_torque_nm - tr) < 1e-9, "equal torques %g %g", o.shaft_torque_nm, tr);
+    CHECK(fabs(o.left_side_speed_rad_s + o.right_side_speed_rad_s - 20.0) < 1e-12, "carrier mean");
+}
+
+int main(void)
+{
+    test_friction_stick_slip();
+    test_curve();
+    test_sync_phases();
+    test_sync_clash();
+    test_magic_formula();
+    test_differential();
+    printf("%d passed, %d failed\n", checks - failures, failures);
+    return failures ? 1 : 0;
+}
