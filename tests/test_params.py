@@ -105,7 +105,7 @@ def test_default_loads_and_fills(ffi, default):
     assert cparams.gearbox.ratio[6] == 3.990
     assert [cparams.gearbox.sync[i].cone_radius_m for i in range(4)] == [0.040, 0.040, 0.036, 0.036]
     assert cparams.front_wheel.brake.stiffness_nm_per_rad == 30000.0
-    assert cparams.rear_wheels.brake.damping_nms_per_rad == 100.0
+    assert cparams.rear_wheels.brake.damping_nms_per_rad == 500.0
     assert cparams.vehicle.gravity_m_s2 == 9.80665
     # [torque row][speed column]
     assert cparams.engine.bsfc.bsfc_g_per_kwh[0][0] == default["engine"]["bsfc"]["bsfc_g_per_kwh"][0][0]

@@ -381,9 +381,12 @@ typedef struct {
     double slip;                      /* transient slip ratio */
     double slip_speed_m_s;            /* omega R - V */
     double deflection_rate_m_s;
+    double contact_weight;            /* 1 at standstill (spring contact), 0 from low_speed_limit */
+    double tyre_load_n;               /* normal force per tyre */
 } dct_tyre_output;
 
 double dct_magic_formula(const dct_tyre_params *p, double slip, double normal_force_n);
+double dct_magic_formula_peak_slip(const dct_tyre_params *p, double normal_force_n);
 void dct_tyre_init(const dct_tyre_params *p, dct_tyre_state *s);
 void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
                           const dct_tyre_input *in, dct_tyre_output *out);

@@ -4,15 +4,18 @@
  * a transient slip from a carcass deflection state (relaxation length), and
  * a spring-damper contact near standstill.
  *
- *   du/dt = (w R - V) - V_ref u / sigma,  V_ref = max(|V|, |w R|)
+ *   du/dt = (w R - V) - (1 - fade(V)) V_ref u / sigma,  V_ref = max(|V|, |w R|)
  *   kappa = u / sigma,  F = n MF(kappa, Fz / n) + n c_low fade(V) (w R - V)
  *
- * Rolling: in steady state kappa is the slip (w R - V) / V_ref. At
- * standstill V_ref -> 0 and the deflection is a spring of stiffness
- * K_kappa / sigma: the car stands still on its tyres without creeping, and
- * the low-speed damping (faded out above low_speed_limit) keeps the wheel
- * from ringing on that spring. V_ref uses the larger of the two speeds so the
- * slip stays bounded when a wheel spins at standstill.
+ * Rolling: in steady state kappa is the slip (w R - V) / V_ref (V_ref uses
+ * the larger of the two speeds so the slip stays bounded when a wheel spins).
+ * Near standstill (fade(V) -> 1 below low_speed_limit) the relaxation term
+ * fades out and the contact becomes a spring of stiffness K_kappa / sigma
+ * with the low-speed damping: the car stands on its tyres without creeping
+ * and without ringing. That spring holds only what friction can: its
+ * deflection is limited to the peak-force slip of the magic formula (beyond
+ * it the contact patch slides), the limit widening as the speed rises and
+ * the relaxation takes over.
  * Rolling resistance is a moment c_rr Fz R opposing the rotation.
  * n tyres lumped in one position (the rear axle) each carry Fz / n.
  */
@@ -36,6 +39,30 @@ double dct_magic_formula(const dct_tyre_params *p, double slip, double fz)
     return d * sin(c * atan(bx - e * (bx - atan(bx))));
 }
 
+/* slip of the force peak: D sin(C atan(x - E (x - atan x))) peaks where
+ * x - E (x - atan x) = tan(pi / (2 C)), x = B kappa (Newton, from x = rhs) */
+double dct_magic_formula_peak_slip(const dct_tyre_params *p, double fz)
+{
+    double c = p->pcx1;
+    if (c <= 1.0 || fz <= 0.0)
+        return 1e9; /* no peak: the force rises monotonically */
+    double dfz = (fz - p->nominal_load_n) / p->nominal_load_n;
+    double d = (p->pdx1 + p->pdx2 * dfz) * fz;
+    double e = p->pex1 + p->pex2 * dfz;
+    if (e > 1.0)
+        e = 1.0;
+    double k = fz * (p->pkx1 + p->pkx2 * dfz) * exp(p->pkx3 * dfz);
+    double b = k / (c * d);
+    double rhs = tan(DCT_PI / (2.0 * c));
+    double x = rhs;
+    for (int i = 0; i < 6; i++) {
+        double g = x * (1.0 - e) + e * atan(x) - rhs;
+        double dg = (1.0 - e) + e / (1.0 + x * x);
+        x -= g / dg;
+    }
+    return x / b;
+}
+
 void dct_tyre_init(const dct_tyre_params *p, dct_tyre_state *s)
 {
     (void)p;
@@ -53,11 +80,14 @@ void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
     double kappa = s->deflection_m / p->relaxation_length_m;
     double fz = in->normal_force_n > 0.0 ? in->normal_force_n : 0.0;
     double f = n * dct_magic_formula(p, kappa, fz / n);
-    f += n * p->low_speed_damping_ns_per_m * dct_fade(v, p->low_speed_limit_m_s) * slip_speed;
+    double w = dct_fade(v, p->low_speed_limit_m_s);
+    f += n * p->low_speed_damping_ns_per_m * w * slip_speed;
     out->force_n = f;
     out->slip = kappa;
     out->slip_speed_m_s = slip_speed;
-    out->deflection_rate_m_s = slip_speed - vref * s->deflection_m / p->relaxation_length_m;
+    out->deflection_rate_m_s = slip_speed - (1.0 - w) * vref * s->deflection_m / p->relaxation_length_m;
+    out->contact_weight = w;
+    out->tyre_load_n = fz / n;
     out->rolling_moment_nm = p->rolling_resistance * fz * p->radius_m *
                              dct_smooth_sign(in->wheel_speed_rad_s, p->rolling_smoothing_rad_s);
 }
@@ -65,8 +95,16 @@ void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
 void dct_tyre_advance(const dct_tyre_params *p, dct_tyre_state *s,
                       const dct_tyre_output *out, double h)
 {
-    (void)p;
-    s->deflection_m += h * out->deflection_rate_m_s;
+    double u = s->deflection_m + h * out->deflection_rate_m_s;
+    double w = out->contact_weight;
+    /* friction limit of the spring contact: |u| <= sigma kappa_peak / w.
+     * No tyre peaks below 2 % slip, so the Newton solve for the peak is
+     * only needed beyond that (launching, braking to a stop). */
+    if (w > 0.0 && fabs(u) * w > 0.02 * p->relaxation_length_m) {
+        double lim = p->relaxation_length_m * dct_magic_formula_peak_slip(p, out->tyre_load_n) / w;
+        u = dct_clamp(u, -lim, lim);
+    }
+    s->deflection_m = u;
 }
 
 double dct_tyre_deflection_energy(const dct_tyre_params *p, double deflection_m,
