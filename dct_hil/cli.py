@@ -52,13 +52,15 @@ def _steps(text):
 
 
 def _check_writable(path, option):
-    """Fail early (before a long run) if ``path`` cannot be written."""
+    """Fail early (before a long run) if ``path`` cannot be written; make its folder."""
     full = os.path.abspath(path)
     folder = os.path.dirname(full)
     if os.path.isdir(full):
         raise UserError(f"{option} {path}: is a directory")
-    if not os.path.isdir(folder):
-        raise UserError(f"{option} {path}: directory {os.path.dirname(path) or folder} does not exist")
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"{option} {path}: cannot create folder {folder}: {e.strerror}") from None
     if not os.access(folder, os.W_OK | os.X_OK) or (
         os.path.exists(full) and not os.access(full, os.W_OK)
     ):

@@ -12,7 +12,7 @@ of ``plant/csrc/dct_plant.h``:
 The layout is never written down in Python: it is read from the cffi type of
 ``dct_params`` (``ffi.typeof("dct_params").fields``, recursively), so the
 header stays the single contract. The allowed range of every field is in
-``params/ranges.toml``.
+``data/ranges.toml``.
 
 ``load_params`` reads the default car (``DEFAULT_PARAMS``), merges an optional
 user file over it and validates the result; ``fill_params`` writes the
@@ -40,7 +40,7 @@ __all__ = [
     "params_to_dict",
 ]
 
-_PARAM_DIR = Path(__file__).resolve().parent / "params"
+_PARAM_DIR = Path(__file__).resolve().parent / "data"
 
 #: The default car: VW Golf Mk5 GTI with the DSG 02E.
 DEFAULT_PARAMS: Path = _PARAM_DIR / "golf_mk5_gti_dsg.toml"

@@ -162,7 +162,7 @@ USER_ERRORS = {
     "bad scenario file": (lambda t, s: ["simulate", "--scenario", bad_scenario(t)], ["bad.csv:3:", "oops"]),
     "negative duration": (lambda t, s: ["simulate", "--scenario", s, "--duration", "-1"], ["--duration"]),
     "non-numeric duration": (lambda t, s: ["simulate", "--scenario", s, "--duration", "abc"], ["--duration"]),
-    "missing out dir": (lambda t, s: ["simulate", "--scenario", s, "--out", str(t / "no" / "x.csv")], ["does not exist"]),
+    "out folder is a file": (lambda t, s: ["simulate", "--scenario", s, "--out", str(t / "tiny.csv" / "x.csv")], ["cannot create folder"]),
     "out is a dir": (lambda t, s: ["simulate", "--scenario", s, "--out", str(t)], ["directory"]),
     "missing params file": (lambda t, s: ["simulate", "--scenario", s, "--params", str(t / "no.toml")], ["no.toml"]),
     "bad params syntax": (lambda t, s: ["simulate", "--scenario", s, "--params", bad_toml(t)], ["bad.toml"]),
@@ -170,7 +170,7 @@ USER_ERRORS = {
     "zero steps": (lambda t, s: ["bench", "--steps", "0"], ["--steps"]),
     "negative steps": (lambda t, s: ["bench", "--steps", "-5"], ["--steps"]),
     "fractional steps": (lambda t, s: ["bench", "--steps", "1.5"], ["--steps"]),
-    "missing json dir": (lambda t, s: ["bench", "--steps", "10", "--json", str(t / "no" / "b.json")], ["does not exist"]),
+    "json folder is a file": (lambda t, s: ["bench", "--steps", "10", "--json", str(t / "tiny.csv" / "b.json")], ["cannot create folder"]),
     "bench unknown scenario": (lambda t, s: ["bench", "--steps", "10", "--scenario", "nope",
                                              "--json", str(t / "b.json")], ["nope"]),
 }
@@ -234,3 +234,10 @@ def test_help_exits_0():
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0
     assert "simulate" in r.stdout and "bench" in r.stdout
+
+
+def test_simulate_creates_the_output_folder(capsys, tiny, tmp_path):
+    out = tmp_path / "new" / "deeper" / "run.csv"
+    code, _, err = run_cli(capsys, "simulate", "--scenario", tiny, "--out", out)
+    assert code == 0, err
+    assert out.read_text().startswith("time_s,")

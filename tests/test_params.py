@@ -1,4 +1,4 @@
-"""Tests of plant/params.py and the parameter files in plant/params/."""
+"""Tests of plant/params.py and the parameter files in plant/data/."""
 
 from __future__ import annotations
 
