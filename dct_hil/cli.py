@@ -107,7 +107,7 @@ def cmd_simulate(args):
     if args.out:
         _check_writable(args.out, "--out")
     scenario = load_scenario(args.scenario)
-    plant = Plant(args.params)
+    plant = Plant(args.params, scenario.param_overrides())
     try:
         res = run(plant, scenario, duration_s=args.duration, out_path=args.out)
     except KeyboardInterrupt:
@@ -122,6 +122,10 @@ def cmd_simulate(args):
 
     out = plant.outputs
     print(f"scenario          {scenario.name}  ({scenario.path})")
+    mode = ("clutch pressures commanded (hydraulics bypassed)"
+            if plant.params["hydraulics"]["pressure_commanded"]
+            else "valve currents through the clutch hydraulics")
+    print(f"clutch command    {mode}")
     print(f"simulated         {res.simulated_s:.3f} s  ({res.steps} steps of {plant.step_s * 1e3:g} ms)")
     print(f"wall time         {res.wall_s:.3f} s")
     print(f"real-time factor  {res.real_time_factor:.0f}x")
@@ -204,7 +208,7 @@ def cmd_bench(args):
 
     _check_writable(args.json, "--json")
     scenario = load_scenario(args.scenario)
-    plant = Plant(args.params)
+    plant = Plant(args.params, scenario.param_overrides())
     step_ns = bench(plant, scenario, args.steps)
     fig = bench_figures(step_ns, plant.step_s)
     report = {

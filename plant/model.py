@@ -97,8 +97,10 @@ class Plant:
     output_names = OUTPUT_NAMES
     state_names = STATE_NAMES
 
-    def __init__(self, params_path=None):
-        self.params = _params.load_params(params_path, ffi)
+    def __init__(self, params_path=None, overrides=None):
+        """``params_path``: a TOML file merged over the default car;
+        ``overrides``: a dict shaped like that file, merged last."""
+        self.params = _params.load_params(params_path, ffi, overrides)
         self._p = ffi.new("dct_plant *")  # zeroed; freed with this object
         _params.fill_params(ffi, ffi.addressof(self._p[0], "params"), self.params)
         self._check(lib.dct_plant_init(self._p))

@@ -95,7 +95,8 @@ class ParamError(ValueError):
 # public API
 # ---------------------------------------------------------------------------
 
-def load_params(path: str | os.PathLike | None = None, ffi: Any = None) -> dict:
+def load_params(path: str | os.PathLike | None = None, ffi: Any = None,
+                overrides: dict | None = None) -> dict:
     """Load, merge and validate a parameter set.
 
     The default car (``DEFAULT_PARAMS``) is always read first. If ``path`` is
@@ -109,6 +110,9 @@ def load_params(path: str | os.PathLike | None = None, ffi: Any = None) -> dict:
     axes) and against ``RANGES`` (every number, and the number of points of
     every curve or map), plus a few relations between fields without which the
     model is meaningless (e.g. the centre of gravity inside the wheelbase).
+
+    ``overrides`` (a dict shaped like the file, e.g. ``{"solver": {"substeps":
+    4}}``) is merged last, with the same rules, and checked the same way.
 
     ``ffi`` is the cffi FFI object that knows ``dct_params``; when None, the
     compiled module's is used (``from plant._dct_plant import ffi``).
@@ -128,6 +132,11 @@ def load_params(path: str | os.PathLike | None = None, ffi: Any = None) -> dict:
         user_file = Path(path)
         user_raw = _read_toml(user_file)
         merged = _merge(default_raw, user_raw)
+    if overrides:
+        user_raw = _merge(user_raw, overrides) if user_raw is not None else overrides
+        if user_file is None:
+            user_file = Path("<overrides>")
+        merged = _merge(merged, overrides)
 
     ctx = _Context(_read_ranges(Path(RANGES)), default_file, default_raw,
                    user_file, user_raw)

@@ -49,6 +49,10 @@ class ScenarioError(ValueError):
     """A scenario file could not be used: one line naming file, line and cause."""
 
 
+PRESSURE_COLUMNS = ("clutch1_pressure_bar", "clutch2_pressure_bar")
+CURRENT_COLUMNS = ("solenoid_current1_a", "solenoid_current2_a")
+
+
 @dataclass
 class Scenario:
     name: str
@@ -71,6 +75,21 @@ class Scenario:
             "clutch_locked": (init["clutch1_locked"], init["clutch2_locked"]),
             "engine_on": init["engine_on"],
         }
+
+    @property
+    def pressure_commanded(self):
+        """True when the file scripts clutch pressures rather than valve
+        currents: it is then played with the hydraulics bypassed."""
+        return any(c in PRESSURE_COLUMNS for c in self.columns)
+
+    def param_overrides(self):
+        """Parameter overrides the scenario needs: the clutch command mode
+        its columns script (none when it scripts neither)."""
+        if self.pressure_commanded:
+            return {"hydraulics": {"pressure_commanded": 1}}
+        if any(c in CURRENT_COLUMNS for c in self.columns):
+            return {"hydraulics": {"pressure_commanded": 0}}
+        return {}
 
     def row_steps(self, step_s):
         """Index of the step before which each row is applied."""
@@ -154,6 +173,9 @@ def load_scenario(name_or_path, input_names=None):
                 if c in seen:
                     fail(lineno, f"column {c!r} appears twice")
                 seen.add(c)
+            if seen & set(PRESSURE_COLUMNS) and seen & set(CURRENT_COLUMNS):
+                fail(lineno, "script either clutch pressures (hydraulics bypassed) or "
+                             "valve currents, not both")
             continue
         if len(cells) != len(columns) + 1:
             fail(lineno, f"{len(cells)} cells, the header has {len(columns) + 1}")

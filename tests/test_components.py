@@ -136,9 +136,16 @@ def test_friction_twist_reset_when_capacity_drops(car, h):
 # wet clutch
 # ---------------------------------------------------------------------------
 
+def clamp_force(p, pressure_bar):
+    """The piston's clamp force at this chamber pressure."""
+    out = new("dct_piston_output")
+    lib.dct_piston_eval(p, pressure_bar * 1e5, out)
+    return out.clamp_force_n
+
+
 def clutch_eval(p, pressure_bar, slip, twist=0.0):
     s = new("dct_clutch_state", {"twist_rad": twist})
-    inp = new("dct_clutch_input", {"pressure_bar": pressure_bar,
+    inp = new("dct_clutch_input", {"clamp_force_n": clamp_force(p, pressure_bar),
                                    "drive_speed_rad_s": 200.0 + slip,
                                    "driven_speed_rad_s": 200.0})
     out = new("dct_clutch_output")
@@ -147,10 +154,43 @@ def clutch_eval(p, pressure_bar, slip, twist=0.0):
 
 
 @pytest.mark.parametrize("index", [0, 1])
+def test_piston_force_balance(car, index):
+    """Eq. 8's force balance p A = F0 + k_r x (+ k_pack (x - gap) once the
+    pack is clamped): rests below the kiss point, strokes through the gap on
+    the return spring, then the clamped pack is an elastic end stop whose
+    force is the clamp force. Continuous at both switches."""
+    p = part(car, "clutch", index)
+    a, f0, kr, kp = p.piston_area_m2, p.return_spring_n, p.return_spring_n_per_m, p.pack_stiffness_n_per_m
+    gap = p.pack_gap_mm * 1e-3
+    out = new("dct_piston_output")
+
+    def at(pa):
+        lib.dct_piston_eval(p, pa, out)
+        return out.position_m, out.clamp_force_n, out.compliance_m3_per_pa
+
+    kiss = f0 / a
+    closed = (f0 + kr * gap) / a
+    assert at(0.99 * kiss) == (0.0, 0.0, 0.0)
+    x, f, c = at(0.5 * (kiss + closed))
+    assert x == pytest.approx((0.5 * (kiss + closed) * a - f0) / kr, rel=EXACT)
+    assert f == 0.0 and c == pytest.approx(a * a / kr, rel=EXACT)
+    for bar in (5.0, 10.0, 20.0):
+        x, f, c = at(bar * 1e5)
+        assert bar * 1e5 * a == pytest.approx(f0 + kr * x + f, rel=EXACT)  # force balance
+        assert f == pytest.approx(kp * (x - gap), rel=EXACT)
+        assert c == pytest.approx(a * a / (kr + kp), rel=EXACT)
+    # continuity at the closing of the gap (1e-6 of the pressure apart)
+    x1, _, _ = at(closed * (1 - 1e-9))
+    x2, f2, _ = at(closed * (1 + 1e-9))
+    assert x1 == pytest.approx(gap, rel=1e-6) and x2 == pytest.approx(gap, rel=1e-6)
+    assert f2 < 1e-3
+
+
+@pytest.mark.parametrize("index", [0, 1])
 def test_clutch_clamp_force_and_static_capacity(car, index):
     p = part(car, "clutch", index)
     for bar in (5.0, 10.0, 20.0):
-        force = bar * 1e5 * p.piston_area_m2 - p.return_spring_n
+        force = clamp_force(p, bar)
         out = clutch_eval(p, bar, 0.0)
         assert out.clamp_force_n == pytest.approx(force, rel=EXACT)
         assert out.capacity_nm == pytest.approx(
@@ -167,7 +207,7 @@ def test_clutch_clamp_force_and_static_capacity(car, index):
 def test_clutch_stribeck_curve(car, index):
     p = part(car, "clutch", index)
     assert p.mu_kinetic >= p.mu_static  # the default wet clutch: a rising curve
-    lever = p.surfaces * p.radius_m * (10e5 * p.piston_area_m2 - p.return_spring_n)
+    lever = p.surfaces * p.radius_m * clamp_force(p, 10.0)
     # at zero slip the static coefficient; at 20 Stribeck speeds the Gaussian
     # exp(-400) has vanished, so the kinetic one, both to rounding
     assert clutch_eval(p, 10.0, 0.0).slide_capacity_nm == pytest.approx(

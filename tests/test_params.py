@@ -127,7 +127,7 @@ def test_fill_rejects_other_structs(ffi, default):
 def test_default_file_names_every_field_except_counts(ffi):
     raw = tomllib.loads(DEFAULT_PARAMS.read_text())
     counts = {"engine.full_load.n", "engine.drag.n", "engine.bsfc.n_speed_rpm",
-              "engine.bsfc.n_torque_nm"}
+              "engine.bsfc.n_torque_nm", "hydraulics.supply.line.n"}
     expected = _c_range_keys(ffi.typeof("dct_params")) - counts
 
     def keys(node, prefix=""):
@@ -177,7 +177,7 @@ def test_default_values_sit_inside_their_ranges_with_counts(default):
 
 
 def test_result_is_normalized(default):
-    assert list(default) == ["solver", "engine", "clutch", "gearbox", "driveline",
+    assert list(default) == ["solver", "engine", "clutch", "hydraulics", "gearbox", "driveline",
                              "front_wheel", "rear_wheels", "tyre", "vehicle"]
     assert isinstance(default["solver"]["substeps"], float)
     assert isinstance(default["engine"]["full_load"]["n"], int)

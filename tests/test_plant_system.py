@@ -21,6 +21,12 @@ LAYOUT = {"1": (0, 1, 1), "2": (1, 1, 1), "3": (0, -1, 1), "4": (1, -1, 1),
 INPUT_SHAFT = {"1": 1, "3": 1, "5": 1, "R": 1, "2": 2, "4": 2, "6": 2}
 
 
+def pressure_plant(params_path=None):
+    """The mechanics are tested with the clutch pressures as inputs (the
+    pressure-commanded mode): the hydraulics have tests of their own."""
+    return Plant(params_path, overrides={"hydraulics": {"pressure_commanded": 1}})
+
+
 def run(plant, seconds, **inputs):
     for name, value in inputs.items():
         plant.inputs[name] = value
@@ -53,7 +59,7 @@ def test_locked_gear_speed_ratio_is_the_gear_ratio(gear):
     """Gear engaged, its clutch locked, light throttle: input / output shaft
     speed = gear ratio within 0.5 % (the shaft and gear stiffness only twists
     under a steady torque, so the speeds match once transients have died)."""
-    plant = Plant()
+    plant = pressure_plant()
     gb = plant.params["gearbox"]
     idx = GEARS.index(gear)
     sleeve, side, out_shaft = LAYOUT[gear]
@@ -105,7 +111,7 @@ def synchronizing_time(tmp_path, force_n, cone_angle_deg=None):
     text = NO_DRAG
     if cone_angle_deg is not None:
         text += f"[[gearbox.sync]]\n[[gearbox.sync]]\ncone_half_angle_deg = {cone_angle_deg}\n"
-    plant = Plant(write_override(tmp_path, text))
+    plant = pressure_plant(write_override(tmp_path, text))
     plant.reset(vehicle_speed_kmh=30.0, engine_on=0)
     names = ["time_s", "sync2_state", "fork2_position_mm", "input_shaft2_speed_rpm",
              "output_shaft1_speed_rpm"]
@@ -138,7 +144,7 @@ def test_synchronizing_time_follows_eq6_over_force(tmp_path, force_n):
     assert measured == pytest.approx(predicted, rel=0.05)
     # the sleeve ends fully engaged, the gear turning with its shaft
     assert trace[-1, 2] == pytest.approx(8.5, abs=1e-6)
-    r2 = Plant().params["gearbox"]["ratio"][1]
+    r2 = pressure_plant().params["gearbox"]["ratio"][1]
     assert trace[-1, 3] / r2 == pytest.approx(trace[-1, 4], rel=0.005)
 
 
@@ -153,7 +159,7 @@ def test_synchronizing_time_scales_with_cone_angle(tmp_path):
 def test_pushing_through_the_blocker_counts_a_clash():
     """A fork force above the blocker's strength engages before the speeds
     match: counted as a clash; a normal force never is."""
-    plant = Plant()
+    plant = pressure_plant()
     plant.reset(vehicle_speed_kmh=30.0, sleeves=(1, 0, 0, 0), clutch_locked=(1, 0))
     run(plant, 1.0, clutch1_pressure_bar=20.0, accel_pedal_pct=20.0, fork_force2_n=400.0)
     assert float(plant.outputs["sync2_state"]) == 2
@@ -167,7 +173,7 @@ def test_pushing_through_the_blocker_counts_a_clash():
 
 
 def third_gear_plant(pressure_bar):
-    plant = Plant()
+    plant = pressure_plant()
     plant.reset(vehicle_speed_kmh=60.0, sleeves=(-1, 0, 0, 0), clutch_locked=(1, 0))
     plant.inputs["clutch1_pressure_bar"] = pressure_bar
     return plant
@@ -223,7 +229,7 @@ def test_coastdown_matches_drag_and_rolling_resistance():
     with the car, T_diff the differential's bearing drag. Within 5 % at every
     speed down to 40 km/h; what is left (about 3 %) is the drag of the loose
     gears, which turn against the output shafts at input-shaft speeds."""
-    plant = Plant()
+    plant = pressure_plant()
     plant.reset(vehicle_speed_kmh=100.0)
     p = plant.params
     veh, tyre = p["vehicle"], p["tyre"]
@@ -251,7 +257,7 @@ def test_parked_on_a_10_percent_grade_with_the_brake_does_not_creep():
     """10 % grade, brake pedal 50 %, neutral, engine idling: once the tyres
     and brakes have taken the load (1 s), the car moves less than 1 mm in
     10 s, and it does not ring."""
-    plant = Plant()
+    plant = pressure_plant()
     plant.reset()
     run(plant, 1.0, road_grade_pct=10.0, brake_pedal_pct=50.0)
     x0 = float(plant.outputs["distance_m"])
@@ -265,7 +271,7 @@ def test_parked_on_a_10_percent_grade_with_the_brake_does_not_creep():
 def test_standing_car_without_brake_stays_put():
     """Level road, neutral, no brake: no creeping (the tyre contact is a
     spring-damper near standstill, rolling resistance fades out)."""
-    plant = Plant()
+    plant = pressure_plant()
     plant.reset()
     trace = record(plant, 5.0, ["distance_m"])
     assert np.abs(trace[:, 0]).max() < 1e-4
@@ -275,7 +281,7 @@ def test_load_transfer_under_acceleration():
     """Full throttle in 2nd: the front axle unloads by about m a h / L (2D
     body on springs; within 10 %: tyre forces act at the wheel centres and
     the pitch is still settling)."""
-    plant = Plant()
+    plant = pressure_plant()
     plant.reset(vehicle_speed_kmh=40.0, sleeves=(0, 1, 0, 0), clutch_locked=(0, 1))
     static_front = float(plant.outputs["front_axle_load_n"])
     run(plant, 1.5, clutch2_pressure_bar=20.0, accel_pedal_pct=100.0)
@@ -304,7 +310,7 @@ def test_stored_energy_never_grows_with_all_sources_off(case):
     energy at a turning point (w the mode's frequency: 100 rad/s for the
     half-shafts on the wheels, h = 0.25 ms sub-step: 0.06 % per sub-step), so
     a single 0.5 ms step may grow it by at most 0.2 %."""
-    plant = Plant()
+    plant = pressure_plant()
     if case == "third-gear-locked":
         plant.reset(vehicle_speed_kmh=50.0, sleeves=(-1, 0, 0, 0), clutch_locked=(1, 0), engine_on=0)
         plant.inputs["clutch1_pressure_bar"] = 20.0

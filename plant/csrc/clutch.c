@@ -1,7 +1,8 @@
 /*
  * clutch.c - wet multi-plate clutch (K1 or K2 of the DSG 02E).
  *
- * Clamp force = pressure x piston area - return spring (kiss point).
+ * The clamp force comes from the piston (piston.c): the hydraulics, or a
+ * commanded pressure through the same piston force balance.
  * Capacity = surfaces x mu(slip) x effective radius x clamp force, with a
  * Stribeck curve mu(w) = mu_k + (mu_s - mu_k) exp(-(w / w_s)^2); for wet
  * clutches mu_k >= mu_s (a rising curve avoids shudder). Friction by the
@@ -26,9 +27,7 @@ void dct_clutch_output_eval(const dct_clutch_params *p, const dct_clutch_state *
                             const dct_clutch_input *in, dct_clutch_output *out)
 {
     double slip = in->drive_speed_rad_s - in->driven_speed_rad_s;
-    double force = in->pressure_bar * DCT_PA_PER_BAR * p->piston_area_m2 - p->return_spring_n;
-    if (force < 0.0)
-        force = 0.0;
+    double force = in->clamp_force_n > 0.0 ? in->clamp_force_n : 0.0;
     double lever = p->surfaces * p->radius_m * force;
     double cap = lever * clutch_mu(p, slip);
     dct_friction_eval(&p->friction, s->twist_rad, slip, cap, &out->friction);

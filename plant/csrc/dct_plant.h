@@ -156,8 +156,11 @@ typedef struct {
     double mu_static;                 /* friction coefficient at zero slip */
     double mu_kinetic;                /* friction coefficient at large slip */
     double stribeck_speed_rad_s;      /* slip speed of the static -> kinetic transition */
-    double piston_area_m2;            /* clamp force = pressure x area - return spring */
-    double return_spring_n;           /* return spring force at the kiss point */
+    double piston_area_m2;            /* clutch piston */
+    double return_spring_n;           /* return spring preload (kiss point = preload / area) */
+    double return_spring_n_per_m;     /* return spring rate over the piston travel */
+    double pack_gap_mm;               /* piston travel that closes the clutch-pack clearance */
+    double pack_stiffness_n_per_m;    /* elastic end stop: axial stiffness of the clamped pack */
     double drag_nms_per_rad;          /* viscous drag of the open wet pack */
     double max_pressure_bar;          /* input range */
     dct_friction_params friction;
@@ -168,7 +171,7 @@ typedef struct {
 } dct_clutch_state;
 
 typedef struct {
-    double pressure_bar;
+    double clamp_force_n;             /* from the piston */
     double drive_speed_rad_s;         /* engine / drum */
     double driven_speed_rad_s;        /* input shaft */
 } dct_clutch_input;
@@ -181,6 +184,19 @@ typedef struct {
     double slip_rad_s;
     dct_friction_output friction;
 } dct_clutch_output;
+
+/* Clutch piston (massless, the real-time form of the reference paper, eq. 8):
+ * from the chamber pressure, the force balance p A = return spring + pack
+ * gives the piston position; beyond the pack gap the pack is an elastic end
+ * stop whose force is the clamp force. compliance = A dx/dp: the volume the
+ * piston takes per unit pressure (the flow that moves it, eq. 8). */
+typedef struct {
+    double position_m;
+    double clamp_force_n;
+    double compliance_m3_per_pa;
+} dct_piston_output;
+
+void dct_piston_eval(const dct_clutch_params *p, double pressure_pa, dct_piston_output *out);
 
 void dct_clutch_init(const dct_clutch_params *p, dct_clutch_state *s);
 void dct_clutch_output_eval(const dct_clutch_params *p, const dct_clutch_state *s,
@@ -505,6 +521,132 @@ double dct_vehicle_energy(const dct_vehicle_params *p, const dct_vehicle_state *
                           double road_grade_pct);
 
 /* ------------------------------------------------------------------ */
+/* Clutch hydraulics: line pressure supply, a proportional pressure     */
+/* control valve per clutch, the clutch chamber (reference paper,       */
+/* sections 3 and "Component models": eqs. 8-14)                        */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double density_kg_m3;             /* at atmospheric pressure */
+    double viscosity_m2_s;            /* kinematic, at operating temperature */
+    double bulk_modulus_pa;           /* air-free oil */
+    double air_fraction;              /* entrained air volume share at atmospheric pressure */
+} dct_oil_params;
+
+/* pressure over current, linear interpolation, held flat outside */
+typedef struct {
+    int n;
+    double current_a[DCT_CURVE_MAX];
+    double pressure_bar[DCT_CURVE_MAX];
+} dct_pressure_map;
+
+typedef struct {
+    dct_pressure_map line;            /* line pressure over line-solenoid current */
+    double tau_s;                     /* pressure regulator and pump lag */
+    double max_current_a;
+} dct_supply_params;
+
+typedef struct {
+    double solenoid_gain_n_per_a;     /* k_f of eq. 9 */
+    double solenoid_tau_s;            /* tau_e of eq. 9 */
+    double max_current_a;
+    double spool_mass_kg;             /* spool + armature */
+    double spring_n_per_m;
+    double spring_preload_n;          /* current below preload / k_f gives no pressure */
+    double spool_diameter_mm;         /* d_s: feedback land */
+    double rod_diameter_mm;           /* d_r: feedback area = pi/4 (d_s^2 - d_r^2) */
+    double spool_travel_mm;           /* end stops at +- travel */
+    double overlap_mm;                /* land overlap of both metering edges (< 0: underlap) */
+    double edge_width_mm;             /* width of the metering notches (at most pi d_s) */
+    double viscous_friction_ns_per_m;
+    double coulomb_friction_n;
+    double friction_speed_m_s;        /* Coulomb friction smoothing */
+    double friction_tau_s;            /* lag of the friction velocity, eq. 10 */
+    double stop_stiffness_n_per_m;
+    double stop_damping_ns_per_m;
+    double cd_max;                    /* eq. 11 */
+    double transition_reynolds;       /* eq. 11 */
+    double leakage_m3_per_s_per_pa;   /* laminar leakage across each land */
+} dct_valve_params;
+
+typedef struct {
+    double pressure_commanded;        /* 1: clutch pressures are plant inputs, no hydraulics */
+    double substeps;                  /* hydraulic sub-steps per plant sub-step */
+    dct_oil_params oil;
+    dct_supply_params supply;
+    dct_valve_params valve;           /* K1 and K2 valves are the same part */
+    double chamber_volume_cm3[2];     /* oil between valve and piston, K1, K2 */
+} dct_hydraulics_params;
+
+typedef struct {
+    double solenoid_force_n;
+    double spool_position_m;          /* + opens supply -> clutch, - opens clutch -> tank */
+    double spool_velocity_m_s;
+    double friction_velocity_m_s;     /* lagged spool velocity, eq. 10 */
+} dct_valve_state;
+
+typedef struct {
+    double line_pressure_pa;
+    double clutch_oil_m3[2];          /* oil volume fed into each clutch chamber (0: at atmospheric) */
+    dct_valve_state valve[2];
+} dct_hydraulics_state;
+
+typedef struct {
+    double current_a;
+    double supply_pa;
+    double control_pa;                /* the controlled (clutch) pressure, fed back on the spool */
+} dct_valve_input;
+
+typedef struct {
+    double flow_m3_s;                 /* into the clutch chamber (eq. 14 included) */
+    double supply_flow_m3_s;          /* through the supply edge */
+    double tank_flow_m3_s;            /* through the tank edge */
+    double spool_accel_m_s2;
+    double solenoid_force_rate_n_s;
+    double friction_accel_m_s2;       /* d(friction velocity)/dt */
+} dct_valve_output;
+
+/* eqs. 11-13: flow through a sharp-edged slot of width width_m opened by
+ * opening_m (<= 0: closed; narrow: hydraulic diameter 2 x opening), p1 to p2 */
+double dct_orifice_flow(const dct_oil_params *oil, double cd_max, double transition_reynolds,
+                        double width_m, double opening_m, double p1_pa, double p2_pa);
+/* Clutch chamber: the oil volume that must be fed in to reach pressure p
+ * (compressing the oil and its entrained air, stroking the piston), and its
+ * inverse. Volume, not pressure, is the chamber's state: it is what the
+ * flow integrates, so the fill conserves oil however fast the compliance
+ * changes (nearly rigid before the piston moves, soft while it strokes,
+ * stiff once the pack is clamped). */
+double dct_chamber_volume(const dct_oil_params *oil, const dct_clutch_params *clutch,
+                          double chamber_m3, double pressure_pa);
+double dct_chamber_pressure(const dct_oil_params *oil, const dct_clutch_params *clutch,
+                            double chamber_m3, double volume_m3);
+double dct_pressure_map_eval(const dct_pressure_map *m, double current_a);
+void dct_valve_init(const dct_valve_params *p, dct_valve_state *s);
+void dct_valve_output_eval(const dct_valve_params *p, const dct_oil_params *oil,
+                           const dct_valve_state *s, const dct_valve_input *in,
+                           dct_valve_output *out);
+void dct_valve_advance(const dct_valve_params *p, dct_valve_state *s,
+                       const dct_valve_output *out, double h);
+
+typedef struct {
+    double current_a[2];              /* clutch valve solenoids */
+    double line_current_a;
+} dct_hydraulics_input;
+
+typedef struct {
+    double clamp_force_n[2];
+    double piston_position_m[2];
+    double clutch_pressure_pa[2];
+} dct_hydraulics_output;
+
+void dct_hydraulics_init(const dct_hydraulics_params *p, dct_hydraulics_state *s);
+/* the coupling outputs (clamp forces) from the state */
+void dct_hydraulics_output_eval(const dct_hydraulics_params *p, const dct_clutch_params clutch[2],
+                                const dct_hydraulics_state *s, dct_hydraulics_output *out);
+/* advances supply, valves and chambers over h in params.substeps sub-steps */
+void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_clutch_params clutch[2],
+                            dct_hydraulics_state *s, const dct_hydraulics_input *in, double h);
+
+/* ------------------------------------------------------------------ */
 /* Assembly                                                            */
 /* ------------------------------------------------------------------ */
 typedef struct {
@@ -516,6 +658,7 @@ typedef struct {
     dct_solver_params solver;
     dct_engine_params engine;
     dct_clutch_params clutch[2];      /* K1 (input shaft 1: gears 1 3 5 R), K2 (2 4 6) */
+    dct_hydraulics_params hydraulics;
     dct_gearbox_params gearbox;
     dct_driveline_params driveline;
     dct_wheel_params front_wheel;     /* one front wheel */
@@ -529,6 +672,7 @@ typedef struct {
     double time_s;
     dct_engine_state engine;
     dct_clutch_state clutch[2];
+    dct_hydraulics_state hydraulics;
     dct_gearbox_state gearbox;
     dct_driveline_state driveline;
     dct_wheel_state wheel[3];         /* front left, front right, rear axle */
@@ -540,7 +684,10 @@ typedef struct {
 typedef struct {
     double accel_pedal_pct;
     double brake_pedal_pct;
-    double clutch1_pressure_bar;
+    double solenoid_current1_a;       /* K1 pressure valve */
+    double solenoid_current2_a;       /* K2 pressure valve */
+    double line_solenoid_current_a;   /* line pressure valve */
+    double clutch1_pressure_bar;      /* used only when hydraulics.pressure_commanded = 1 */
     double clutch2_pressure_bar;
     double fork_force1_n;             /* sleeve 1-3: + gear 1, - gear 3 */
     double fork_force2_n;             /* sleeve 2-4: + gear 2, - gear 4 */
@@ -562,8 +709,18 @@ typedef struct {
     double input_shaft2_speed_rpm;
     double output_shaft1_speed_rpm;
     double output_shaft2_speed_rpm;
-    double clutch1_pressure_bar;
+    double solenoid_current1_a;       /* as applied (limited to the valve's range) */
+    double solenoid_current2_a;
+    double line_solenoid_current_a;
+    double line_pressure_bar;
+    double clutch1_pressure_bar;      /* clutch chamber pressure */
     double clutch2_pressure_bar;
+    double piston1_position_mm;
+    double piston2_position_mm;
+    double spool1_position_mm;
+    double spool2_position_mm;
+    double clutch1_clamp_force_n;
+    double clutch2_clamp_force_n;
     double clutch1_torque_nm;
     double clutch2_torque_nm;
     double clutch1_slip_rpm;

@@ -23,6 +23,8 @@ int dct_plant_input_size(void) { return N_INPUT; }
 
 /* every coupling variable of one evaluation */
 typedef struct {
+    dct_hydraulics_input hydraulics_in;
+    dct_hydraulics_output hydraulics;
     dct_clutch_input clutch_in[2];
     dct_clutch_output clutch[2];
     dct_engine_input engine_in;
@@ -43,11 +45,27 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
 {
     const dct_params *p = &pl->params;
     const dct_state *s = &pl->state;
-    double pressure[2] = {u->clutch1_pressure_bar, u->clutch2_pressure_bar};
+    /* hydraulics: clamp forces from the chamber pressures, or from the
+     * commanded pressures through the same pistons */
+    c->hydraulics_in.current_a[0] = u->solenoid_current1_a;
+    c->hydraulics_in.current_a[1] = u->solenoid_current2_a;
+    c->hydraulics_in.line_current_a = u->line_solenoid_current_a;
+    if (p->hydraulics.pressure_commanded > 0.5) {
+        double pressure[2] = {u->clutch1_pressure_bar, u->clutch2_pressure_bar};
+        for (int k = 0; k < 2; k++) {
+            dct_piston_output po;
+            dct_piston_eval(&p->clutch[k], pressure[k] * DCT_PA_PER_BAR, &po);
+            c->hydraulics.clamp_force_n[k] = po.clamp_force_n;
+            c->hydraulics.piston_position_m[k] = po.position_m;
+            c->hydraulics.clutch_pressure_pa[k] = pressure[k] * DCT_PA_PER_BAR;
+        }
+    } else {
+        dct_hydraulics_output_eval(&p->hydraulics, p->clutch, &s->hydraulics, &c->hydraulics);
+    }
 
     /* clutches: engine drum to the input shafts */
     for (int k = 0; k < 2; k++) {
-        c->clutch_in[k].pressure_bar = pressure[k];
+        c->clutch_in[k].clamp_force_n = c->hydraulics.clamp_force_n[k];
         c->clutch_in[k].drive_speed_rad_s = s->engine.speed_rad_s;
         c->clutch_in[k].driven_speed_rad_s = s->gearbox.input_speed_rad_s[k];
         dct_clutch_output_eval(&p->clutch[k], &s->clutch[k], &c->clutch_in[k], &c->clutch[k]);
@@ -113,6 +131,8 @@ static void advance(dct_plant *pl, const coupling *c, double h)
 {
     const dct_params *p = &pl->params;
     dct_state *s = &pl->state;
+    if (!(p->hydraulics.pressure_commanded > 0.5))
+        dct_hydraulics_advance(&p->hydraulics, p->clutch, &s->hydraulics, &c->hydraulics_in, h);
     dct_engine_advance(&p->engine, &s->engine, &c->engine_in, &c->engine, h);
     for (int k = 0; k < 2; k++)
         dct_clutch_advance(&p->clutch[k], &s->clutch[k], &c->clutch[k], h);
@@ -150,8 +170,18 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     o->input_shaft2_speed_rpm = g->input_speed_rad_s[1] * DCT_RPM_PER_RAD_S;
     o->output_shaft1_speed_rpm = g->carrier_speed_rad_s * p->gearbox.final_drive[0] * DCT_RPM_PER_RAD_S;
     o->output_shaft2_speed_rpm = g->carrier_speed_rad_s * p->gearbox.final_drive[1] * DCT_RPM_PER_RAD_S;
-    o->clutch1_pressure_bar = pl->applied.clutch1_pressure_bar;
-    o->clutch2_pressure_bar = pl->applied.clutch2_pressure_bar;
+    o->solenoid_current1_a = pl->applied.solenoid_current1_a;
+    o->solenoid_current2_a = pl->applied.solenoid_current2_a;
+    o->line_solenoid_current_a = pl->applied.line_solenoid_current_a;
+    o->line_pressure_bar = s->hydraulics.line_pressure_pa / DCT_PA_PER_BAR;
+    o->clutch1_pressure_bar = c->hydraulics.clutch_pressure_pa[0] / DCT_PA_PER_BAR;
+    o->clutch2_pressure_bar = c->hydraulics.clutch_pressure_pa[1] / DCT_PA_PER_BAR;
+    o->piston1_position_mm = c->hydraulics.piston_position_m[0] * 1e3;
+    o->piston2_position_mm = c->hydraulics.piston_position_m[1] * 1e3;
+    o->spool1_position_mm = s->hydraulics.valve[0].spool_position_m * 1e3;
+    o->spool2_position_mm = s->hydraulics.valve[1].spool_position_m * 1e3;
+    o->clutch1_clamp_force_n = c->hydraulics.clamp_force_n[0];
+    o->clutch2_clamp_force_n = c->hydraulics.clamp_force_n[1];
     o->clutch1_torque_nm = c->clutch[0].torque_nm;
     o->clutch2_torque_nm = c->clutch[1].torque_nm;
     o->clutch1_slip_rpm = (s->engine.speed_rad_s - g->input_speed_rad_s[0]) * DCT_RPM_PER_RAD_S;
@@ -218,6 +248,10 @@ static int apply_inputs(dct_plant *pl)
     double fmax = p->gearbox.max_fork_force_n;
     a->accel_pedal_pct = limit(pl, u->accel_pedal_pct, 0.0, 100.0);
     a->brake_pedal_pct = limit(pl, u->brake_pedal_pct, 0.0, 100.0);
+    double imax = p->hydraulics.valve.max_current_a;
+    a->solenoid_current1_a = limit(pl, u->solenoid_current1_a, 0.0, imax);
+    a->solenoid_current2_a = limit(pl, u->solenoid_current2_a, 0.0, imax);
+    a->line_solenoid_current_a = limit(pl, u->line_solenoid_current_a, 0.0, p->hydraulics.supply.max_current_a);
     a->clutch1_pressure_bar = limit(pl, u->clutch1_pressure_bar, 0.0, p->clutch[0].max_pressure_bar);
     a->clutch2_pressure_bar = limit(pl, u->clutch2_pressure_bar, 0.0, p->clutch[1].max_pressure_bar);
     a->fork_force1_n = limit(pl, u->fork_force1_n, -fmax, fmax);
@@ -301,6 +335,19 @@ static int check_params(const dct_params *p)
             !(sp->engaged_travel_mm > sp->cone_travel_mm) || !(sp->cone_travel_mm > 0.0))
             return DCT_ERR_PARAM;
     }
+    const dct_hydraulics_params *hy = &p->hydraulics;
+    if (!(hy->substeps >= 1.0) || hy->substeps > 1000.0 || hy->supply.line.n < 1 ||
+        hy->supply.line.n > DCT_CURVE_MAX || !(hy->supply.tau_s > 0.0) ||
+        !(hy->valve.spool_mass_kg > 0.0) || !(hy->valve.solenoid_tau_s > 0.0) ||
+        !(hy->valve.friction_tau_s > 0.0) || !(hy->valve.spool_diameter_mm > hy->valve.rod_diameter_mm) ||
+        !(hy->oil.density_kg_m3 > 0.0) || !(hy->oil.viscosity_m2_s > 0.0) ||
+        !(hy->oil.bulk_modulus_pa > 0.0) || !(hy->chamber_volume_cm3[0] > 0.0) ||
+        !(hy->chamber_volume_cm3[1] > 0.0))
+        return DCT_ERR_PARAM;
+    for (int k = 0; k < 2; k++)
+        if (!(p->clutch[k].piston_area_m2 > 0.0) || !(p->clutch[k].return_spring_n_per_m > 0.0) ||
+            !(p->clutch[k].pack_stiffness_n_per_m > 0.0))
+            return DCT_ERR_PARAM;
     if (!(p->driveline.left_damping_nms_per_rad + p->driveline.right_damping_nms_per_rad > 0.0))
         return DCT_ERR_PARAM;
     if (!(p->front_wheel.inertia_kgm2 > 0.0) || !(p->rear_wheels.inertia_kgm2 > 0.0) ||
@@ -372,6 +419,7 @@ int dct_plant_reset(dct_plant *pl, const dct_initial *init)
     dct_engine_init(&p->engine, &s->engine, w_eng, engine_on);
     for (int k = 0; k < 2; k++)
         dct_clutch_init(&p->clutch[k], &s->clutch[k]);
+    dct_hydraulics_init(&p->hydraulics, &s->hydraulics);
     dct_driveline_init(&p->driveline, &s->driveline);
     for (int i = 0; i < 3; i++) {
         dct_wheel_init(i < 2 ? &p->front_wheel : &p->rear_wheels, &s->wheel[i], w_wheel);
