@@ -95,6 +95,12 @@ def build_parser():
     bench.add_argument("--check", action="store_true",
                        help=f"exit 1 if the median step cost is above {TARGET_MEDIAN_US} us")
     bench.set_defaults(func=cmd_bench)
+
+    valve = sub.add_parser("valve", help="clutch valve characteristic and step responses (CSV, PNG)")
+    valve.add_argument("--out-dir", default="out/valve", metavar="DIR",
+                       help="where to write the files (default out/valve)")
+    valve.add_argument("--params", metavar="FILE.toml", help="parameter override file")
+    valve.set_defaults(func=cmd_valve)
     return parser
 
 
@@ -243,6 +249,86 @@ def cmd_bench(args):
     return 0
 
 
+# ------------------------------------------------------------------------ valve
+VALVE_STEPS = ((0.0, 0.6), (0.6, 0.0), (0.3, 0.7), (0.7, 0.3), (0.0, 1.0))
+
+
+def cmd_valve(args):
+    import numpy as np
+
+    from plant.model import Plant
+    from plant.valve_report import steady_state_curve, step_response
+
+    os.makedirs(args.out_dir, exist_ok=True)
+    _check_writable(os.path.join(args.out_dir, "valve_curve.csv"), "--out-dir")
+    plant = Plant(args.params, {"hydraulics": {"pressure_commanded": 0}})
+    currents, up, down, line = steady_state_curve(plant)
+    curve_csv = os.path.join(args.out_dir, "valve_curve.csv")
+    np.savetxt(curve_csv, np.column_stack([currents, up, down]), fmt="%.6g", delimiter=",",
+               header="solenoid_current_a,pressure_rising_bar,pressure_falling_bar", comments="")
+    steps = [step_response(a, b, params_path=args.params,
+                           overrides={"hydraulics": {"pressure_commanded": 0}}) for a, b in VALVE_STEPS]
+    step_csv = os.path.join(args.out_dir, "valve_steps.csv")
+    cols, names = [steps[0].time_s], ["time_s"]
+    for (a, b), r in zip(VALVE_STEPS, steps):
+        tag = f"{a:g}_to_{b:g}a"
+        cols += [r.pressure_bar, r.piston_mm]
+        names += [f"pressure_{tag}_bar", f"piston_{tag}_mm"]
+    np.savetxt(step_csv, np.column_stack(cols), fmt="%.6g", delimiter=",", header=",".join(names),
+               comments="")
+    png = _valve_plots(args.out_dir, currents, up, down, line, steps)
+
+    print(f"line pressure     {line:.2f} bar")
+    print(f"pressure at 0 A   {up[0]:.3f} bar; at {currents[-1]:g} A {up[-1]:.2f} bar")
+    hyst = float(np.max(np.abs(up - down)))
+    print(f"hysteresis        {hyst:.3f} bar (largest rising/falling difference)")
+    for (a, b), r in zip(VALVE_STEPS, steps):
+        print(f"step {a:g} -> {b:g} A   {r.start_bar:5.2f} -> {r.final_bar:5.2f} bar, "
+              f"90 % in {r.time_to(0.9) * 1e3:5.1f} ms, overshoot {r.overshoot * 100:.2f} %")
+    print(f"csv               {curve_csv}, {step_csv}")
+    print(f"png               {', '.join(png)}")
+    return 0
+
+
+def _valve_plots(out_dir, currents, up, down, line, steps):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    ax.plot(currents, up, label="current rising")
+    ax.plot(currents, down, "--", label="current falling")
+    ax.axhline(line, color="grey", lw=0.8, ls=":", label="line pressure")
+    ax.set_xlabel("solenoid current (A)")
+    ax.set_ylabel("clutch pressure (bar)")
+    ax.set_title("Clutch valve: steady-state pressure over current")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    files.append(os.path.join(out_dir, "valve_curve.png"))
+    fig.savefig(files[-1], dpi=120)
+    plt.close(fig)
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for (a, b), r in zip(VALVE_STEPS, steps):
+        ax1.plot(r.time_s * 1e3, r.pressure_bar, label=f"{a:g} -> {b:g} A")
+        ax2.plot(r.time_s * 1e3, r.piston_mm)
+    ax1.set_ylabel("clutch pressure (bar)")
+    ax1.set_title("Clutch valve: current step responses")
+    ax1.legend(fontsize=8)
+    ax2.set_ylabel("piston (mm)")
+    ax2.set_xlabel("time after the step (ms)")
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    files.append(os.path.join(out_dir, "valve_steps.png"))
+    fig.savefig(files[-1], dpi=120)
+    plt.close(fig)
+    return files
+
+
 # ------------------------------------------------------------------------- main
 def _one_line(text):
     return " ".join(str(text).split())
@@ -266,7 +352,7 @@ def main(argv=None):
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise UserError("choose a command: simulate or bench (dct-hil --help)")
+            raise UserError("choose a command: simulate, bench or valve (dct-hil --help)")
         try:
             user_errors = _user_errors()
         except ImportError as e:

@@ -94,6 +94,50 @@ def modes():
     e = P["engine"]
     for tau in ("tau_rise_s", "tau_boost_s", "tau_fall_s"):
         out.append((f"engine {tau}", lag(1.0 / e[tau])))
+    out += hydraulic_modes()
+    return out
+
+
+def hydraulic_modes():
+    """The hydraulics run at their own sub-step H / hydraulics.substeps."""
+    hy = P["hydraulics"]
+    v, oil = hy["valve"], hy["oil"]
+    hh = H / hy["substeps"]
+    scale = hh / H  # margin() uses H: scale the roots instead
+
+    def at_hh(roots):
+        return margin(np.atleast_1d(roots) * scale)
+
+    m, c, k = v["spool_mass_kg"], v["viscous_friction_ns_per_m"], v["spring_n_per_m"]
+    out = [("valve spool on its spring", at_hh(np.roots([m, c, k]))),
+           ("valve spool on an end stop", at_hh(np.roots([m, c + v["stop_damping_ns_per_m"],
+                                                          k + v["stop_stiffness_n_per_m"]]))),
+           ("valve friction lag (eq. 10)", at_hh(-1.0 / v["friction_tau_s"])),
+           ("solenoid lag (eq. 9)", at_hh(-1.0 / v["solenoid_tau_s"])),
+           ("line pressure lag", at_hh(-1.0 / hy["supply"]["tau_s"]))]
+    width = v["edge_width_mm"] * 1e-3
+    a_fb = math.pi / 4 * (v["spool_diameter_mm"] ** 2 - v["rod_diameter_mm"] ** 2) * 1e-6
+    line = hy["supply"]["line"]["pressure_bar"][0] * 1e5
+    for k_clutch, clutch in enumerate(P["clutch"]):
+        vol = hy["chamber_volume_cm3"][k_clutch] * 1e-6
+        area = clutch["piston_area_m2"]
+        stiff = clutch["return_spring_n_per_m"] + clutch["pack_stiffness_n_per_m"]
+        for bar in (5.0, 10.0, 19.0):
+            # pressure loop with the pack clamped: m s^3 + c s^2 + k s + K,
+            # K = A_fb (dQ/dx) / C: spool -> flow -> pressure -> spool force
+            p_abs = bar * 1e5 + 1e5
+            compliance = area**2 / stiff + vol * ((1 - oil["air_fraction"]) / oil["bulk_modulus_pa"]
+                                                  + oil["air_fraction"] * 1e5 / p_abs**2)
+            kq = v["cd_max"] * width * math.sqrt(2 * (line - bar * 1e5) / oil["density_kg_m3"])
+            loop = a_fb * kq / compliance
+            out.append((f"K{k_clutch + 1} pressure loop at {bar:g} bar", at_hh(np.roots([m, c, k, loop]))))
+        # chamber emptying at 0 bar through the wide-open tank edge: laminar
+        # conductance (C_d ~ 2 Re / Re_t) over the air's compliance
+        opening = v["spool_travel_mm"] * 1e-3
+        g = v["cd_max"] * 2 / v["transition_reynolds"] * (2 * opening / oil["viscosity_m2_s"]) \
+            * width * opening * 2 / oil["density_kg_m3"]
+        c0 = vol * oil["air_fraction"] / 1e5
+        out.append((f"K{k_clutch + 1} chamber draining at 0 bar", at_hh(-g / c0)))
     return out
 
 

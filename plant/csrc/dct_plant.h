@@ -617,8 +617,21 @@ double dct_orifice_flow(const dct_oil_params *oil, double cd_max, double transit
  * stiff once the pack is clamped). */
 double dct_chamber_volume(const dct_oil_params *oil, const dct_clutch_params *clutch,
                           double chamber_m3, double pressure_pa);
-double dct_chamber_pressure(const dct_oil_params *oil, const dct_clutch_params *clutch,
-                            double chamber_m3, double volume_m3);
+typedef struct {
+    double min_m3;                    /* volume at the lowest pressure (vapour) */
+    double kiss_m3;                   /* volume when the piston starts to move */
+    double closed_m3;                 /* volume when the pack gap is closed */
+    double oil_m3_per_pa;             /* V_c (1 - a) / beta */
+    double air_m3;                    /* a V_c */
+    double stroke_m3_per_pa;          /* A dx/dp while stroking, and its offset */
+    double stroke_m3;
+    double clamped_m3_per_pa;         /* A dx/dp once clamped, and its offset */
+    double clamped_m3;
+} dct_chamber_derived;
+
+void dct_chamber_prepare(const dct_oil_params *oil, const dct_clutch_params *clutch,
+                         double chamber_m3, dct_chamber_derived *d);
+double dct_chamber_pressure(const dct_chamber_derived *d, double volume_m3);
 double dct_pressure_map_eval(const dct_pressure_map *m, double current_a);
 void dct_valve_init(const dct_valve_params *p, dct_valve_state *s);
 void dct_valve_output_eval(const dct_valve_params *p, const dct_oil_params *oil,
@@ -638,12 +651,19 @@ typedef struct {
     double clutch_pressure_pa[2];
 } dct_hydraulics_output;
 
+typedef struct {
+    dct_chamber_derived chamber[2];
+} dct_hydraulics_derived;
+
+void dct_hydraulics_prepare(const dct_hydraulics_params *p, const dct_clutch_params clutch[2],
+                            dct_hydraulics_derived *d);
 void dct_hydraulics_init(const dct_hydraulics_params *p, dct_hydraulics_state *s);
 /* the coupling outputs (clamp forces) from the state */
-void dct_hydraulics_output_eval(const dct_hydraulics_params *p, const dct_clutch_params clutch[2],
-                                const dct_hydraulics_state *s, dct_hydraulics_output *out);
+void dct_hydraulics_output_eval(const dct_hydraulics_params *p, const dct_hydraulics_derived *d,
+                                const dct_clutch_params clutch[2], const dct_hydraulics_state *s,
+                                dct_hydraulics_output *out);
 /* advances supply, valves and chambers over h in params.substeps sub-steps */
-void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_clutch_params clutch[2],
+void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_hydraulics_derived *d,
                             dct_hydraulics_state *s, const dct_hydraulics_input *in, double h);
 
 /* ------------------------------------------------------------------ */
@@ -769,6 +789,7 @@ typedef struct {
 
 typedef struct {
     dct_gearbox_derived gearbox;
+    dct_hydraulics_derived hydraulics;
     double front_static_n;            /* static axle loads on level road */
     double rear_static_n;
 } dct_derived;

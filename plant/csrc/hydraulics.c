@@ -41,36 +41,47 @@ static double piece_pressure(double k, double av, double c0, double v)
 {
     double b = k * P_ATM + av + c0 - v;
     double c = (c0 - v) * P_ATM;
-    if (k <= 0.0)
-        return -c / b;
     double disc = b * b - 4.0 * k * c;
     double root = sqrt(disc > 0.0 ? disc : 0.0);
     /* numerically stable form of (-b + root) / (2k) */
     return b > 0.0 ? (2.0 * -c) / (b + root) : (-b + root) / (2.0 * k);
 }
 
-double dct_chamber_pressure(const dct_oil_params *oil, const dct_clutch_params *clutch,
-                            double chamber_m3, double volume_m3)
+void dct_chamber_prepare(const dct_oil_params *oil, const dct_clutch_params *clutch,
+                         double chamber_m3, dct_chamber_derived *d)
 {
-    double a = oil->air_fraction;
-    double k_oil = chamber_m3 * (1.0 - a) / oil->bulk_modulus_pa;
-    double av = a * chamber_m3;
-    double area = clutch->piston_area_m2;
-    double p1 = clutch->return_spring_n / area; /* piston starts to move */
+    double a = oil->air_fraction, area = clutch->piston_area_m2;
     double gap = clutch->pack_gap_mm * 1e-3;
-    double p2 = (clutch->return_spring_n + clutch->return_spring_n_per_m * gap) / area; /* pack closed */
-    if (volume_m3 <= dct_chamber_volume(oil, clutch, chamber_m3, P_MIN))
+    double kr = clutch->return_spring_n_per_m, kt = kr + clutch->pack_stiffness_n_per_m;
+    double p_kiss = clutch->return_spring_n / area;
+    double p_closed = (clutch->return_spring_n + kr * gap) / area;
+    d->min_m3 = dct_chamber_volume(oil, clutch, chamber_m3, P_MIN);
+    d->kiss_m3 = dct_chamber_volume(oil, clutch, chamber_m3, p_kiss);
+    d->closed_m3 = dct_chamber_volume(oil, clutch, chamber_m3, p_closed);
+    d->oil_m3_per_pa = chamber_m3 * (1.0 - a) / oil->bulk_modulus_pa;
+    d->air_m3 = a * chamber_m3;
+    d->stroke_m3_per_pa = area * area / kr;
+    d->stroke_m3 = -d->stroke_m3_per_pa * p_kiss;
+    d->clamped_m3_per_pa = area * area / kt;
+    d->clamped_m3 = area * (clutch->pack_stiffness_n_per_m * gap - clutch->return_spring_n) / kt;
+}
+
+double dct_chamber_pressure(const dct_chamber_derived *d, double volume_m3)
+{
+    if (volume_m3 <= d->min_m3)
         return P_MIN;
-    if (volume_m3 <= dct_chamber_volume(oil, clutch, chamber_m3, p1))
-        return piece_pressure(k_oil, av, 0.0, volume_m3);
-    if (volume_m3 <= dct_chamber_volume(oil, clutch, chamber_m3, p2)) {
-        double c1 = area * area / clutch->return_spring_n_per_m;
-        return piece_pressure(k_oil + c1, av, -c1 * p1, volume_m3);
-    }
-    double kt = clutch->return_spring_n_per_m + clutch->pack_stiffness_n_per_m;
-    double c1 = area * area / kt;
-    double c0 = area * (clutch->pack_stiffness_n_per_m * gap - clutch->return_spring_n) / kt;
-    return piece_pressure(k_oil + c1, av, c0, volume_m3);
+    if (volume_m3 <= d->kiss_m3)
+        return piece_pressure(d->oil_m3_per_pa, d->air_m3, 0.0, volume_m3);
+    if (volume_m3 <= d->closed_m3)
+        return piece_pressure(d->oil_m3_per_pa + d->stroke_m3_per_pa, d->air_m3, d->stroke_m3, volume_m3);
+    return piece_pressure(d->oil_m3_per_pa + d->clamped_m3_per_pa, d->air_m3, d->clamped_m3, volume_m3);
+}
+
+void dct_hydraulics_prepare(const dct_hydraulics_params *p, const dct_clutch_params clutch[2],
+                            dct_hydraulics_derived *d)
+{
+    for (int k = 0; k < 2; k++)
+        dct_chamber_prepare(&p->oil, &clutch[k], p->chamber_volume_cm3[k] * 1e-6, &d->chamber[k]);
 }
 
 void dct_hydraulics_init(const dct_hydraulics_params *p, dct_hydraulics_state *s)
@@ -82,12 +93,13 @@ void dct_hydraulics_init(const dct_hydraulics_params *p, dct_hydraulics_state *s
     }
 }
 
-void dct_hydraulics_output_eval(const dct_hydraulics_params *p, const dct_clutch_params clutch[2],
-                                const dct_hydraulics_state *s, dct_hydraulics_output *out)
+void dct_hydraulics_output_eval(const dct_hydraulics_params *p, const dct_hydraulics_derived *d,
+                                const dct_clutch_params clutch[2], const dct_hydraulics_state *s,
+                                dct_hydraulics_output *out)
 {
+    (void)p;
     for (int k = 0; k < 2; k++) {
-        double pk = dct_chamber_pressure(&p->oil, &clutch[k], p->chamber_volume_cm3[k] * 1e-6,
-                                         s->clutch_oil_m3[k]);
+        double pk = dct_chamber_pressure(&d->chamber[k], s->clutch_oil_m3[k]);
         dct_piston_output po;
         dct_piston_eval(&clutch[k], pk, &po);
         out->clamp_force_n[k] = po.clamp_force_n;
@@ -96,7 +108,7 @@ void dct_hydraulics_output_eval(const dct_hydraulics_params *p, const dct_clutch
     }
 }
 
-void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_clutch_params clutch[2],
+void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_hydraulics_derived *d,
                             dct_hydraulics_state *s, const dct_hydraulics_input *in, double h)
 {
     int n = (int)p->substeps;
@@ -105,8 +117,7 @@ void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_clutch_par
     for (int i = 0; i < n; i++) {
         dct_valve_output vo[2];
         for (int k = 0; k < 2; k++) {
-            double pk = dct_chamber_pressure(&p->oil, &clutch[k], p->chamber_volume_cm3[k] * 1e-6,
-                                             s->clutch_oil_m3[k]);
+            double pk = dct_chamber_pressure(&d->chamber[k], s->clutch_oil_m3[k]);
             dct_valve_input vi = {in->current_a[k], s->line_pressure_pa, pk};
             dct_valve_output_eval(&p->valve, &p->oil, &s->valve[k], &vi, &vo[k]);
         }

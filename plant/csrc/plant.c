@@ -60,7 +60,8 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
             c->hydraulics.clutch_pressure_pa[k] = pressure[k] * DCT_PA_PER_BAR;
         }
     } else {
-        dct_hydraulics_output_eval(&p->hydraulics, p->clutch, &s->hydraulics, &c->hydraulics);
+        dct_hydraulics_output_eval(&p->hydraulics, &pl->derived.hydraulics, p->clutch, &s->hydraulics,
+                                   &c->hydraulics);
     }
 
     /* clutches: engine drum to the input shafts */
@@ -132,7 +133,7 @@ static void advance(dct_plant *pl, const coupling *c, double h)
     const dct_params *p = &pl->params;
     dct_state *s = &pl->state;
     if (!(p->hydraulics.pressure_commanded > 0.5))
-        dct_hydraulics_advance(&p->hydraulics, p->clutch, &s->hydraulics, &c->hydraulics_in, h);
+        dct_hydraulics_advance(&p->hydraulics, &pl->derived.hydraulics, &s->hydraulics, &c->hydraulics_in, h);
     dct_engine_advance(&p->engine, &s->engine, &c->engine_in, &c->engine, h);
     for (int k = 0; k < 2; k++)
         dct_clutch_advance(&p->clutch[k], &s->clutch[k], &c->clutch[k], h);
@@ -370,6 +371,7 @@ int dct_plant_init(dct_plant *pl)
     if (st != DCT_OK)
         return st;
     dct_gearbox_prepare(&pl->params.gearbox, &pl->derived.gearbox);
+    dct_hydraulics_prepare(&pl->params.hydraulics, pl->params.clutch, &pl->derived.hydraulics);
     pl->derived.front_static_n = dct_vehicle_static_front_n(&pl->params.vehicle);
     pl->derived.rear_static_n = dct_vehicle_static_rear_n(&pl->params.vehicle);
     memset(&pl->inputs, 0, sizeof pl->inputs);
