@@ -776,6 +776,8 @@ typedef struct {
     double rear_axle_load_n;
     double brake_torque_nm;           /* all wheels */
     double road_grade_pct;
+    double accel_pedal_pct;           /* as applied */
+    double brake_pedal_pct;
     double input_clamps;              /* inputs limited to their range so far */
 } dct_outputs;
 

@@ -215,6 +215,8 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     o->brake_torque_nm = c->wheel[0].brake_torque_nm + c->wheel[1].brake_torque_nm +
                          c->wheel[2].brake_torque_nm;
     o->road_grade_pct = pl->applied.road_grade_pct;
+    o->accel_pedal_pct = pl->applied.accel_pedal_pct;
+    o->brake_pedal_pct = pl->applied.brake_pedal_pct;
     o->input_clamps = pl->input_clamps;
 }
 
