@@ -101,6 +101,48 @@ def build_parser():
                        help="where to write the files (default out/valve)")
     valve.add_argument("--params", metavar="FILE.toml", help="parameter override file")
     valve.set_defaults(func=cmd_valve)
+
+    serve = sub.add_parser(
+        "serve", help="serve the plant to a TCU over CAN in real time (live status, JSON stats)",
+        description="Serve the plant to a TCU over CAN: one tick per period in a SCHED_FIFO "
+                    "thread (receive, check, step, send). SocketCAN is hard real time; any "
+                    "other python-can interface goes through a bridge thread (soft real time). "
+                    "Ctrl-C (exit 130) or SIGTERM (exit 0) stop it with everything written.")
+    serve.add_argument("--channel", default="vcan0", metavar="NAME",
+                       help="CAN channel: a network interface for socketcan (can0, vcan0), "
+                            "the python-can channel otherwise (default vcan0)")
+    serve.add_argument("--interface", metavar="NAME",
+                       help="socketcan (hard real time) or any python-can interface, e.g. "
+                            "virtual, udp_multicast, pcan, kvaser (bridged, soft real time); "
+                            "default: socketcan if the channel is a CAN network interface, "
+                            "else virtual")
+    serve.add_argument("--rate", type=_serve_rate, default=2000.0, metavar="HZ",
+                       help=f"ticks per second, {SERVE_MIN_RATE_HZ:g} to {SERVE_MAX_RATE_HZ:g} "
+                            "(default 2000: 0.5 ms)")
+    serve.add_argument("--priority", type=_serve_priority, default=80, metavar="1..99",
+                       help="SCHED_FIFO priority of the loop, with mlockall (default 80); "
+                            "0: normal scheduling, no privileges needed, not real time")
+    serve.add_argument("--cpu", type=_serve_cpu, metavar="N", help="pin the loop to CPU N")
+    serve.add_argument("--duration", type=_serve_duration, metavar="S",
+                       help="stop after S seconds (default: run until Ctrl-C or SIGTERM)")
+    serve.add_argument("--stats", default="out/serve-stats.json", metavar="FILE.json",
+                       help="statistics written on exit (default out/serve-stats.json)")
+    serve.add_argument("--log", metavar="FILE",
+                       help="record the CAN traffic, both directions; the suffix picks the "
+                            "format: .log (candump), .blf, .asc, .mf4 (needs asammdf), .csv, .trc")
+    serve.add_argument("--params", metavar="FILE.toml", help="parameter override file")
+    serve.add_argument("--overrun", choices=("skip", "stop"), default="skip",
+                       help="on an overrun: count it and skip the missed ticks (default), "
+                            "or stop (exit 1)")
+    serve.add_argument("--spin-us", type=float, default=None, metavar="US",
+                       help="wake this long before each deadline and busy-wait to it, so the "
+                            "OS's wake-up latency stays out of the tick; costs that share of a CPU "
+                            "(default 300 us, at most 60 %% of the period, with SCHED_FIFO; 0 without)")
+    serve.add_argument("--bitrate", type=_serve_bitrate, metavar="BPS",
+                       help="bit rate passed to the python-can bus (bridged interfaces only)")
+    serve.add_argument("--quiet", action="store_true",
+                       help="no live status (the banner, warnings and summary stay)")
+    serve.set_defaults(func=cmd_serve)
     return parser
 
 
@@ -329,6 +371,86 @@ def _valve_plots(out_dir, currents, up, down, line, steps):
     return files
 
 
+# ------------------------------------------------------------------------ serve
+SERVE_MIN_RATE_HZ = 100.0      # the loop's periods: 10 ms .. 50 us
+SERVE_MAX_RATE_HZ = 20_000.0
+
+
+def _serve_rate(text):
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(x) and SERVE_MIN_RATE_HZ <= x <= SERVE_MAX_RATE_HZ):
+        raise argparse.ArgumentTypeError(
+            f"must be {SERVE_MIN_RATE_HZ:g} to {SERVE_MAX_RATE_HZ:g} Hz (a period of 10 ms to "
+            f"50 us), got {text}")
+    return x
+
+
+def _serve_priority(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 0 <= n <= 99:
+        raise argparse.ArgumentTypeError(
+            f"must be a SCHED_FIFO priority 1..99 (or 0: normal scheduling), got {text}")
+    return n
+
+
+def _serve_cpu(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a CPU number") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be a CPU number >= 0, got {text}")
+    return n
+
+
+def _serve_duration(text):
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0, got {text}")
+    return x
+
+
+def _serve_bitrate(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 1_000 <= n <= 8_000_000:
+        raise argparse.ArgumentTypeError(f"must be 1000..8000000 bit/s, got {text}")
+    return n
+
+
+def cmd_serve(args):
+    from rt_loop.server import Server, ServerError, run_console
+    from rt_loop.transport import TransportError, check_interface
+
+    try:
+        if args.interface is not None:
+            check_interface(args.interface)
+        _check_writable(args.stats, "--stats")
+        if args.log:
+            _check_writable(args.log, "--log")
+        server = Server(
+            args.channel, interface=args.interface, rate_hz=args.rate, priority=args.priority,
+            cpu=args.cpu, duration_s=args.duration, params_path=args.params, log_path=args.log,
+            overrun_policy=args.overrun,
+            bus_kwargs={"bitrate": args.bitrate} if args.bitrate else None,
+            spin_us=args.spin_us,
+        )
+        return run_console(server, args.stats, quiet=args.quiet)
+    except (ServerError, TransportError) as e:
+        raise UserError(str(e)) from None
+
+
 # ------------------------------------------------------------------------- main
 def _one_line(text):
     return " ".join(str(text).split())
@@ -352,7 +474,7 @@ def main(argv=None):
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise UserError("choose a command: simulate, bench or valve (dct-hil --help)")
+            raise UserError("choose a command: simulate, bench, valve or serve (dct-hil --help)")
         try:
             user_errors = _user_errors()
         except ImportError as e:

@@ -1,1 +1,36 @@
-"""The 2 kHz real-time loop: receive CAN frames, step the plant every 0.5 ms, send the due frames (to come)."""
+"""The real-time plant server: every period (0.5 ms at 2 kHz) receive the TCU's
+CAN frames, step the plant, send the frames due.
+
+The tick runs in C (``csrc/rt_loop.c``, contract ``csrc/rt_loop.h``, compiled
+into ``rt_loop._rt_loop``) in a thread of its own; Python sets it up and
+watches it:
+
+* ``rt_loop.server``: ``Server`` (set-up, loop thread, traffic log, stop) and
+  ``run_console`` (``dct-hil serve``);
+* ``rt_loop.transport``: SocketCAN (hard real time) or a bridge to any
+  python-can interface (soft real time);
+* ``rt_loop.stats``: turnaround, execution time and wake-up latency
+  percentiles, counters, the JSON report;
+* ``rt_loop.status``: the live status and the summary.
+
+``Server``, ``ServerError``, ``TransportError`` and ``open_transport`` are
+importable from here; nothing is loaded until first used.
+"""
+
+_LAZY = {
+    "Server": "rt_loop.server",
+    "ServerError": "rt_loop.server",
+    "TransportError": "rt_loop.transport",
+    "open_transport": "rt_loop.transport",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'rt_loop' has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(module), name)

@@ -1,0 +1,332 @@
+"""The CAN contract in Python: the DBC through cantools, plus the end-to-end
+protection every message carries.
+
+The DBC (``DBC_PATH``) is the truth: message names, identifiers, lengths,
+cycle times, signal layout, scaling and ranges all come from it. This module
+adds what a DBC cannot say, the same algorithm as can_dbc/csrc/dct_can.c:
+
+* byte 0, signal ``CRC``: CRC-8/SAE-J1850 (polynomial 0x1D, initial value
+  0xFF, final XOR 0xFF, not reflected) over the identifier as two bytes (low
+  byte first) followed by data bytes 1 .. len-1;
+* byte 1 bits 0-3, signal ``AliveCounter``: +1 per frame, wrapping 15 -> 0.
+
+A receiver (:class:`E2eReceiver`) rejects a frame whose length is not the
+DBC's, whose CRC is wrong, or whose counter repeats or jumps by more than 2;
+the counter state moves on only with an accepted frame.
+"""
+
+import functools
+import math
+import os
+
+DBC_PATH = os.path.join(os.path.dirname(os.path.abspath(__file__)), "dct_hil.dbc")
+
+CRC_SIGNAL = "CRC"
+COUNTER_SIGNAL = "AliveCounter"
+E2E_SIGNALS = (CRC_SIGNAL, COUNTER_SIGNAL)
+
+# results of E2eReceiver.check (the same order as DCT_RX_* in dct_can.h)
+OK = "ok"
+UNKNOWN_ID = "unknown_id"
+BAD_LENGTH = "bad_length"
+BAD_CRC = "bad_crc"
+BAD_COUNTER = "bad_counter"
+STATUSES = (OK, UNKNOWN_ID, BAD_LENGTH, BAD_CRC, BAD_COUNTER)
+REJECTS = (BAD_LENGTH, BAD_CRC, BAD_COUNTER)
+
+COUNTER_MAX_JUMP = 2          # a counter may advance by 1 or 2 (one frame lost)
+
+# What can_dbc/csrc/dct_can.c maps, for Python-side tools and tests:
+# plant message signal -> field of dct_outputs ("o.") or dct_sim_status ("st.")
+PLANT_SIGNAL_SOURCES = {
+    "DCT_ShaftSpeeds": {"EngineSpeed": "o.engine_speed_rpm", "InputShaft1Speed": "o.input_shaft1_speed_rpm",
+                        "InputShaft2Speed": "o.input_shaft2_speed_rpm"},
+    "DCT_OutputSpeeds": {"OutputShaft1Speed": "o.output_shaft1_speed_rpm",
+                         "OutputShaft2Speed": "o.output_shaft2_speed_rpm"},
+    "DCT_Clutch": {"ClutchPressure1": "o.clutch1_pressure_bar", "ClutchPressure2": "o.clutch2_pressure_bar",
+                   "LinePressure": "o.line_pressure_bar"},
+    "DCT_Shift": {"ForkPosition1": "o.fork1_position_mm", "ForkPosition2": "o.fork2_position_mm",
+                  "ForkPosition3": "o.fork3_position_mm", "ForkPosition4": "o.fork4_position_mm",
+                  "SyncState1": "o.sync1_state", "SyncState2": "o.sync2_state",
+                  "SyncState3": "o.sync3_state", "SyncState4": "o.sync4_state"},
+    "VEH_Motion": {"VehicleSpeed": "o.vehicle_speed_kmh", "LongAccel": "o.vehicle_accel_mps2",
+                   "RoadGrade": "o.road_grade_pct"},
+    "VEH_Driver": {"AccelPedal": "o.accel_pedal_pct", "BrakePedal": "o.brake_pedal_pct",
+                   "EngineTorque": "o.engine_torque_nm"},
+    "SIM_Status": {"SimTime": "st.sim_time_s", "OverrunCount": "st.overrun_count",
+                   "TurnaroundMax": "st.turnaround_max_us", "SimState": "st.sim_state"},
+}
+# TCU message signal -> field of dct_tcu_commands (and the dct_inputs field it drives)
+TCU_SIGNAL_TARGETS = {
+    "TCU_ClutchCmd": {"SolenoidCurrent1": ("solenoid_current1_a", "solenoid_current1_a"),
+                      "SolenoidCurrent2": ("solenoid_current2_a", "solenoid_current2_a"),
+                      "LineSolenoidCurrent": ("line_solenoid_current_a", "line_solenoid_current_a")},
+    "TCU_ShiftCmd": {"ForkForce1": ("fork_force_n[0]", "fork_force1_n"),
+                     "ForkForce2": ("fork_force_n[1]", "fork_force2_n"),
+                     "ForkForce3": ("fork_force_n[2]", "fork_force3_n"),
+                     "ForkForce4": ("fork_force_n[3]", "fork_force4_n")},
+    "TCU_EngineCmd": {"EngineTorqueRequest": ("engine_torque_request_nm", "engine_torque_request_nm"),
+                      "TorqueRequestActive": ("torque_request_active", "torque_request_active")},
+}
+# safe values while a TCU message is timed out (dct_can_safe_rx)
+TCU_SAFE_VALUES = {
+    "TCU_ClutchCmd": {"SolenoidCurrent1": 0.0, "SolenoidCurrent2": 0.0, "LineSolenoidCurrent": 0.0},
+    "TCU_ShiftCmd": {"ForkForce1": 0.0, "ForkForce2": 0.0, "ForkForce3": 0.0, "ForkForce4": 0.0},
+    "TCU_EngineCmd": {"EngineTorqueRequest": 0.0, "TorqueRequestActive": 0},
+}
+
+
+def load_database(path):
+    """The cantools database of the DBC at ``path`` (strict checks: no overlapping signals)."""
+    import cantools
+
+    try:
+        return cantools.database.load_file(path, database_format="dbc", strict=True)
+    except OSError as e:
+        raise ValueError(f"cannot read DBC {path}: {e.strerror}") from None
+    except Exception as e:  # cantools raises its own parse errors
+        raise ValueError(f"bad DBC {path}: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+
+
+@functools.lru_cache(maxsize=None)
+def database():
+    """The cantools database of can_dbc/dct_hil.dbc (loaded once)."""
+    return load_database(DBC_PATH)
+
+
+def message(name_or_id):
+    """The cantools message of a name (``"TCU_ClutchCmd"``) or frame id (``0x080``)."""
+    db = database()
+    try:
+        if isinstance(name_or_id, str):
+            return db.get_message_by_name(name_or_id)
+        return db.get_message_by_frame_id(int(name_or_id))
+    except KeyError:
+        what = name_or_id if isinstance(name_or_id, str) else f"frame id 0x{int(name_or_id):03X}"
+        raise ValueError(f"unknown message {what} (not in {os.path.basename(DBC_PATH)})") from None
+
+
+def messages(sender=None):
+    """The DBC's messages, all or only those sent by node ``sender`` ("PLANT" or "TCU")."""
+    msgs = database().messages
+    if sender is None:
+        return list(msgs)
+    if sender not in [n.name for n in database().nodes]:
+        raise ValueError(f"unknown node {sender!r} (the DBC has {', '.join(n.name for n in database().nodes)})")
+    return [m for m in msgs if sender in m.senders]
+
+
+def payload_signals(msg):
+    """The signals of a message other than CRC and AliveCounter."""
+    return [s for s in msg.signals if s.name not in E2E_SIGNALS]
+
+
+# ---------------------------------------------------------------------------
+# CRC and end-to-end protection
+# ---------------------------------------------------------------------------
+
+def _crc8_table():
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC8_TABLE = _crc8_table()
+
+
+def crc8_j1850(data):
+    """CRC-8/SAE-J1850 of ``data`` (bytes-like): poly 0x1D, init 0xFF, xorout 0xFF.
+    The standard check string b"123456789" gives 0x4B."""
+    crc = 0xFF
+    for b in bytes(data):
+        crc = _CRC8_TABLE[crc ^ b]
+    return crc ^ 0xFF
+
+
+def e2e_crc(frame_id, data):
+    """The CRC byte of a frame: over id low byte, id high byte, data[1:]."""
+    frame_id = int(frame_id)
+    return crc8_j1850(bytes((frame_id & 0xFF, (frame_id >> 8) & 0xFF)) + bytes(data)[1:])
+
+
+def protect(frame_id, data, counter):
+    """``data`` with AliveCounter ``counter`` in byte 1 low nibble and the CRC in byte 0."""
+    counter = _counter(counter)
+    buf = bytearray(data)
+    if len(buf) < 2:
+        raise ValueError(f"frame 0x{int(frame_id):03X}: {len(buf)} data bytes, E2E needs at least 2")
+    buf[1] = (buf[1] & 0xF0) | counter
+    buf[0] = e2e_crc(frame_id, buf)
+    return bytes(buf)
+
+
+def _counter(counter):
+    if isinstance(counter, bool) or not isinstance(counter, int) or not 0 <= counter <= 15:
+        raise ValueError(f"AliveCounter must be an integer 0..15, got {counter!r}")
+    return counter
+
+
+# ---------------------------------------------------------------------------
+# Encoding and decoding
+# ---------------------------------------------------------------------------
+
+def limit(signal, value):
+    """``value`` limited to the signal's DBC range [minimum, maximum].
+
+    A choice name (e.g. "engaged") is turned into its number first; +-inf go
+    to the range ends; NaN and anything not a number raise ValueError."""
+    if isinstance(value, str):
+        choices = signal.choices or {}
+        for number, name in choices.items():
+            if str(name) == value:
+                value = number
+                break
+        else:
+            raise ValueError(f"signal {signal.name}: {value!r} is not one of its values "
+                             f"({', '.join(str(n) for n in choices.values()) or 'no named values'})")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"signal {signal.name}: {value!r} is not a number") from None
+    if math.isnan(v):
+        raise ValueError(f"signal {signal.name}: value is NaN")
+    lo = signal.minimum if signal.minimum is not None else -math.inf
+    hi = signal.maximum if signal.maximum is not None else math.inf
+    return min(max(v, lo), hi)
+
+
+def encode(name, signals, counter):
+    """One protected frame's data bytes of message ``name`` (or its frame id).
+
+    ``signals`` maps payload signal names to physical values. Each value is
+    limited to its signal's DBC range (``limit``: values below the minimum
+    become the minimum, above the maximum the maximum), then cantools packs
+    it, rounding to the nearest raw step. Payload signals not given are sent
+    as 0 (limited to the range). Then AliveCounter = ``counter`` (0..15) and
+    the CRC are written. Unknown signal names, CRC or AliveCounter among the
+    signals, NaN and non-numbers raise ValueError."""
+    msg = message(name)
+    given = dict(signals or {})
+    for key in given:
+        if key in E2E_SIGNALS:
+            raise ValueError(f"{msg.name}: {key} is written by encode, not given as a signal")
+    known = {s.name: s for s in payload_signals(msg)}
+    unknown = [k for k in given if k not in known]
+    if unknown:
+        raise ValueError(f"{msg.name} has no signal {unknown[0]} (it has {', '.join(known)})")
+    values = {CRC_SIGNAL: 0, COUNTER_SIGNAL: _counter(counter)}
+    for sig_name, sig in known.items():
+        values[sig_name] = limit(sig, given.get(sig_name, 0.0))
+    data = msg.encode(values, scaling=True, padding=False, strict=True)
+    return protect(msg.frame_id, data, counter)
+
+
+def decode(frame_id, data):
+    """(message name, {signal: physical value}) of a frame; CRC and
+    AliveCounter included. Does not check the E2E protection (see
+    E2eReceiver). Unknown ids and wrong lengths raise ValueError."""
+    msg = message(frame_id)
+    data = bytes(data)
+    if len(data) != msg.length:
+        raise ValueError(f"frame 0x{msg.frame_id:03X} {msg.name}: {len(data)} data bytes, the DBC says {msg.length}")
+    return msg.name, dict(msg.decode(data, decode_choices=False, scaling=True))
+
+
+class E2eReceiver:
+    """End-to-end check of received frames, per message (as dct_e2e_check).
+
+    ``names``: the messages it accepts (default: all of the DBC's, or those
+    sent by node ``sender``). ``check(frame_id, data)`` returns one of
+    STATUSES: ``unknown_id`` for an id not among them, ``bad_length`` when
+    the length is not the DBC's, ``bad_crc``, ``bad_counter`` when the
+    AliveCounter repeats or jumps by more than 2 (the first frame, and the
+    first after ``reset``, is accepted with any counter), else ``ok``. The
+    counter state moves on only with an accepted frame.
+
+    ``counts[name]`` holds per message: received, and one count per status
+    (ok, bad_length, bad_crc, bad_counter); ``unknown`` counts the frames
+    with an id it does not accept."""
+
+    def __init__(self, names=None, sender=None):
+        if names is None:
+            msgs = messages(sender)
+        else:
+            msgs = [message(n) for n in names]
+        self._by_id = {m.frame_id: m for m in msgs}
+        self.names = [m.name for m in msgs]
+        self.last_counter = {m.name: -1 for m in msgs}
+        self.counts = {m.name: {"received": 0, OK: 0, BAD_LENGTH: 0, BAD_CRC: 0, BAD_COUNTER: 0} for m in msgs}
+        self.unknown = 0
+
+    def reset(self, name=None):
+        """Forget the counter state of one message (or of all): the next frame is accepted with any counter."""
+        for n in ([name] if name is not None else self.names):
+            self.last_counter[message(n).name] = -1
+
+    def check(self, frame_id, data, is_extended_id=False):
+        status, _msg = self._check(frame_id, data, is_extended_id)
+        return status
+
+    def receive(self, frame_id, data, is_extended_id=False):
+        """(status, message name or None, decoded values or None): check, then decode an accepted frame."""
+        status, msg = self._check(frame_id, data, is_extended_id)
+        if status != OK:
+            return status, (msg.name if msg is not None else None), None
+        return status, msg.name, dict(msg.decode(bytes(data), decode_choices=False, scaling=True))
+
+    def _check(self, frame_id, data, is_extended_id):
+        msg = None if is_extended_id else self._by_id.get(int(frame_id))
+        if msg is None:
+            self.unknown += 1
+            return UNKNOWN_ID, None
+        status = self._status(msg, bytes(data))
+        c = self.counts[msg.name]
+        c["received"] += 1
+        c[status] += 1
+        return status, msg
+
+    def _status(self, msg, data):
+        if len(data) != msg.length:
+            return BAD_LENGTH
+        if data[0] != e2e_crc(msg.frame_id, data):
+            return BAD_CRC
+        counter = data[1] & 0x0F
+        last = self.last_counter[msg.name]
+        if last >= 0:
+            step = (counter - last) % 16
+            if step == 0 or step > COUNTER_MAX_JUMP:
+                return BAD_COUNTER
+        self.last_counter[msg.name] = counter
+        return OK
+
+
+# ---------------------------------------------------------------------------
+# Bus load
+# ---------------------------------------------------------------------------
+
+def frame_bits_worst_case(data_bytes=8):
+    """Bits of a classic CAN data frame with a standard 11-bit id and
+    ``data_bytes`` data bytes, with worst-case bit stuffing:
+    47 + 8 n + floor((34 + 8 n - 1) / 4). 8 bytes: 135 bits."""
+    n = int(data_bytes)
+    if not 0 <= n <= 8:
+        raise ValueError(f"classic CAN carries 0..8 data bytes, not {data_bytes}")
+    return 47 + 8 * n + (34 + 8 * n - 1) // 4
+
+
+def bus_load(bitrate=1_000_000):
+    """Worst-case bus load of the DBC's traffic as a fraction of ``bitrate``
+    (0.339 = 33.9 %): sum over messages of frame_bits_worst_case(length) *
+    1000 / GenMsgCycleTime[ms], divided by the bitrate."""
+    if not bitrate or bitrate <= 0:
+        raise ValueError(f"bitrate must be positive, got {bitrate!r}")
+    bits_per_s = 0.0
+    for m in database().messages:
+        if not m.cycle_time:
+            raise ValueError(f"message {m.name} has no GenMsgCycleTime")
+        bits_per_s += frame_bits_worst_case(m.length) * 1000.0 / m.cycle_time
+    return bits_per_s / bitrate

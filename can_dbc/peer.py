@@ -1,0 +1,456 @@
+"""An end-to-end-aware CAN node for either side of the contract, on any
+python-can bus: a test TCU against the plant server, or a stand-in plant
+against a TCU.
+
+``CanPeer(bus, side="tcu")`` sends the TCU messages at their DBC cycle times
+(its own thread on absolute deadlines, AliveCounter and CRC per frame),
+receives the plant's messages in a second thread, checks them with
+``E2eReceiver`` and keeps the last decoded values and per-message counts.
+``side="plant"`` is the reverse.
+
+Command line (a test TCU for a while, then a JSON report)::
+
+    python -m can_dbc.peer tcu --channel vcan0 --interface socketcan --duration 3 \\
+        --set SolenoidCurrent1=0.6 --set ForkForce1=800 --report out.json
+
+Timing is soft: Python threads on a normal scheduler. The send thread keeps
+absolute deadlines, so the mean cycle time is right even when single frames
+are late; when it falls more than a whole cycle behind it skips the missed
+frames (counted as ``skipped``) instead of sending a burst.
+"""
+
+import argparse
+import json
+import math
+import os
+import signal
+import sys
+import threading
+import time
+
+from . import codec
+
+SIDES = {"tcu": ("TCU", "PLANT"), "plant": ("PLANT", "TCU")}
+
+
+class _RxStats:
+    __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last", "last_t_any")
+
+    def __init__(self):
+        self.received = 0
+        self.accepted = 0
+        self.rejected = {r: 0 for r in codec.REJECTS}
+        self.first_t = None           # receive time of the first accepted frame
+        self.last_t = None            # ... of the last one
+        self.max_interval_s = 0.0
+        self.last = None              # decoded values of the last accepted frame
+        self.last_t_any = None
+
+
+class CanPeer:
+    """One node on a python-can bus, sending and receiving with E2E protection.
+
+    bus     an open python-can Bus (``CanPeer.open`` makes one); the peer
+            shuts it down in ``close()`` only if it opened it
+    side    "tcu": sends TCU_*, receives the plant's messages;
+            "plant": sends the plant's messages, receives TCU_*
+    values  initial signal values ({signal: value}); unset signals are 0
+    start   start the send and receive threads now (else call ``start()``)
+    """
+
+    def __init__(self, bus, side="tcu", values=None, start=True):
+        if side not in SIDES:
+            raise ValueError(f"side must be one of {', '.join(SIDES)}, got {side!r}")
+        self.side = side
+        self.node, self.peer_node = SIDES[side]
+        self.bus = bus
+        self._owns_bus = False
+        self.tx_messages = codec.messages(self.node)
+        self.rx = codec.E2eReceiver(sender=self.peer_node)
+        self._signal_msg = {s.name: m for m in self.tx_messages for s in codec.payload_signals(m)}
+        self._values = {m.name: {s.name: 0.0 for s in codec.payload_signals(m)} for m in self.tx_messages}
+        self._enabled = {m.name: True for m in self.tx_messages}
+        self._counter = {m.name: 0 for m in self.tx_messages}
+        self.sent = {m.name: 0 for m in self.tx_messages}
+        self.send_errors = {m.name: 0 for m in self.tx_messages}
+        self.skipped = {m.name: 0 for m in self.tx_messages}
+        self.last_send_error = None
+        self.injected = 0
+        self.error_frames = 0
+        self._rx_stats = {name: _RxStats() for name in self.rx.names}
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._stop = threading.Event()
+        self._threads = []
+        self.started_at = None
+        self.stopped_at = None
+        if values:
+            self.set(**values)
+        if start:
+            self.start()
+
+    @classmethod
+    def open(cls, side="tcu", interface="socketcan", channel="vcan0", bitrate=None, values=None, start=True,
+             **bus_kwargs):
+        """A peer on a new python-can Bus (closed again by ``close()``)."""
+        import can
+
+        kwargs = dict(bus_kwargs)
+        if bitrate:
+            kwargs["bitrate"] = bitrate
+        try:
+            bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        except Exception as e:  # python-can raises many kinds (CanError, OSError, ImportError, ...)
+            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise ConnectionError(f"cannot open {interface} bus on {channel}: {msg}") from None
+        try:
+            peer = cls(bus, side=side, values=values, start=start)
+        except Exception:
+            bus.shutdown()
+            raise
+        peer._owns_bus = True
+        return peer
+
+    # -- control ------------------------------------------------------------
+
+    def start(self):
+        if self._threads:
+            return
+        self.started_at = time.monotonic()
+        for target, name in ((self._send_loop, "send"), (self._recv_loop, "recv")):
+            t = threading.Thread(target=target, name=f"can-peer-{self.side}-{name}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def close(self):
+        """Stops both threads; shuts the bus down if the peer opened it."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self._threads = []
+        if self.stopped_at is None and self.started_at is not None:
+            self.stopped_at = time.monotonic()
+        if self._owns_bus:
+            self._owns_bus = False
+            self.bus.shutdown()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def set(self, **signals):
+        """Changes the values sent from the next frame on: ``set(SolenoidCurrent1=0.6, ForkForce1=800)``.
+        Values are limited to the signal's DBC range when sent."""
+        staged = []
+        for name, value in signals.items():
+            msg = self._signal_msg.get(name)
+            if msg is None:
+                raise ValueError(f"{name} is not a signal the {self.node} sends "
+                                 f"(it sends {', '.join(sorted(self._signal_msg))})")
+            sig = msg.get_signal_by_name(name)
+            codec.limit(sig, value)          # raises on NaN, non-numbers, unknown choice names
+            staged.append((msg.name, name, value))
+        with self._lock:
+            for msg_name, name, value in staged:
+                self._values[msg_name][name] = value
+
+    def values_sent(self, message=None):
+        """The values being sent (of one message, or {message: values})."""
+        with self._lock:
+            if message is not None:
+                return dict(self._values[codec.message(message).name])
+            return {k: dict(v) for k, v in self._values.items()}
+
+    def enable(self, message, on=True):
+        """Starts or stops sending one message (e.g. to make the other side time it out)."""
+        name = codec.message(message).name
+        if name not in self._enabled:
+            raise ValueError(f"{name} is not a message the {self.node} sends")
+        with self._lock:
+            self._enabled[name] = bool(on)
+
+    def inject(self, frame_id, data, is_extended_id=False):
+        """Puts one raw frame on the bus as given (any id, any length 0..8, any CRC)."""
+        import can
+
+        data = bytes(data)
+        if len(data) > 8:
+            raise ValueError(f"classic CAN carries at most 8 data bytes, got {len(data)}")
+        limit = 0x1FFFFFFF if is_extended_id else 0x7FF
+        if not 0 <= int(frame_id) <= limit:
+            raise ValueError(f"frame id 0x{int(frame_id):X} out of range for a "
+                             f"{'29' if is_extended_id else '11'}-bit identifier")
+        self.bus.send(can.Message(arbitration_id=int(frame_id), data=data, dlc=len(data),
+                                  is_extended_id=is_extended_id))
+        with self._lock:
+            self.injected += 1
+
+    # -- what was received --------------------------------------------------
+
+    def last(self, message):
+        """Decoded values of the last accepted frame of a received message (None before the first)."""
+        name = codec.message(message).name
+        with self._lock:
+            st = self._rx_stats.get(name)
+            if st is None:
+                raise ValueError(f"{name} is not a message the {self.node} receives")
+            return dict(st.last) if st.last is not None else None
+
+    def counts(self, message):
+        """{received, accepted, bad_length, bad_crc, bad_counter} of a received message."""
+        name = codec.message(message).name
+        with self._lock:
+            st = self._rx_stats.get(name)
+            if st is None:
+                raise ValueError(f"{name} is not a message the {self.node} receives")
+            return {"received": st.received, "accepted": st.accepted, **st.rejected}
+
+    @property
+    def unknown_frames(self):
+        with self._lock:
+            return self.rx.unknown
+
+    def wait_for(self, predicate, timeout=5.0):
+        """Waits until ``predicate(self)`` is true (checked after every received
+        frame) or ``timeout`` seconds passed; returns the predicate's value."""
+        deadline = time.monotonic() + timeout
+        while True:
+            ok = predicate(self)
+            left = deadline - time.monotonic()
+            if ok or left <= 0:
+                return ok
+            with self._changed:
+                self._changed.wait(min(left, 0.05))
+
+    def report(self):
+        """Everything counted so far, as JSON-ready data."""
+        with self._lock:
+            end = self.stopped_at if self.stopped_at is not None else time.monotonic()
+            received = {}
+            for name, st in self._rx_stats.items():
+                mean = None
+                if st.accepted >= 2 and st.last_t is not None:
+                    mean = (st.last_t - st.first_t) / (st.accepted - 1) * 1000.0
+                received[name] = {
+                    "frame_id": codec.message(name).frame_id,
+                    "cycle_ms": codec.message(name).cycle_time,
+                    "received": st.received,
+                    "accepted": st.accepted,
+                    "rejected": dict(st.rejected),
+                    "mean_interval_ms": mean,
+                    "max_interval_ms": st.max_interval_s * 1000.0 if st.accepted >= 2 else None,
+                    "last": dict(st.last) if st.last is not None else None,
+                }
+            sent = {name: {"frame_id": codec.message(name).frame_id, "frames": self.sent[name],
+                           "errors": self.send_errors[name], "skipped": self.skipped[name],
+                           "values": dict(self._values[name])}
+                    for name in self._values}
+            return {
+                "side": self.side,
+                "node": self.node,
+                "duration_s": (end - self.started_at) if self.started_at is not None else 0.0,
+                "received": received,
+                "unknown_frames": self.rx.unknown,
+                "error_frames": self.error_frames,
+                "sent": sent,
+                "injected": self.injected,
+                "last_send_error": self.last_send_error,
+            }
+
+    # -- threads ------------------------------------------------------------
+
+    def _send_one(self, msg):
+        import can
+
+        with self._lock:
+            if not self._enabled[msg.name]:
+                return
+            values = dict(self._values[msg.name])
+            counter = self._counter[msg.name]
+        data = codec.encode(msg.name, values, counter)
+        try:
+            self.bus.send(can.Message(arbitration_id=msg.frame_id, data=data, is_extended_id=False))
+        except Exception as e:  # a full tx queue or a bus error: counted, the next cycle tries again
+            with self._lock:
+                self.send_errors[msg.name] += 1
+                self.last_send_error = f"{msg.name}: {str(e).strip() or type(e).__name__}"
+            return
+        with self._lock:
+            self._counter[msg.name] = (counter + 1) & 0x0F
+            self.sent[msg.name] += 1
+
+    def _send_loop(self):
+        t0 = time.monotonic()
+        period = {m.name: m.cycle_time / 1000.0 for m in self.tx_messages}
+        due = {m.name: t0 for m in self.tx_messages}
+        while not self._stop.is_set():
+            now = time.monotonic()
+            for m in self.tx_messages:
+                if due[m.name] <= now:
+                    self._send_one(m)
+                    due[m.name] += period[m.name]
+                    if due[m.name] <= now:                 # more than a cycle late: skip, no burst
+                        missed = math.floor((now - due[m.name]) / period[m.name]) + 1
+                        due[m.name] += missed * period[m.name]
+                        with self._lock:
+                            self.skipped[m.name] += missed
+            wait = min(due.values()) - time.monotonic()
+            if wait > 0:
+                self._stop.wait(wait)
+
+    def _recv_loop(self):
+        while not self._stop.is_set():
+            try:
+                msg = self.bus.recv(timeout=0.05)
+            except Exception:
+                if self._stop.is_set():
+                    return
+                time.sleep(0.01)
+                continue
+            if msg is None:
+                continue
+            t = time.monotonic()
+            with self._lock:
+                if msg.is_error_frame:
+                    self.error_frames += 1
+                    self._changed.notify_all()
+                    continue
+                data = b"" if msg.is_remote_frame else bytes(msg.data)
+                status, name, values = self.rx.receive(msg.arbitration_id, data, msg.is_extended_id)
+                if name is not None:
+                    st = self._rx_stats[name]
+                    st.received += 1
+                    st.last_t_any = t
+                    if status == codec.OK:
+                        st.accepted += 1
+                        if st.last_t is not None:
+                            st.max_interval_s = max(st.max_interval_s, t - st.last_t)
+                        else:
+                            st.first_t = t
+                        st.last_t = t
+                        st.last = values
+                    else:
+                        st.rejected[status] += 1
+                self._changed.notify_all()
+
+
+# ---------------------------------------------------------------------------
+# Command line
+# ---------------------------------------------------------------------------
+
+def _parse_set(items):
+    values = {}
+    for item in items or []:
+        name, sep, text = item.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--set {item!r}: expected SIGNAL=VALUE")
+        try:
+            values[name.strip()] = float(text)
+        except ValueError:
+            values[name.strip()] = text.strip()     # a choice name, checked by set()
+    return values
+
+
+def _summary_lines(rep):
+    lines = []
+    for name, r in rep["received"].items():
+        rej = ", ".join(f"{k} {v}" for k, v in r["rejected"].items() if v)
+        mean = f"{r['mean_interval_ms']:.2f} ms" if r["mean_interval_ms"] is not None else "-"
+        lines.append(f"  rx {name:<17} {r['accepted']:>7} accepted of {r['received']:>7}"
+                     f"  mean interval {mean:>9} (cycle {r['cycle_ms']} ms)" + (f"  rejected: {rej}" if rej else ""))
+    for name, s in rep["sent"].items():
+        extra = f"  errors {s['errors']}" if s["errors"] else ""
+        lines.append(f"  tx {name:<17} {s['frames']:>7} sent{extra}")
+    if rep["unknown_frames"]:
+        lines.append(f"  unknown ids: {rep['unknown_frames']}")
+    return lines
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        prog="python -m can_dbc.peer",
+        description="Run an E2E-protected CAN node of the dct-hil contract for a while and report what it received.")
+    parser.add_argument("side", choices=sorted(SIDES), help="tcu: a test TCU; plant: a stand-in plant")
+    parser.add_argument("--channel", default="vcan0", help="bus channel (default: %(default)s)")
+    parser.add_argument("--interface", default="socketcan",
+                        help="python-can interface: socketcan, virtual, udp_multicast, pcan, ... (default: %(default)s)")
+    parser.add_argument("--bitrate", type=int, default=None, help="bit rate for interfaces that set it")
+    parser.add_argument("--duration", type=float, default=3.0, help="seconds to run (default: %(default)s)")
+    parser.add_argument("--set", action="append", default=[], metavar="SIGNAL=VALUE",
+                        help="value of a signal this side sends (repeatable)")
+    parser.add_argument("--report", default=None, metavar="FILE.json", help="write the JSON report here")
+    parser.add_argument("--quiet", action="store_true", help="no summary on stdout")
+    args = parser.parse_args(argv)
+
+    def fail(msg):
+        print(f"can_dbc.peer: {msg}", file=sys.stderr)
+        return 2
+
+    if not (args.duration > 0 and math.isfinite(args.duration)):
+        return fail(f"--duration must be a positive number of seconds, got {args.duration}")
+    if args.bitrate is not None and args.bitrate <= 0:
+        return fail(f"--bitrate must be positive, got {args.bitrate}")
+    try:
+        values = _parse_set(args.set)
+        # check the values before opening the bus
+        CanPeer(_NoBus(), side=args.side, values=values, start=False)
+    except ValueError as e:
+        return fail(str(e))
+    if args.report:
+        folder = os.path.dirname(os.path.abspath(args.report))
+        if not os.path.isdir(folder):
+            return fail(f"cannot write report {args.report}: folder {folder} does not exist")
+        if not os.access(folder, os.W_OK) or (os.path.exists(args.report) and not os.access(args.report, os.W_OK)):
+            return fail(f"cannot write report {args.report}: permission denied")
+
+    try:
+        peer = CanPeer.open(args.side, interface=args.interface, channel=args.channel, bitrate=args.bitrate,
+                            values=values)
+    except (ConnectionError, ValueError) as e:
+        return fail(str(e))
+
+    done = threading.Event()
+    in_main = threading.current_thread() is threading.main_thread()
+    old_term = signal.signal(signal.SIGTERM, lambda *_: done.set()) if in_main else None
+    try:
+        done.wait(args.duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, old_term)
+        peer.close()
+    rep = peer.report()
+    rep["interface"] = args.interface
+    rep["channel"] = args.channel
+    if args.report:
+        with open(args.report, "w", encoding="utf-8") as f:
+            json.dump(rep, f, indent=2)
+            f.write("\n")
+    if not args.quiet:
+        print(f"{args.side} on {args.interface}:{args.channel} for {rep['duration_s']:.2f} s")
+        print("\n".join(_summary_lines(rep)))
+        if args.report:
+            print(f"report: {args.report}")
+    if rep["last_send_error"]:
+        print(f"can_dbc.peer: send errors, last: {rep['last_send_error']}", file=sys.stderr)
+    return 0
+
+
+class _NoBus:
+    """Stands in for a bus when only the options are checked."""
+
+    def send(self, msg, timeout=None):
+        raise ConnectionError("no bus")
+
+    def recv(self, timeout=None):
+        return None
+
+    def shutdown(self):
+        pass
+
+
+if __name__ == "__main__":
+    sys.exit(main())

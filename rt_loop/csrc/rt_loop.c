@@ -1,0 +1,935 @@
+/*
+ * rt_loop.c - the real-time loop of the plant server (contract: rt_loop.h).
+ *
+ * The tick, on absolute deadlines t0 + n x period (n: the deadline index):
+ *
+ *   clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, deadline)  (EINTR: again)
+ *   wake   = now                     latency    = wake - deadline
+ *   drain the received frames        at most RT_RX_MAX_PER_TICK per tick, the
+ *                                    rest stays queued for the next tick
+ *     each: classify (unknown id, bad length), dct_e2e_check, count the
+ *     outcome; an accepted frame is decoded into the commands, stamps
+ *     last_rx_tick = n and ends a timeout of its message
+ *   timeouts                         a message not accepted for more than
+ *                                    RT_TIMEOUT_CYCLES of its cycle times is
+ *                                    timed out: safe values, timeout_events++
+ *   dct_can_apply_commands, dct_plant_step(plant, 1)
+ *   encode, protect and send the frames due at executed tick k
+ *   end    = now                     turnaround = end - deadline
+ *                                    execution  = end - wake
+ *   publish the statistics (sequence counter)
+ *   overrun if end > the next deadline:
+ *     overrun_stop = 1: stop, RT_STATE_OVERRUN_STOP
+ *     overrun_stop = 0: count it and skip ahead to the first deadline still
+ *                       in the future. The deadlines jumped over are counted
+ *                       in skipped_ticks (with a duration, only those before
+ *                       its end, so ticks + skipped_ticks = duration / period
+ *                       when the duration ends the run) and are NOT
+ *                       simulated: the plant advances one step per executed
+ *                       tick, so sim time = ticks x period and falls behind
+ *                       the wall clock by skipped_ticks x period.
+ *
+ * Two clocks, on purpose:
+ *   - the send schedule and the plant follow the executed ticks k: a message
+ *     of cycle c is due when k % div == offset, div = round(c / period) (at
+ *     least 1: a cycle shorter than the period is sent every tick). A skipped
+ *     deadline delays the due frames by one tick instead of losing them.
+ *   - the receive timeouts follow the deadline index n (wall time): a TCU
+ *     silent for 10 of its cycle times is timed out however many ticks the
+ *     loop skipped. The frames queued meanwhile are drained first, so a late
+ *     loop does not time out a TCU that kept sending.
+ *
+ * Offsets: computed once at the start of rt_loop_run, shortest cycle first;
+ * each message takes the offset whose ticks it shares with the fewest frames
+ * already planned (two messages of divisors a and b with offsets x and y
+ * meet when x = y mod gcd(a, b)). At 2 kHz the three 2 ms messages go to
+ * ticks 0, 1, 2 (mod 4), the three 10 ms ones to 3, 7, 11 (mod 20) and
+ * SIM_Status to 15 (mod 200): at most one frame per tick.
+ *
+ * End-to-end: an accepted frame updates the message's counter state
+ * (dct_e2e_check); when a message times out its counter state is reset to
+ * -1, so the first frame after the TCU comes back is accepted whatever its
+ * counter (as at start).
+ *
+ * SIM_Status.SimState: 0 until the first TCU frame is accepted, then 1; when
+ * the loop ends, one last SIM_Status goes out with 2 (stopped by request or
+ * duration) or 3 (overrun stop, plant error); none after a transport error.
+ *
+ * Return codes: rt_loop_prepare gives -EINVAL (a cfg field out of range:
+ * period outside 50 us .. 10 ms, unknown transport, priority outside 0..99,
+ * cpu < -1, NaN duration), -EBADF (fd < 0), -ENOTSOCK / -EPROTOTYPE (fd not
+ * a datagram socket), another -errno (SO_RXQ_OVFL refused) or -EDOM (the
+ * plant rejected its parameters). rt_loop_run gives -EINVAL when the loop
+ * was not prepared since its last run (stats.state is not RT_STATE_IDLE),
+ * else the final state. A duration <= 0 or infinite runs until
+ * rt_loop_request_stop().
+ *
+ * Lost frames: rx_overflow is, for SocketCAN, the kernel's drop count of the
+ * socket (SO_RXQ_OVFL); the kernel reports it with the next frame received,
+ * so drops show up when the next frame arrives. For the ring transport it is
+ * rx.dropped (pushes the bridge could not make). tx_dropped counts sends
+ * refused with EAGAIN / ENOBUFS or by a full tx ring; the loop never blocks
+ * on a send, and the AliveCounter still advances, so the TCU sees the gap.
+ *
+ * stats.error: the errno of a fatal transport error (> 0), or minus the
+ * dct_plant_step status (< 0) when the plant stopped the loop
+ * (RT_STATE_ERROR either way); rt_loop_prepare also sets it to minus the
+ * dct_plant_init status when it returns -EDOM.
+ *
+ * Frames are counted once each: rx_frames = rx_accepted + rx_unknown_id +
+ * rx_bad_length + rx_bad_crc + rx_bad_counter. rx_per_msg counts accepted
+ * frames. A frame is an unknown id if its id has the extended or error flag
+ * (SocketCAN's CAN_EFF_FLAG, CAN_ERR_FLAG, also in the rings' frames) or is
+ * not a TCU message; a TCU id with the RTR flag, more than 8 bytes or not
+ * the DBC's length is a bad length.
+ *
+ * Concurrency (C11 atomics on the plain fields of rt_loop.h, through
+ * pointer casts to _Atomic types of the same size and alignment):
+ *   - stats: one writer (the loop), a sequence counter. The writer makes seq
+ *     odd, fences (release), writes, then makes seq even (release store).
+ *     rt_stats_read loads seq (acquire), copies, fences (acquire), loads seq
+ *     again and keeps the copy when both are equal and even. The loop never
+ *     waits for a reader. The loop works on local copies and publishes them
+ *     once per tick in a short write section.
+ *   - rings: single producer, single consumer; head is written by the
+ *     producer (release) and read by the consumer (acquire), tail the other
+ *     way round; indices run freely over uint32_t, masked by the power-of-two
+ *     size. A full ring refuses the push and counts it in dropped (written by
+ *     the producer only). Rings: rx (producer: the bridge thread, consumer:
+ *     the loop), tx and log (producer: the loop, consumer: a Python thread).
+ *   - stop_request: an atomic int.
+ *
+ * Nothing in the tick allocates, prints or takes a lock.
+ *
+ * Python's side of the contract:
+ *   - fill plant.params and cfg, then call rt_loop_prepare() BEFORE starting
+ *     the bridge and log threads (it resets the rings, which also faults
+ *     their pages in); prepare zeroes plant.inputs (dct_plant_init), so the
+ *     driver inputs (pedals, road grade, engine_on) are written after it.
+ *     While the loop runs Python may write those driver inputs (single
+ *     aligned doubles the plant reads every step); the TCU-driven inputs are
+ *     overwritten by the loop every tick.
+ *   - the SocketCAN socket: created, bound and given its filters by Python;
+ *     rt_loop_prepare enables SO_RXQ_OVFL and enlarges the socket buffers
+ *     (SO_RCVBUFFORCE / SO_SNDBUFFORCE when allowed, else SO_RCVBUF /
+ *     SO_SNDBUF, which the kernel caps at net.core.rmem_max / wmem_max).
+ *     Any message-preserving socket carrying struct can_frame datagrams is
+ *     accepted (the host tests use an AF_UNIX datagram socket pair).
+ *   - rt_loop_run restores the thread's scheduling policy and CPU affinity
+ *     when it returns; mlockall stays in force (it is process-wide).
+ */
+#ifndef _GNU_SOURCE
+#define _GNU_SOURCE /* recvmmsg, sendmmsg, CPU_SET, pthread_*affinity_np */
+#endif
+
+#include "rt_loop.h"
+
+#include <errno.h>
+#include <math.h>
+#include <pthread.h>
+#include <sched.h>
+#include <stdatomic.h>
+#include <string.h>
+#include <sys/mman.h>
+#include <sys/socket.h>
+#include <sys/uio.h>
+#include <time.h>
+
+#include <linux/can.h>
+
+#define RT_PERIOD_MIN_S 50e-6
+#define RT_PERIOD_MAX_S 10e-3
+#define RT_PRIORITY_MAX 99
+#define RT_RX_BATCH 64                  /* frames per recvmmsg / ring pop */
+#define RT_RX_MAX_PER_TICK 256          /* drained per tick at most */
+#define RT_TX_MAX (DCT_CAN_N_TX + 1)    /* frames sent in one tick at most */
+#define RT_STACK_PREFAULT (64 * 1024)
+#define RT_READ_RETRIES 1000
+#define RT_RCVBUF_BYTES (8 * 1024 * 1024)
+#define RT_SNDBUF_BYTES (1024 * 1024)
+#define RT_NS_PER_S 1000000000LL
+#define RT_SIM_STARTING 0.0
+#define RT_SIM_RUNNING 1.0
+#define RT_SIM_STOPPING 2.0
+#define RT_SIM_FAULT 3.0
+
+_Static_assert((RT_RING_SIZE & (RT_RING_SIZE - 1)) == 0, "RT_RING_SIZE must be a power of two");
+_Static_assert((RT_LOG_SIZE & (RT_LOG_SIZE - 1)) == 0, "RT_LOG_SIZE must be a power of two");
+_Static_assert(sizeof(_Atomic uint32_t) == sizeof(uint32_t) &&
+                   _Alignof(_Atomic uint32_t) == _Alignof(uint32_t),
+               "atomic uint32_t must have the layout of uint32_t");
+_Static_assert(sizeof(_Atomic uint64_t) == sizeof(uint64_t) &&
+                   _Alignof(_Atomic uint64_t) == _Alignof(uint64_t),
+               "atomic uint64_t must have the layout of uint64_t");
+_Static_assert(sizeof(_Atomic int) == sizeof(int) && _Alignof(_Atomic int) == _Alignof(int),
+               "atomic int must have the layout of int");
+
+#define A32(p) ((_Atomic uint32_t *)(void *)(p))
+#define A64(p) ((_Atomic uint64_t *)(void *)(p))
+#define AINT(p) ((_Atomic int *)(void *)(p))
+#define RELAXED memory_order_relaxed
+#define ACQUIRE memory_order_acquire
+#define RELEASE memory_order_release
+
+/* ------------------------------------------------------------------ */
+/* Rings                                                               */
+/* ------------------------------------------------------------------ */
+
+/* dropped is written by the producer only */
+static inline void count_dropped(uint64_t *dropped, uint64_t n)
+{
+    atomic_store_explicit(A64(dropped), atomic_load_explicit(A64(dropped), RELAXED) + n, RELAXED);
+}
+
+int rt_ring_push_many(rt_ring *r, const dct_can_frame *f, int n)
+{
+    if (n <= 0)
+        return 0;
+    uint32_t head = atomic_load_explicit(A32(&r->head), RELAXED);
+    uint32_t tail = atomic_load_explicit(A32(&r->tail), ACQUIRE);
+    uint32_t space = RT_RING_SIZE - (head - tail);
+    uint32_t k = (uint32_t)n < space ? (uint32_t)n : space;
+    for (uint32_t i = 0; i < k; i++)
+        r->frames[(head + i) & (RT_RING_SIZE - 1u)] = f[i];
+    atomic_store_explicit(A32(&r->head), head + k, RELEASE);
+    if (k < (uint32_t)n)
+        count_dropped(&r->dropped, (uint64_t)n - k);
+    return (int)k;
+}
+
+int rt_ring_pop_many(rt_ring *r, dct_can_frame *f, int n)
+{
+    if (n <= 0)
+        return 0;
+    uint32_t tail = atomic_load_explicit(A32(&r->tail), RELAXED);
+    uint32_t head = atomic_load_explicit(A32(&r->head), ACQUIRE);
+    uint32_t avail = head - tail;
+    uint32_t k = (uint32_t)n < avail ? (uint32_t)n : avail;
+    for (uint32_t i = 0; i < k; i++)
+        f[i] = r->frames[(tail + i) & (RT_RING_SIZE - 1u)];
+    atomic_store_explicit(A32(&r->tail), tail + k, RELEASE);
+    return (int)k;
+}
+
+int rt_ring_push(rt_ring *r, const dct_can_frame *f)
+{
+    return rt_ring_push_many(r, f, 1) == 1 ? 0 : -1;
+}
+
+int rt_ring_pop(rt_ring *r, dct_can_frame *f)
+{
+    return rt_ring_pop_many(r, f, 1) == 1 ? 0 : -1;
+}
+
+/* the loop is the log's only producer */
+static inline void log_push(rt_log_ring *g, double time_s, uint32_t dir, const dct_can_frame *f)
+{
+    uint32_t head = atomic_load_explicit(A32(&g->head), RELAXED);
+    uint32_t tail = atomic_load_explicit(A32(&g->tail), ACQUIRE);
+    if (head - tail >= RT_LOG_SIZE) {
+        count_dropped(&g->dropped, 1);
+        return;
+    }
+    rt_log_entry *e = &g->entries[head & (RT_LOG_SIZE - 1u)];
+    e->time_s = time_s;
+    e->dir = dir;
+    e->frame = *f;
+    if (e->frame.len > 8)
+        e->frame.len = 8;
+    atomic_store_explicit(A32(&g->head), head + 1, RELEASE);
+}
+
+int rt_log_pop_many(rt_log_ring *r, rt_log_entry *e, int n)
+{
+    if (n <= 0)
+        return 0;
+    uint32_t tail = atomic_load_explicit(A32(&r->tail), RELAXED);
+    uint32_t head = atomic_load_explicit(A32(&r->head), ACQUIRE);
+    uint32_t avail = head - tail;
+    uint32_t k = (uint32_t)n < avail ? (uint32_t)n : avail;
+    for (uint32_t i = 0; i < k; i++)
+        e[i] = r->entries[(tail + i) & (RT_LOG_SIZE - 1u)];
+    atomic_store_explicit(A32(&r->tail), tail + k, RELEASE);
+    return (int)k;
+}
+
+int rt_log_pop(rt_log_ring *r, rt_log_entry *e)
+{
+    return rt_log_pop_many(r, e, 1) == 1 ? 0 : -1;
+}
+
+/* ------------------------------------------------------------------ */
+/* Statistics: sequence counter                                        */
+/* ------------------------------------------------------------------ */
+
+static inline void stats_write_begin(rt_stats *s)
+{
+    uint32_t q = atomic_load_explicit(A32(&s->seq), RELAXED);
+    atomic_store_explicit(A32(&s->seq), q + 1u, RELAXED);
+    atomic_thread_fence(RELEASE);
+}
+
+static inline void stats_write_end(rt_stats *s)
+{
+    uint32_t q = atomic_load_explicit(A32(&s->seq), RELAXED);
+    atomic_store_explicit(A32(&s->seq), q + 1u, RELEASE);
+}
+
+int rt_stats_read(rt_loop *l, rt_stats *copy)
+{
+    for (int attempt = 0; attempt < RT_READ_RETRIES; attempt++) {
+        uint32_t before = atomic_load_explicit(A32(&l->stats.seq), ACQUIRE);
+        if (before & 1u) {
+            sched_yield();
+            continue;
+        }
+        memcpy(copy, &l->stats, sizeof *copy);
+        atomic_thread_fence(ACQUIRE);
+        uint32_t after = atomic_load_explicit(A32(&l->stats.seq), RELAXED);
+        if (after == before) {
+            copy->seq = before;
+            return 0;
+        }
+    }
+    return -1;
+}
+
+void rt_loop_request_stop(rt_loop *l)
+{
+    atomic_store_explicit(AINT(&l->stop_request), 1, RELEASE);
+}
+
+static inline int stop_requested(rt_loop *l)
+{
+    return atomic_load_explicit(AINT(&l->stop_request), ACQUIRE) != 0;
+}
+
+/* ------------------------------------------------------------------ */
+/* Prepare                                                             */
+/* ------------------------------------------------------------------ */
+
+static int prepare_socket(int fd)
+{
+    int type = 0;
+    socklen_t len = sizeof type;
+    if (getsockopt(fd, SOL_SOCKET, SO_TYPE, &type, &len) != 0)
+        return -errno;                  /* EBADF, ENOTSOCK */
+    if (type != SOCK_RAW && type != SOCK_DGRAM && type != SOCK_SEQPACKET)
+        return -EPROTOTYPE;             /* frames need a message-preserving socket */
+    int one = 1;
+    if (setsockopt(fd, SOL_SOCKET, SO_RXQ_OVFL, &one, sizeof one) != 0)
+        return -errno;
+    int rcv = RT_RCVBUF_BYTES, snd = RT_SNDBUF_BYTES;
+    /* the FORCE variants need CAP_NET_ADMIN; the plain ones are capped by
+     * net.core.rmem_max / wmem_max. Not fatal: drops are counted anyway. */
+    if (setsockopt(fd, SOL_SOCKET, SO_RCVBUFFORCE, &rcv, sizeof rcv) != 0)
+        (void)setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcv, sizeof rcv);
+    if (setsockopt(fd, SOL_SOCKET, SO_SNDBUFFORCE, &snd, sizeof snd) != 0)
+        (void)setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &snd, sizeof snd);
+    return 0;
+}
+
+int rt_loop_prepare(rt_loop *l)
+{
+    if (!l)
+        return -EINVAL;
+    const rt_config *c = &l->cfg;
+    if (!(c->period_s >= RT_PERIOD_MIN_S && c->period_s <= RT_PERIOD_MAX_S))
+        return -EINVAL;
+    if (c->transport != RT_TRANSPORT_SOCKETCAN && c->transport != RT_TRANSPORT_RING)
+        return -EINVAL;
+    if (c->priority < 0 || c->priority > RT_PRIORITY_MAX)
+        return -EINVAL;
+    if (c->cpu < -1 || c->cpu >= CPU_SETSIZE)
+        return -EINVAL;
+    if (isnan(c->duration_s))
+        return -EINVAL;
+    if (!(c->spin_us >= 0.0 && c->spin_us * 1e-6 < c->period_s))
+        return -EINVAL; /* the early wake-up must stay inside the period */
+    if (c->transport == RT_TRANSPORT_SOCKETCAN) {
+        if (c->fd < 0)
+            return -EBADF;
+        int rc = prepare_socket(c->fd);
+        if (rc != 0)
+            return rc;
+    }
+
+    memset(&l->stats, 0, sizeof l->stats);
+    l->stats.state = RT_STATE_IDLE;
+    l->plant.params.solver.step_s = c->period_s;
+    int st = dct_plant_init(&l->plant);
+    if (st != DCT_OK) {
+        l->stats.error = -st;
+        return -EDOM;
+    }
+    memset(&l->stats.commands, 0, sizeof l->stats.commands);
+    for (int m = 0; m < DCT_CAN_N_RX; m++) {
+        l->stats.timed_out[m] = 1;
+        dct_can_safe_rx(m, &l->stats.commands);
+        l->e2e[m].last_counter = -1;
+        l->last_rx_tick[m] = 0;
+    }
+    dct_can_apply_commands(&l->stats.commands, &l->plant.inputs);
+    dct_plant_update_outputs(&l->plant);
+    l->stats.outputs = l->plant.outputs;
+    l->stats.sim_time_s = l->plant.state.time_s;
+    memset(l->tx_counter, 0, sizeof l->tx_counter);
+    /* resets the rings; writing them also faults their pages in */
+    memset(&l->rx, 0, sizeof l->rx);
+    memset(&l->tx, 0, sizeof l->tx);
+    memset(&l->log, 0, sizeof l->log);
+    atomic_store_explicit(AINT(&l->stop_request), 0, RELEASE);
+    return 0;
+}
+
+/* ------------------------------------------------------------------ */
+/* The run                                                             */
+/* ------------------------------------------------------------------ */
+
+typedef struct {
+    uint64_t rx_frames, rx_accepted, rx_unknown_id, rx_bad_length, rx_bad_crc, rx_bad_counter;
+    uint64_t rx_overflow, tx_frames, tx_dropped;
+    uint64_t rx_per_msg[DCT_CAN_N_RX];
+    uint64_t timeout_events[DCT_CAN_N_RX];
+    int timed_out[DCT_CAN_N_RX];
+    uint64_t ticks, overruns, skipped_ticks;
+    double turnaround_max_us, exec_max_us, latency_max_us;
+} rt_counts;
+
+typedef struct {
+    _Alignas(struct cmsghdr) unsigned char bytes[CMSG_SPACE(sizeof(uint32_t)) + 64]; /* and a timestamp */
+} rt_cmsg_buf;
+
+typedef struct {
+    rt_loop *l;
+    int64_t period_ns;
+    int64_t spin_ns;                 /* early wake-up before each deadline */
+    int64_t t0_ns;                   /* first deadline */
+    uint32_t tx_div[DCT_CAN_N_TX];
+    uint32_t tx_off[DCT_CAN_N_TX];
+    uint64_t rx_timeout_ticks[DCT_CAN_N_RX];
+    uint32_t ovfl_last;              /* last SO_RXQ_OVFL drop count seen */
+    uint64_t ovfl_total;
+    int tcu_heard;                   /* a TCU frame was accepted */
+    double time_s;                   /* deadline of this tick since t0 */
+    rt_counts c;
+    dct_tcu_commands cmd;
+    /* SocketCAN batches */
+    struct can_frame rx_cf[RT_RX_BATCH];
+    struct iovec rx_iov[RT_RX_BATCH];
+    struct mmsghdr rx_msg[RT_RX_BATCH];
+    rt_cmsg_buf rx_ctrl[RT_RX_BATCH];
+    struct can_frame tx_cf[RT_TX_MAX];
+    struct iovec tx_iov[RT_TX_MAX];
+    struct mmsghdr tx_msg[RT_TX_MAX];
+    /* frames of this tick */
+    dct_can_frame rx_frames[RT_RX_BATCH];
+    dct_can_frame tx_frames[RT_TX_MAX];
+} rt_run;
+
+static inline int64_t now_ns(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * RT_NS_PER_S + ts.tv_nsec;
+}
+
+static inline void sleep_until(int64_t t_ns)
+{
+    struct timespec ts = {(time_t)(t_ns / RT_NS_PER_S), (long)(t_ns % RT_NS_PER_S)};
+    while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL) == EINTR)
+        ;
+}
+
+static uint32_t gcd_u32(uint32_t a, uint32_t b)
+{
+    while (b) {
+        uint32_t t = a % b;
+        a = b;
+        b = t;
+    }
+    return a;
+}
+
+/* divisors and staggered offsets of the plant messages (see the top) */
+static void plan_tx(rt_run *r)
+{
+    int order[DCT_CAN_N_TX];
+    for (int m = 0; m < DCT_CAN_N_TX; m++)
+        order[m] = m;
+    for (int i = 1; i < DCT_CAN_N_TX; i++) /* stable sort by cycle time */
+        for (int j = i; j > 0 && dct_can_tx_cycle_ms(order[j]) < dct_can_tx_cycle_ms(order[j - 1]); j--) {
+            int t = order[j];
+            order[j] = order[j - 1];
+            order[j - 1] = t;
+        }
+    for (int i = 0; i < DCT_CAN_N_TX; i++) {
+        int m = order[i];
+        double ticks = dct_can_tx_cycle_ms(m) * 1e6 / (double)r->period_ns;
+        uint32_t div = ticks < 1.5 ? 1u : (uint32_t)llround(ticks);
+        uint32_t best = 0;
+        double best_cost = INFINITY;
+        for (uint32_t off = 0; off < div; off++) {
+            double cost = 0.0;
+            for (int j = 0; j < i; j++) {
+                int p = order[j];
+                uint32_t g = gcd_u32(div, r->tx_div[p]);
+                if (off % g == r->tx_off[p] % g)
+                    cost += 1.0 / r->tx_div[p];
+            }
+            if (cost < best_cost - 1e-12) {
+                best_cost = cost;
+                best = off;
+            }
+        }
+        r->tx_div[m] = div;
+        r->tx_off[m] = best;
+    }
+}
+
+static void plan_rx(rt_run *r)
+{
+    for (int m = 0; m < DCT_CAN_N_RX; m++) {
+        double ticks = RT_TIMEOUT_CYCLES * dct_can_rx_cycle_ms(m) * 1e6 / (double)r->period_ns;
+        r->rx_timeout_ticks[m] = (uint64_t)ceil(ticks - 1e-9);
+    }
+}
+
+/* one received frame; well_formed: the transport delivered a whole classic frame */
+static inline void rx_one(rt_run *r, const dct_can_frame *f, int well_formed, uint64_t n)
+{
+    rt_loop *l = r->l;
+    r->c.rx_frames++;
+    if (l->cfg.log_frames)
+        log_push(&l->log, r->time_s, RT_DIR_RX, f);
+
+    uint32_t id = f->id;
+    uint32_t base = id & ~(uint32_t)CAN_RTR_FLAG;
+    int m = -1;
+    if (!(id & (CAN_EFF_FLAG | CAN_ERR_FLAG)) && base <= CAN_SFF_MASK)
+        m = dct_can_rx_index(base);
+    if (m < 0 || m >= DCT_CAN_N_RX) {
+        r->c.rx_unknown_id++;
+        return;
+    }
+    if (!well_formed || (id & CAN_RTR_FLAG) || f->len > 8) {
+        r->c.rx_bad_length++;
+        return;
+    }
+    switch (dct_e2e_check(m, f, &l->e2e[m])) {
+    case DCT_RX_OK:
+        r->c.rx_accepted++;
+        r->c.rx_per_msg[m]++;
+        dct_can_decode_rx(m, f, &r->cmd);
+        l->last_rx_tick[m] = n;
+        r->c.timed_out[m] = 0;
+        r->tcu_heard = 1;
+        break;
+    case DCT_RX_UNKNOWN_ID:
+        r->c.rx_unknown_id++;
+        break;
+    case DCT_RX_BAD_CRC:
+        r->c.rx_bad_crc++;
+        break;
+    case DCT_RX_BAD_COUNTER:
+        r->c.rx_bad_counter++;
+        break;
+    case DCT_RX_BAD_LENGTH:
+    default:
+        r->c.rx_bad_length++;
+        break;
+    }
+}
+
+/* returns 0, or the errno of a fatal transport error */
+static int rx_drain(rt_run *r, uint64_t n)
+{
+    rt_loop *l = r->l;
+    int budget = RT_RX_MAX_PER_TICK;
+    if (l->cfg.transport == RT_TRANSPORT_RING) {
+        while (budget > 0) {
+            int want = budget < RT_RX_BATCH ? budget : RT_RX_BATCH;
+            int got = rt_ring_pop_many(&l->rx, r->rx_frames, want);
+            for (int i = 0; i < got; i++)
+                rx_one(r, &r->rx_frames[i], 1, n);
+            budget -= got;
+            if (got < want)
+                break;
+        }
+        r->c.rx_overflow = atomic_load_explicit(A64(&l->rx.dropped), RELAXED);
+        return 0;
+    }
+
+    int interrupted = 0;
+    while (budget > 0) {
+        int want = budget < RT_RX_BATCH ? budget : RT_RX_BATCH;
+        for (int i = 0; i < want; i++) {
+            r->rx_iov[i].iov_base = &r->rx_cf[i];
+            r->rx_iov[i].iov_len = sizeof r->rx_cf[i];
+            memset(&r->rx_msg[i], 0, sizeof r->rx_msg[i]);
+            r->rx_msg[i].msg_hdr.msg_iov = &r->rx_iov[i];
+            r->rx_msg[i].msg_hdr.msg_iovlen = 1;
+            r->rx_msg[i].msg_hdr.msg_control = r->rx_ctrl[i].bytes;
+            r->rx_msg[i].msg_hdr.msg_controllen = sizeof r->rx_ctrl[i].bytes;
+        }
+        int got = recvmmsg(l->cfg.fd, r->rx_msg, (unsigned)want, MSG_DONTWAIT, NULL);
+        if (got < 0) {
+            if (errno == EAGAIN || errno == EWOULDBLOCK)
+                break;
+            if (errno == EINTR && ++interrupted < 4)
+                continue;
+            return errno;
+        }
+        for (int i = 0; i < got; i++) {
+            struct msghdr *h = &r->rx_msg[i].msg_hdr;
+            for (struct cmsghdr *cm = CMSG_FIRSTHDR(h); cm; cm = CMSG_NXTHDR(h, cm)) {
+                if (cm->cmsg_level == SOL_SOCKET && cm->cmsg_type == SO_RXQ_OVFL &&
+                    cm->cmsg_len >= CMSG_LEN(sizeof(uint32_t))) {
+                    uint32_t drops;
+                    memcpy(&drops, CMSG_DATA(cm), sizeof drops);
+                    r->ovfl_total += (uint32_t)(drops - r->ovfl_last);
+                    r->ovfl_last = drops;
+                }
+            }
+            const struct can_frame *cf = &r->rx_cf[i];
+            int well_formed = r->rx_msg[i].msg_len == sizeof *cf && !(h->msg_flags & MSG_TRUNC);
+            dct_can_frame f;
+            f.id = cf->can_id;
+            f.len = cf->len;
+            memcpy(f.data, cf->data, sizeof f.data);
+            rx_one(r, &f, well_formed, n);
+        }
+        budget -= got;
+        if (got < want)
+            break;
+    }
+    r->c.rx_overflow = r->ovfl_total;
+    return 0;
+}
+
+static void check_timeouts(rt_run *r, uint64_t n)
+{
+    rt_loop *l = r->l;
+    for (int m = 0; m < DCT_CAN_N_RX; m++) {
+        if (r->c.timed_out[m] || n - l->last_rx_tick[m] <= r->rx_timeout_ticks[m])
+            continue;
+        r->c.timed_out[m] = 1;
+        r->c.timeout_events[m]++;
+        dct_can_safe_rx(m, &r->cmd);
+        l->e2e[m].last_counter = -1;
+    }
+}
+
+/* sends tx_frames[0 .. nf); returns 0 or the errno of a fatal error */
+static int tx_send(rt_run *r, int nf)
+{
+    rt_loop *l = r->l;
+    int sent = 0;
+    if (nf <= 0)
+        return 0;
+    if (l->cfg.transport == RT_TRANSPORT_RING) {
+        sent = rt_ring_push_many(&l->tx, r->tx_frames, nf);
+    } else {
+        for (int i = 0; i < nf; i++) {
+            struct can_frame *cf = &r->tx_cf[i];
+            memset(cf, 0, sizeof *cf);
+            cf->can_id = r->tx_frames[i].id & CAN_SFF_MASK;
+            cf->len = r->tx_frames[i].len;
+            memcpy(cf->data, r->tx_frames[i].data, sizeof cf->data);
+            r->tx_iov[i].iov_base = cf;
+            r->tx_iov[i].iov_len = sizeof *cf;
+            memset(&r->tx_msg[i], 0, sizeof r->tx_msg[i]);
+            r->tx_msg[i].msg_hdr.msg_iov = &r->tx_iov[i];
+            r->tx_msg[i].msg_hdr.msg_iovlen = 1;
+        }
+        int interrupted = 0;
+        while (sent < nf) {
+            int rc = sendmmsg(l->cfg.fd, r->tx_msg + sent, (unsigned)(nf - sent), MSG_DONTWAIT);
+            if (rc > 0) {
+                sent += rc;
+                continue;
+            }
+            if (rc < 0 && errno == EINTR && ++interrupted < 4)
+                continue;
+            if (rc == 0 || errno == EAGAIN || errno == EWOULDBLOCK || errno == ENOBUFS || errno == EINTR)
+                break; /* never block: the rest is dropped */
+            int err = errno;
+            r->c.tx_frames += (uint64_t)sent;
+            r->c.tx_dropped += (uint64_t)(nf - sent);
+            return err;
+        }
+    }
+    r->c.tx_frames += (uint64_t)sent;
+    r->c.tx_dropped += (uint64_t)(nf - sent);
+    if (l->cfg.log_frames)
+        for (int i = 0; i < sent; i++)
+            log_push(&l->log, r->time_s, RT_DIR_TX, &r->tx_frames[i]);
+    return 0;
+}
+
+static void sim_status(const rt_run *r, double state, dct_sim_status *st)
+{
+    st->sim_time_s = r->l->plant.state.time_s;
+    st->overrun_count = (double)r->c.overruns;
+    st->turnaround_max_us = r->c.turnaround_max_us;
+    st->sim_state = state;
+}
+
+/* encodes and sends the frames due at executed tick k */
+static int tx_tick(rt_run *r, uint64_t k)
+{
+    rt_loop *l = r->l;
+    dct_sim_status st;
+    sim_status(r, r->tcu_heard ? RT_SIM_RUNNING : RT_SIM_STARTING, &st);
+    int nf = 0;
+    for (int m = 0; m < DCT_CAN_N_TX; m++) {
+        if (k % r->tx_div[m] != r->tx_off[m])
+            continue;
+        dct_can_frame *f = &r->tx_frames[nf++];
+        dct_can_encode_tx(m, &l->plant.outputs, &st, l->tx_counter[m], f);
+        dct_e2e_protect(f, l->tx_counter[m]);
+        l->tx_counter[m] = (uint8_t)((l->tx_counter[m] + 1u) & 0x0Fu);
+    }
+    return tx_send(r, nf);
+}
+
+/* the last SIM_Status, with the state the loop ends in */
+static void tx_final(rt_run *r, double state)
+{
+    rt_loop *l = r->l;
+    dct_sim_status st;
+    sim_status(r, state, &st);
+    dct_can_frame *f = &r->tx_frames[0];
+    dct_can_encode_tx(DCT_TX_SIM_STATUS, &l->plant.outputs, &st, l->tx_counter[DCT_TX_SIM_STATUS], f);
+    dct_e2e_protect(f, l->tx_counter[DCT_TX_SIM_STATUS]);
+    l->tx_counter[DCT_TX_SIM_STATUS] = (uint8_t)((l->tx_counter[DCT_TX_SIM_STATUS] + 1u) & 0x0Fu);
+    (void)tx_send(r, 1);
+}
+
+static inline int hist_bin(double us)
+{
+    if (!(us > 0.0))
+        return 0;
+    if (us >= RT_HIST_BINS - 1)
+        return RT_HIST_BINS - 1;
+    return (int)us;
+}
+
+static void copy_counts(rt_stats *s, const rt_run *r)
+{
+    const rt_counts *c = &r->c;
+    s->ticks = c->ticks;
+    s->overruns = c->overruns;
+    s->skipped_ticks = c->skipped_ticks;
+    s->turnaround_max_us = c->turnaround_max_us;
+    s->exec_max_us = c->exec_max_us;
+    s->latency_max_us = c->latency_max_us;
+    s->rx_frames = c->rx_frames;
+    s->rx_accepted = c->rx_accepted;
+    s->rx_unknown_id = c->rx_unknown_id;
+    s->rx_bad_length = c->rx_bad_length;
+    s->rx_bad_crc = c->rx_bad_crc;
+    s->rx_bad_counter = c->rx_bad_counter;
+    s->rx_overflow = c->rx_overflow;
+    s->tx_frames = c->tx_frames;
+    s->tx_dropped = c->tx_dropped;
+    for (int m = 0; m < DCT_CAN_N_RX; m++) {
+        s->rx_per_msg[m] = c->rx_per_msg[m];
+        s->timeout_events[m] = c->timeout_events[m];
+        s->timed_out[m] = c->timed_out[m];
+    }
+    s->commands = r->cmd;
+    s->outputs = r->l->plant.outputs;
+    s->sim_time_s = r->l->plant.state.time_s;
+}
+
+static void publish_tick(rt_run *r, double turnaround_us, double exec_us, double latency_us)
+{
+    rt_stats *s = &r->l->stats;
+    stats_write_begin(s);
+    copy_counts(s, r);
+    s->turnaround_us = turnaround_us;
+    s->exec_us = exec_us;
+    s->latency_us = latency_us;
+    s->turnaround_hist[hist_bin(turnaround_us)]++;
+    s->exec_hist[hist_bin(exec_us)]++;
+    s->latency_hist[hist_bin(latency_us)]++;
+    stats_write_end(s);
+}
+
+static void publish_state(rt_run *r, int state, int error)
+{
+    rt_stats *s = &r->l->stats;
+    stats_write_begin(s);
+    copy_counts(s, r);
+    s->state = state;
+    s->error = error;
+    stats_write_end(s);
+}
+
+/* touches the stack the tick will use, so it does not fault in later */
+__attribute__((noinline)) static void prefault_stack(void)
+{
+    volatile unsigned char buf[RT_STACK_PREFAULT];
+    for (size_t i = 0; i < sizeof buf; i += 256)
+        buf[i] = 0;
+}
+
+typedef struct {
+    int policy_set;
+    int old_policy;
+    struct sched_param old_param;
+    int affinity_set;
+    cpu_set_t old_cpus;
+} rt_thread_saved;
+
+static void thread_setup(rt_loop *l, rt_thread_saved *sv, int *policy_ok, int *affinity_ok,
+                         int *memory_locked)
+{
+    pthread_t self = pthread_self();
+    memset(sv, 0, sizeof *sv);
+    *policy_ok = *affinity_ok = *memory_locked = 0;
+    if (l->cfg.priority > 0 && pthread_getschedparam(self, &sv->old_policy, &sv->old_param) == 0) {
+        struct sched_param sp;
+        memset(&sp, 0, sizeof sp);
+        sp.sched_priority = l->cfg.priority;
+        if (pthread_setschedparam(self, SCHED_FIFO, &sp) == 0)
+            *policy_ok = sv->policy_set = 1;
+    }
+    if (l->cfg.cpu >= 0 && pthread_getaffinity_np(self, sizeof sv->old_cpus, &sv->old_cpus) == 0) {
+        cpu_set_t set;
+        CPU_ZERO(&set);
+        CPU_SET(l->cfg.cpu, &set);
+        if (pthread_setaffinity_np(self, sizeof set, &set) == 0)
+            *affinity_ok = sv->affinity_set = 1;
+    }
+    if (l->cfg.lock_memory && mlockall(MCL_CURRENT | MCL_FUTURE) == 0)
+        *memory_locked = 1;
+    prefault_stack();
+}
+
+static void thread_restore(const rt_thread_saved *sv)
+{
+    pthread_t self = pthread_self();
+    if (sv->policy_set)
+        (void)pthread_setschedparam(self, sv->old_policy, &sv->old_param);
+    if (sv->affinity_set)
+        (void)pthread_setaffinity_np(self, sizeof sv->old_cpus, &sv->old_cpus);
+}
+
+int rt_loop_run(rt_loop *l)
+{
+    /* not prepared, or already run since rt_loop_prepare */
+    if (!l || atomic_load_explicit(AINT(&l->stats.state), RELAXED) != RT_STATE_IDLE ||
+        !(l->cfg.period_s >= RT_PERIOD_MIN_S && l->cfg.period_s <= RT_PERIOD_MAX_S))
+        return -EINVAL;
+
+    rt_run r;
+    memset(&r, 0, sizeof r);
+    r.l = l;
+    r.period_ns = llround(l->cfg.period_s * 1e9);
+    r.spin_ns = llround(l->cfg.spin_us * 1e3);
+    plan_tx(&r);
+    plan_rx(&r);
+    r.cmd = l->stats.commands;
+    for (int m = 0; m < DCT_CAN_N_RX; m++)
+        r.c.timed_out[m] = l->stats.timed_out[m];
+
+    uint64_t limit = 0; /* deadlines to run, 0: until stopped */
+    if (l->cfg.duration_s > 0.0 && isfinite(l->cfg.duration_s)) {
+        double d = l->cfg.duration_s / l->cfg.period_s;
+        limit = d >= 1.0 ? (uint64_t)llround(d) : 1u;
+    }
+
+    rt_thread_saved saved;
+    int policy_ok, affinity_ok, memory_locked;
+    thread_setup(l, &saved, &policy_ok, &affinity_ok, &memory_locked);
+    stats_write_begin(&l->stats);
+    l->stats.rt_policy_ok = policy_ok;
+    l->stats.affinity_ok = affinity_ok;
+    l->stats.memory_locked = memory_locked;
+    l->stats.state = RT_STATE_RUNNING;
+    stats_write_end(&l->stats);
+
+    int state = RT_STATE_STOPPED, error = 0;
+    double final_sim_state = RT_SIM_STOPPING;
+    uint64_t n = 0; /* deadline index */
+    r.t0_ns = now_ns() + r.period_ns;
+    for (;;) {
+        if (stop_requested(l) || (limit && n >= limit))
+            break;
+        int64_t deadline = r.t0_ns + (int64_t)n * r.period_ns;
+        int64_t wake_at = deadline - r.spin_ns;
+        sleep_until(wake_at);
+        int64_t wake = now_ns();
+        int64_t start = wake;
+        /* early wake-up: spin the rest of the way so that the OS wake-up
+         * latency (up to spin_us) does not reach the tick */
+        while (start < deadline)
+            start = now_ns();
+        if (stop_requested(l))
+            break;
+        r.time_s = (double)(deadline - r.t0_ns) / 1e9;
+
+        int err = rx_drain(&r, n);
+        if (err) {
+            state = RT_STATE_ERROR;
+            error = err;
+            final_sim_state = -1.0;
+            break;
+        }
+        check_timeouts(&r, n);
+        dct_can_apply_commands(&r.cmd, &l->plant.inputs);
+        int st = dct_plant_step(&l->plant, 1);
+        if (st != DCT_OK) {
+            state = RT_STATE_ERROR;
+            error = -st;
+            final_sim_state = RT_SIM_FAULT;
+            break;
+        }
+        err = tx_tick(&r, r.c.ticks);
+        r.c.ticks++;
+        if (err) {
+            state = RT_STATE_ERROR;
+            error = err;
+            final_sim_state = -1.0;
+            break;
+        }
+
+        int64_t end = now_ns();
+        double turnaround_us = (double)(end - deadline) / 1e3;
+        double exec_us = (double)(end - start) / 1e3;
+        double latency_us = (double)(wake - wake_at) / 1e3; /* the OS's, as cyclictest measures it */
+        if (turnaround_us > r.c.turnaround_max_us)
+            r.c.turnaround_max_us = turnaround_us;
+        if (exec_us > r.c.exec_max_us)
+            r.c.exec_max_us = exec_us;
+        if (latency_us > r.c.latency_max_us)
+            r.c.latency_max_us = latency_us;
+        uint64_t next = n + 1;
+        int overrun = end > deadline + r.period_ns;
+        if (overrun) {
+            r.c.overruns++;
+            if (!l->cfg.overrun_stop) {
+                /* the first deadline after the end of this tick */
+                next = (uint64_t)((end - r.t0_ns) / r.period_ns) + 1u;
+                if (limit && next > limit)
+                    next = limit; /* only deadlines of the run count as skipped */
+                r.c.skipped_ticks += next - (n + 1);
+            }
+        }
+        publish_tick(&r, turnaround_us, exec_us, latency_us);
+        if (overrun && l->cfg.overrun_stop) {
+            state = RT_STATE_OVERRUN_STOP;
+            final_sim_state = RT_SIM_FAULT;
+            break;
+        }
+        n = next;
+    }
+
+    if (final_sim_state >= 0.0)
+        tx_final(&r, final_sim_state);
+    publish_state(&r, state, error);
+    thread_restore(&saved);
+    return state;
+}

@@ -1,0 +1,687 @@
+"""The plant server: the C loop in a thread, a transport, a traffic log, statistics.
+
+    srv = Server("vcan0", interface="virtual", priority=0)
+    srv.start()          # loop thread running, frames flowing
+    srv.snapshot()       # counts, timing, plant signals (a consistent copy)
+    srv.stop()           # loop stopped, log flushed, bus closed
+    srv.report()         # the dict written as the JSON stats file
+
+Python does only set-up and supervision: one ``rt_loop`` is allocated
+zeroed with ``ffi.new``, the plant parameters are written into it (solenoid
+currents drive the clutch hydraulics), ``rt_config`` is filled, and
+``rt_loop_run`` runs in a thread of its own (cffi releases the GIL for the
+call). Every tick then happens in C. Around it, Python threads only move
+frames for the bridge transport, drain the traffic log into a python-can
+writer, and read the statistics.
+
+``run_console`` is ``dct-hil serve``: live status, SIGINT/SIGTERM, summary,
+JSON file.
+"""
+
+from __future__ import annotations
+
+import atexit
+import errno
+import json
+import math
+import os
+import signal
+import sys
+import threading
+import time
+import weakref
+from typing import Any, TextIO
+
+from rt_loop import status as _status
+from rt_loop.stats import StatsReader, machine_info
+from rt_loop.transport import Transport, TransportError, open_transport
+
+__all__ = [
+    "LOG_FORMATS",
+    "MAX_RATE_HZ",
+    "MIN_RATE_HZ",
+    "OVERRUN_POLICIES",
+    "Server",
+    "ServerError",
+    "TrafficLogger",
+    "TransportError",
+    "run_console",
+]
+
+#: the loop's limits: periods from 10 ms down to 50 us (rt_loop_prepare)
+MIN_RATE_HZ = 100.0
+MAX_RATE_HZ = 20_000.0
+DEFAULT_SPIN_US = 300.0  # early wake-up at SCHED_FIFO: covers these VMs' wake-up latency beyond p99.9
+OVERRUN_POLICIES = ("skip", "stop")
+#: traffic log suffixes and what writes them (python-can picks the writer by suffix)
+LOG_FORMATS = {".log": "candump", ".blf": "Vector BLF", ".asc": "Vector ASC",
+               ".mf4": "ASAM MDF 4 (needs asammdf)", ".csv": "CSV", ".trc": "PEAK TRC",
+               ".db": "SQLite", ".txt": "text"}
+#: the plant parameters the server always uses: the TCU drives solenoid currents
+HYDRAULICS = {"hydraulics": {"pressure_commanded": 0}}
+
+#: below this many frames of receive buffer a SocketCAN run warns
+SOCKET_FRAMES_WANTED = 10_000
+
+_START_TIMEOUT_S = 5.0
+_STOP_TIMEOUT_S = 10.0
+_LOG_BATCH = 4096
+
+
+class ServerError(RuntimeError):
+    """The server cannot be set up or stopped; ``str()`` is one line naming the cause."""
+
+
+# servers whose loop thread may run: stopped at interpreter exit, so that no
+# C thread is left working on memory Python is about to free
+_LIVE: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register
+def _stop_live_servers() -> None:
+    for server in list(_LIVE):
+        try:
+            server.stop()
+        except Exception:  # noqa: BLE001 (exiting anyway)
+            pass
+
+
+def _extension() -> tuple[Any, Any]:
+    try:
+        from rt_loop._rt_loop import ffi, lib  # noqa: PLC0415 (compiled module)
+    except ImportError as e:
+        raise ServerError(f"the real-time loop is not built ({e}); run scripts/setup") from None
+    return ffi, lib
+
+
+def _one_line(text: Any) -> str:
+    return " ".join(str(text).split())
+
+
+# --------------------------------------------------------------------------
+# traffic log
+# --------------------------------------------------------------------------
+
+class TrafficLogger:
+    """Drains the loop's log ring into a python-can writer, in a thread of its own.
+
+    ``can.Logger(path)`` picks the format from the suffix (``LOG_FORMATS``).
+    Both directions are written, received frames with ``is_rx`` True.
+    Timestamps are the wall-clock time at which the loop started plus the
+    loop time of the tick that received or sent the frame (its deadline).
+    Entries the loop could not log because this thread fell behind are
+    counted by the loop (``dropped``), never lost silently.
+    """
+
+    def __init__(self, path: str | os.PathLike, channel: str) -> None:
+        import can  # noqa: PLC0415
+
+        self.path = os.fspath(path)
+        self.channel = channel
+        suffix = os.path.splitext(self.path)[1].lower()
+        self.format = LOG_FORMATS.get(suffix, suffix)
+        try:
+            self.writer = can.Logger(self.path)
+        except (ValueError, ImportError, NotImplementedError) as e:
+            known = ", ".join(f"{s} ({n})" for s, n in LOG_FORMATS.items())
+            cause = _one_line(e).rstrip(".")
+            raise ServerError(f"traffic log {self.path}: {cause}; known formats: {known}"
+                              ) from None
+        self._can = can
+        self._msg_channel = _log_channel(channel, suffix)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._loop: Any = None
+        self.written = 0
+        self.error: str | None = None
+
+    def start(self, ffi: Any, lib: Any, loop: Any, wall0: float) -> None:
+        self._ffi, self._lib, self._loop = ffi, lib, loop
+        self._ring = ffi.addressof(loop[0], "log")
+        self._wall0 = wall0
+        self._thread = threading.Thread(target=self._run, name="can-log", daemon=True)
+        self._thread.start()
+
+    @property
+    def dropped(self) -> int:
+        """Entries the loop could not put in the log ring."""
+        return int(self._loop.log.dropped) if self._loop is not None else 0
+
+    def _run(self) -> None:
+        buf = self._ffi.new("rt_log_entry[]", _LOG_BATCH)
+        while True:
+            stopping = self._stop.is_set()
+            n = self._drain(buf)
+            if stopping and n == 0:
+                break
+            if n < _LOG_BATCH:
+                self._stop.wait(0.02)
+
+    def _drain(self, buf: Any) -> int:
+        ffi, lib, can = self._ffi, self._lib, self._can
+        n = lib.rt_log_pop_many(self._ring, buf, _LOG_BATCH)
+        if self.error is not None:
+            return n  # the writer failed: keep the ring moving, the error is reported
+        rx = lib.RT_DIR_RX
+        try:
+            for i in range(n):
+                e = buf[i]
+                f = e.frame
+                ident = int(f.id)
+                length = min(int(f.len), 8)
+                msg = can.Message(
+                    timestamp=self._wall0 + e.time_s,
+                    arbitration_id=ident & 0x1FFFFFFF,
+                    is_extended_id=bool(ident & 0x80000000),
+                    is_remote_frame=bool(ident & 0x40000000),
+                    dlc=length,
+                    data=ffi.unpack(ffi.cast("char *", f.data), length),
+                    is_rx=e.dir == rx,
+                    channel=self._msg_channel,
+                )
+                self.writer.on_message_received(msg)
+                self.written += 1
+        except Exception as e:  # disk full, a writer limit: reported, not fatal to the loop
+            self.error = f"{self.path}: {type(e).__name__}: {_one_line(e)}"
+        return n
+
+    def stop(self) -> None:
+        """Writes what is left in the ring, then closes the file."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        try:
+            self.writer.stop()
+        except Exception as e:  # noqa: BLE001 (reported)
+            self.error = self.error or f"{self.path}: closing: {_one_line(e)}"
+
+    def counters(self) -> dict:
+        return {"path": self.path, "format": self.format, "written": self.written,
+                "dropped": self.dropped, "error": self.error}
+
+
+def _log_channel(channel: str, suffix: str) -> str | int | None:
+    """The channel written with each frame: candump logs keep the interface
+    name; the other formats number their channels, so a name ending in a small
+    number (can0, vcan1) gives that number, anything else the writer's default
+    (None; a name like "bench-12345" would give a number the format cannot hold)."""
+    if suffix == ".log":
+        return channel
+    from can.util import channel2int  # noqa: PLC0415
+
+    number = channel2int(channel)
+    return number if number is not None and 0 <= number <= 63 else None
+
+
+# --------------------------------------------------------------------------
+# the server
+# --------------------------------------------------------------------------
+
+class Server:
+    """One plant served on one CAN channel.
+
+    ``interface`` None picks SocketCAN when ``channel`` is a CAN network
+    interface, else python-can's virtual bus (``transport.chosen_because``
+    says which and why). ``priority`` 1..99 asks for SCHED_FIFO and
+    ``mlockall``; 0 leaves the scheduling alone (no privileges needed, timing
+    not real time). ``duration_s`` None runs until ``stop()``.
+    ``overrun_policy`` "skip" counts overruns and skips the missed deadlines;
+    "stop" ends the run at the first overrun. ``log_path`` records the
+    traffic (format by suffix, ``LOG_FORMATS``). ``bus_kwargs`` go to
+    ``can.Bus`` for the bridge (e.g. ``bitrate``).
+
+    Errors in the arguments, the parameters (``ParamError``) or the
+    transport (``TransportError``) are raised with one-line messages.
+    """
+
+    def __init__(self, channel: str, interface: str | None = None, rate_hz: float = 2000,
+                 priority: int = 80, cpu: int | None = None, duration_s: float | None = None,
+                 params_path: str | os.PathLike | None = None,
+                 log_path: str | os.PathLike | None = None, overrun_policy: str = "skip",
+                 lock_memory: bool | None = None, bus_kwargs: dict | None = None,
+                 spin_us: float | None = None) -> None:
+        from plant.params import fill_params, load_params  # noqa: PLC0415
+
+        self.channel = _check_channel(channel)
+        self.interface = interface
+        self.rate_hz = _check_rate(rate_hz)
+        self.period_s = 1.0 / self.rate_hz
+        self.priority = _check_priority(priority)
+        self.cpu = _check_cpu(cpu)
+        self.duration_s = _check_duration(duration_s)
+        if overrun_policy not in OVERRUN_POLICIES:
+            raise ServerError(f"overrun policy {overrun_policy!r}: choose "
+                              + " or ".join(OVERRUN_POLICIES))
+        self.overrun_policy = overrun_policy
+        self.lock_memory = self.priority > 0 if lock_memory is None else bool(lock_memory)
+        # early wake-up before each deadline, busy-waited: hides the OS's
+        # wake-up latency from the tick (real-time priority only: a normal
+        # thread would just burn the CPU others need)
+        if spin_us is None:
+            spin_us = min(DEFAULT_SPIN_US, 0.6 * self.period_s * 1e6) if self.priority > 0 else 0.0
+        if not (0.0 <= float(spin_us) < 0.8 * self.period_s * 1e6):
+            raise ServerError(f"spin {spin_us} us: must be at least 0 and under 80 % of the "
+                              f"period ({0.8 * self.period_s * 1e6:.0f} us)")
+        self.spin_us = float(spin_us)
+        self.params_path = None if params_path is None else os.fspath(params_path)
+        self.log_path = None if log_path is None else os.fspath(log_path)
+        self.bus_kwargs = dict(bus_kwargs or {})
+
+        self._ffi, self._lib = ffi, lib = _extension()
+        overrides = {**HYDRAULICS, "solver": {"step_s": self.period_s}}
+        self.params = load_params(self.params_path, ffi, overrides)
+        self._l = ffi.new("rt_loop *")  # zeroed; lives as long as this object
+        fill_params(ffi, self._l.plant.params, self.params)
+        self.stats = StatsReader(ffi, lib, self._l)
+        self._read_lock = threading.Lock()   # one copy of the statistics, many readers
+
+        self.transport: Transport | None = None
+        self.logger: TrafficLogger | None = None
+        self.warnings: list[str] = []
+        self._thread: threading.Thread | None = None
+        self._done = threading.Event()
+        self._final_state: int | None = None
+        self._loop_error: str | None = None
+        self._started = self._stopped = False
+        self._t_start = self._t_end = None
+
+    # ------------------------------------------------------------ life cycle
+    def start(self) -> None:
+        """Opens the transport and the log, prepares and starts the loop.
+
+        Returns once the loop runs (or has already ended); ``warnings`` then
+        says whether the timing is real time.
+        """
+        if self._started:
+            raise ServerError("the server was already started (one run per Server)")
+        self._started = True
+        ffi, lib, loop = self._ffi, self._lib, self._l
+        try:
+            self.transport = open_transport(self.interface, self.channel, **self.bus_kwargs)
+            if self.log_path is not None:
+                self.logger = TrafficLogger(self.log_path, self.channel)
+
+            cfg = loop.cfg
+            cfg.period_s = self.period_s
+            cfg.priority = self.priority
+            cfg.cpu = -1 if self.cpu is None else self.cpu
+            cfg.lock_memory = int(self.lock_memory)
+            cfg.overrun_stop = int(self.overrun_policy == "stop")
+            cfg.spin_us = self.spin_us
+            cfg.duration_s = 0.0 if self.duration_s is None else self.duration_s
+            cfg.log_frames = int(self.logger is not None)
+            self.transport.configure(cfg, lib)
+            rc = lib.rt_loop_prepare(loop)
+            if rc == -errno.EDOM:
+                raise ServerError("the plant core rejected the parameter set (dct_plant_init "
+                                  f"status {-int(loop.stats.error)}; see check_params in "
+                                  "plant/csrc/plant.c)")
+            if rc != 0:
+                raise ServerError(f"the loop refused its set-up: {os.strerror(abs(rc))} "
+                                  f"(rt_loop_prepare returned {rc}; rate {self.rate_hz:g} Hz, "
+                                  f"priority {self.priority}, cpu {cfg.cpu})")
+            self.transport.start(ffi, lib, loop)
+            self._t_start = time.monotonic()
+            wall0 = time.time()
+            if self.logger is not None:
+                self.logger.start(ffi, lib, loop, wall0)
+            self._thread = threading.Thread(target=self._run, name="rt-loop", daemon=True)
+            _LIVE.add(self)
+            self._thread.start()
+        except BaseException:
+            self.stop()
+            raise
+        self._await_running()
+        self._check_real_time()
+
+    def _run(self) -> None:
+        try:
+            self._final_state = self._lib.rt_loop_run(self._l)
+        except BaseException as e:  # noqa: BLE001 (reported by stop()/report())
+            self._loop_error = f"{type(e).__name__}: {_one_line(e)}"
+        finally:
+            self._t_end = time.monotonic()
+            self._done.set()
+
+    def _await_running(self) -> None:
+        deadline = time.monotonic() + _START_TIMEOUT_S
+        while time.monotonic() < deadline:
+            with self._read_lock:
+                state = int(self.stats.read().state)
+            if state != self._lib.RT_STATE_IDLE or self._done.is_set():
+                return
+            time.sleep(0.001)
+        self.stop()
+        raise ServerError(f"the loop did not start within {_START_TIMEOUT_S:g} s")
+
+    def _check_real_time(self) -> None:
+        with self._read_lock:
+            s = self.stats.read()
+            policy_ok, locked, pinned = s.rt_policy_ok, s.memory_locked, s.affinity_ok
+        why = []
+        if self.priority == 0:
+            why.append("priority 0 (normal scheduling)")
+        elif not policy_ok:
+            why.append(f"SCHED_FIFO {self.priority} refused (needs root, CAP_SYS_NICE or an "
+                       "rtprio limit)")
+        if self.lock_memory and not locked:
+            why.append("mlockall refused (needs root, CAP_IPC_LOCK or a memlock limit)")
+        if why:
+            self.warnings.append("timing is not real time: " + "; ".join(why))
+        t = self.transport
+        if t is not None and t.hard_real_time and t.rcvbuf_frames < SOCKET_FRAMES_WANTED:
+            self.warnings.append(
+                f"the socket receive buffer holds only about {t.rcvbuf_frames} frames "
+                "(net.core.rmem_max caps it without CAP_NET_ADMIN; raise it with sysctl -w "
+                "net.core.rmem_max=16777216): bursts may overflow it; lost frames are counted")
+        if self.cpu is not None and not pinned:
+            self.warnings.append(f"the loop could not be pinned to CPU {self.cpu}")
+
+    @property
+    def running(self) -> bool:
+        """The loop thread is running (it ends on stop(), duration, overrun policy, error)."""
+        return self._thread is not None and not self._done.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Waits until the loop ends by itself or is stopped; True if it has ended."""
+        if self._thread is None:
+            return True
+        return self._done.wait(timeout)
+
+    def stop(self) -> None:
+        """Stops the loop, forwards the last frames, flushes and closes the log and the bus.
+
+        Safe to call more than once and after a failed start().
+        """
+        if self._stopped:
+            return
+        if self._thread is not None:
+            self._lib.rt_loop_request_stop(self._l)
+            self._thread.join(_STOP_TIMEOUT_S)
+            if self._thread.is_alive():
+                # the loop still owns self._l: keep everything alive, do not close
+                raise ServerError(f"the loop did not stop within {_STOP_TIMEOUT_S:g} s")
+        self._stopped = True
+        _LIVE.discard(self)
+        errors: list[Exception] = []
+        for step in (self._stop_transport, self._stop_logger, self._close_transport):
+            try:
+                step()
+            except Exception as e:  # noqa: BLE001 (every step runs; the first error is raised)
+                errors.append(e)
+        with self._read_lock:
+            self.stats.read()
+        if errors:
+            raise ServerError(f"stopping: {_one_line(errors[0])}")
+
+    def _stop_transport(self) -> None:
+        if self.transport is not None:
+            self.transport.stop()
+
+    def _stop_logger(self) -> None:
+        if self.logger is not None:
+            self.logger.stop()
+
+    def _close_transport(self) -> None:
+        if self.transport is not None:
+            self.transport.close()
+
+    def __enter__(self) -> Server:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+    # ----------------------------------------------------------- observation
+    @property
+    def state(self) -> str:
+        """idle, running, stopped, overrun_stop or error (of the last read)."""
+        return self.stats.state
+
+    def snapshot(self) -> dict:
+        """A consistent copy of the loop's figures, as plain Python values.
+
+        Keys: state, sim_time_s, the last and largest turnaround_us, exec_us
+        and latency_us (``*_max_us``), counts (``StatsReader.counts`` plus
+        ``log`` and, for the bridge, ``bridge``) and plant (key signals and
+        the commands applied, ``StatsReader.plant``).
+        """
+        with self._read_lock:
+            return self._snapshot()
+
+    def _snapshot(self) -> dict:
+        s = self.stats.read()
+        return {
+            "state": self.stats.state,
+            "sim_time_s": float(s.sim_time_s),
+            "turnaround_us": float(s.turnaround_us),
+            "turnaround_max_us": float(s.turnaround_max_us),
+            "exec_us": float(s.exec_us),
+            "exec_max_us": float(s.exec_max_us),
+            "latency_us": float(s.latency_us),
+            "latency_max_us": float(s.latency_max_us),
+            "counts": self._counts(),
+            "plant": self.stats.plant(),
+        }
+
+    def _counts(self) -> dict:
+        counts = self.stats.counts()
+        counts["log"] = {"written": 0 if self.logger is None else self.logger.written,
+                         "dropped": int(self._l.log.dropped)}
+        bridge = {}
+        if self.transport is not None and not self.transport.hard_real_time:
+            bridge = {key: value for key, value in self.transport.counters.items()
+                      if key != "last_error"}
+        counts["bridge"] = bridge
+        return counts
+
+    def transport_counters(self) -> dict:
+        return self.transport.counters if self.transport is not None else {}
+
+    def config(self) -> dict:
+        s = self.stats.copy
+        t = self.transport
+        return {
+            "rate_hz": self.rate_hz,
+            "period_us": self.period_s * 1e6,
+            "priority": self.priority,
+            "cpu": self.cpu,
+            "lock_memory": self.lock_memory,
+            "overrun_policy": self.overrun_policy,
+            "spin_us": self.spin_us,
+            "duration_s": self.duration_s,
+            "transport": None if t is None else ("socketcan" if t.hard_real_time else "bridge"),
+            "real_time": None if t is None else ("hard" if t.hard_real_time else "soft"),
+            "interface": None if t is None else t.interface,
+            "interface_chosen_because": None if t is None else t.chosen_because,
+            "channel": self.channel,
+            "params": self.params_path,
+            "hydraulics": "solenoid currents (pressure_commanded = 0)",
+            "log": self.log_path,
+            "rt_policy_ok": bool(s.rt_policy_ok),
+            "memory_locked": bool(s.memory_locked),
+            "affinity_ok": bool(s.affinity_ok) if self.cpu is not None else None,
+        }
+
+    def report(self, histograms: bool = True) -> dict:
+        """Everything for the JSON stats file (reads the statistics once more)."""
+        with self._read_lock:
+            return self._report(histograms)
+
+    def _report(self, histograms: bool) -> dict:
+        s = self.stats.read()
+        machine = machine_info()
+        end = self._t_end if self._t_end is not None else time.monotonic()
+        wall_s = (end - self._t_start) if self._t_start is not None else 0.0
+        error = None
+        if self._loop_error:
+            error = self._loop_error
+        elif int(s.state) == self._lib.RT_STATE_ERROR and int(s.error) < 0:
+            error = (f"the plant core stopped the loop (dct_plant_step status {-int(s.error)}: "
+                     "a value that is not finite)")
+        elif int(s.state) == self._lib.RT_STATE_ERROR:
+            error = f"transport error: {os.strerror(int(s.error))} (errno {int(s.error)})"
+        timing = self.stats.timing(histograms=histograms)
+        return {
+            "date": machine.pop("date"),
+            "config": self.config(),
+            "run": {
+                "state": self.stats.state,
+                "error": error,
+                "wall_s": wall_s,
+                "sim_time_s": float(s.sim_time_s),
+                "ticks": int(s.ticks),
+                "warnings": list(self.warnings),
+                "stats_read_failures": self.stats.read_failures,
+            },
+            "turnaround": timing["turnaround"],
+            "execution": timing["execution"],
+            "wakeup_latency": timing["wakeup_latency"],
+            "histogram_bin_us": 1,
+            "counts": self._counts(),
+            "transport": {key: value for key, value in self.transport_counters().items()},
+            "log": self.logger.counters() if self.logger is not None else None,
+            "plant": self.stats.plant(),
+            "machine": machine,
+        }
+
+    def write_report(self, path: str | os.PathLike) -> dict:
+        report = self.report()
+        path = os.fspath(path)
+        folder = os.path.dirname(os.path.abspath(path))
+        os.makedirs(folder, exist_ok=True)
+        tmp = f"{path}.tmp"
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(report, f, indent=2)
+            f.write("\n")
+        os.replace(tmp, path)
+        return report
+
+
+# --------------------------------------------------------------------------
+# argument checks (one line each)
+# --------------------------------------------------------------------------
+
+def _check_channel(channel: Any) -> str:
+    if not isinstance(channel, str) or not channel.strip():
+        raise ServerError(f"channel must be a non-empty name, got {channel!r}")
+    return channel
+
+
+def _check_rate(rate_hz: Any) -> float:
+    try:
+        rate = float(rate_hz)
+    except (TypeError, ValueError):
+        raise ServerError(f"rate {rate_hz!r} is not a number") from None
+    if not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
+        raise ServerError(f"rate must be {MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz (a period of "
+                          f"10 ms to 50 us), got {rate_hz}")
+    return rate
+
+
+def _check_priority(priority: Any) -> int:
+    if isinstance(priority, bool) or not isinstance(priority, int) or not 0 <= priority <= 99:
+        raise ServerError(f"priority must be a whole number 1..99 (SCHED_FIFO), or 0 for "
+                          f"normal scheduling, got {priority!r}")
+    return priority
+
+
+def _check_cpu(cpu: Any) -> int | None:
+    if cpu is None:
+        return None
+    if isinstance(cpu, bool) or not isinstance(cpu, int) or cpu < 0:
+        raise ServerError(f"cpu must be a CPU number >= 0, got {cpu!r}")
+    try:
+        allowed = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        allowed = list(range(os.cpu_count() or 1))
+    if cpu not in allowed:
+        raise ServerError(f"cpu {cpu}: not one of the CPUs this process may use "
+                          f"({', '.join(map(str, allowed))})")
+    return cpu
+
+
+def _check_duration(duration_s: Any) -> float | None:
+    if duration_s is None:
+        return None
+    try:
+        d = float(duration_s)
+    except (TypeError, ValueError):
+        raise ServerError(f"duration {duration_s!r} is not a number") from None
+    if not (math.isfinite(d) and d > 0):
+        raise ServerError(f"duration must be a number of seconds above 0, got {duration_s}")
+    return d
+
+
+# --------------------------------------------------------------------------
+# dct-hil serve
+# --------------------------------------------------------------------------
+
+def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = False,
+                out: TextIO | None = None, err: TextIO | None = None) -> int:
+    """Runs ``server`` with a live status until it ends or SIGINT/SIGTERM arrives.
+
+    The live status is redrawn in place about 5 times per second when
+    ``out`` is a terminal, else printed as one line per second (``quiet``:
+    none). On the way out the loop is stopped, the log and the bus are
+    flushed and closed, a summary is printed and the JSON stats file
+    written. Returns the exit code: 0 after a clean stop (duration reached,
+    SIGTERM), 130 after SIGINT (Ctrl-C, as everywhere in dct-hil), 1 if the
+    loop was stopped by the overrun policy or a transport error, or the
+    traffic log could not be written completely.
+    """
+    out = sys.stdout if out is None else out
+    err = sys.stderr if err is None else err
+    stop = threading.Event()
+    received: list[int] = []
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        received.append(signum)
+        stop.set()
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
+    view = None
+    try:
+        server.start()
+        for line in _status.banner_lines(server, stats_path):
+            print(line, file=out, flush=True)
+        for warning in server.warnings:
+            print(f"dct-hil: warning: {warning}", file=err, flush=True)
+        view = _status.LiveStatus(out, quiet=quiet)
+        while not stop.is_set() and server.running:
+            view.update(server.snapshot(), server)
+            stop.wait(view.interval_s)
+    finally:
+        try:
+            server.stop()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+    if view is not None:
+        view.close()
+    report = server.write_report(stats_path)
+    for line in _status.summary_lines(report, stats_path):
+        print(line, file=out)
+    out.flush()
+
+    state = report["run"]["state"]
+    if report["run"]["error"]:
+        print(f"dct-hil: error: the loop stopped: {report['run']['error']}", file=err)
+        return 1
+    if state == "overrun_stop":
+        print(f"dct-hil: stopped by the overrun policy after {report['run']['ticks']} ticks "
+              f"(turnaround max {report['turnaround']['max_us']:.1f} us, period "
+              f"{server.period_s * 1e6:g} us)", file=err)
+        return 1
+    log = report.get("log")
+    if log and log["error"]:
+        print(f"dct-hil: error: the traffic log is incomplete: {log['error']}", file=err)
+        return 1
+    if received and received[0] == signal.SIGINT:
+        return 130
+    return 0
+

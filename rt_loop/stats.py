@@ -1,0 +1,229 @@
+"""Timing figures and counts of the real-time loop, as ControlDesk reports them.
+
+The loop writes ``rt_stats`` every tick and never waits for a reader;
+``StatsReader.read`` takes a consistent copy with ``rt_stats_read`` (a
+sequence counter) into memory allocated once, so reading at 5 Hz costs no
+allocation in the loop and little in Python.
+
+Three times per tick, each with a histogram of 1 us bins (``RT_HIST_BINS``;
+the last bin holds everything above):
+
+* turnaround: deadline of the tick to its end (what ControlDesk calls
+  turnaround time: the tick's work as seen from the time it was due);
+* execution: wake-up to end (the work itself);
+* wake-up latency: deadline to wake-up (the scheduler's share).
+
+Percentiles come from the histograms by the nearest-rank rule and are
+reported as the upper edge of their 1 us bin (never below the true value),
+limited to the exact maximum the loop measured; ``max_us`` is that exact
+maximum.
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import os
+import platform
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "PERCENTILES",
+    "STATE_NAMES",
+    "StatsReader",
+    "hist_percentiles",
+    "machine_info",
+    "rx_message_names",
+]
+
+#: (percent, key) of the figures reported for every time
+PERCENTILES = ((50.0, "p50_us"), (90.0, "p90_us"), (99.0, "p99_us"), (99.9, "p99_9_us"))
+
+#: RT_STATE_* -> name
+STATE_NAMES = {0: "idle", 1: "running", 2: "stopped", 3: "overrun_stop", 4: "error"}
+
+#: (key, rt_stats field of the histogram, field of the last value, of the maximum)
+TIMES = (
+    ("turnaround", "turnaround_hist", "turnaround_us", "turnaround_max_us"),
+    ("execution", "exec_hist", "exec_us", "exec_max_us"),
+    ("wakeup_latency", "latency_hist", "latency_us", "latency_max_us"),
+)
+
+# rt_stats counters -> key in counts()["rx"] / ["tx"]
+_RX_COUNTS = (("frames", "rx_frames"), ("accepted", "rx_accepted"),
+              ("unknown_id", "rx_unknown_id"), ("bad_length", "rx_bad_length"),
+              ("bad_crc", "rx_bad_crc"), ("bad_counter", "rx_bad_counter"),
+              ("overflow", "rx_overflow"))
+_TX_COUNTS = (("frames", "tx_frames"), ("dropped", "tx_dropped"))
+
+
+def rx_message_names(lib: Any) -> list[str]:
+    """DBC names of the TCU messages, in the order of the rx tables (DCT_RX_*)."""
+    names = [""] * lib.DCT_CAN_N_RX
+    for const, name in (("DCT_RX_CLUTCH_CMD", "TCU_ClutchCmd"),
+                        ("DCT_RX_SHIFT_CMD", "TCU_ShiftCmd"),
+                        ("DCT_RX_ENGINE_CMD", "TCU_EngineCmd")):
+        names[getattr(lib, const)] = name
+    return [name or f"rx{i}" for i, name in enumerate(names)]
+
+
+def hist_percentiles(hist: np.ndarray, max_us: float) -> dict:
+    """p50/p90/p99/p99.9 and max (us) of a histogram of 1 us bins.
+
+    Bin ``i`` holds [i, i+1) us, the last bin everything above its lower
+    edge. A percentile is the upper edge of the bin holding the nearest-rank
+    sample, limited to ``max_us``; in the last bin it is ``max_us``. With no
+    samples every figure is None.
+    """
+    hist = np.asarray(hist, dtype=np.uint64)
+    total = int(hist.sum())
+    out: dict[str, Any] = {"samples": total}
+    if total == 0:
+        out.update({key: None for _, key in PERCENTILES})
+        out["max_us"] = None
+        return out
+    cum = np.cumsum(hist)
+    last = len(hist) - 1
+    for pct, key in PERCENTILES:
+        rank = max(1, math.ceil(pct * total / 100.0 - 1e-9))  # 99.9 % of 1000 is 999
+        i = int(np.searchsorted(cum, rank, side="left"))
+        value = float(max_us) if i >= last else min(float(i + 1), float(max_us))
+        out[key] = value
+    out["max_us"] = float(max_us)
+    return out
+
+
+def sparse_hist(hist: np.ndarray) -> list[list[int]]:
+    """[[bin_us, count], ...] of the non-empty bins."""
+    nz = np.flatnonzero(hist)
+    return [[int(i), int(hist[i])] for i in nz]
+
+
+class StatsReader:
+    """Consistent copies of a running loop's ``rt_stats``.
+
+    ``read()`` refreshes ``copy`` (an ``rt_stats *`` owned by the reader) and
+    returns it; when the loop kept writing through every retry of
+    ``rt_stats_read`` the previous copy is kept and ``read_failures`` counts
+    it. ``timing()``, ``counts()`` and ``plant()`` describe the last copy.
+    """
+
+    def __init__(self, ffi: Any, lib: Any, loop: Any) -> None:
+        self._ffi, self._lib, self._loop = ffi, lib, loop
+        self._work = ffi.new("rt_stats *")
+        self.copy = ffi.new("rt_stats *")
+        self._size = ffi.sizeof("rt_stats")
+        self._hists = {
+            key: np.frombuffer(ffi.buffer(getattr(self.copy, field)), dtype=np.uint64)
+            for key, field, _, _ in TIMES
+        }
+        self.rx_names = rx_message_names(lib)
+        self.read_failures = 0
+        self.reads = 0
+
+    def read(self) -> Any:
+        if self._lib.rt_stats_read(self._loop, self._work) == 0:
+            self._ffi.memmove(self.copy, self._work, self._size)
+            self.reads += 1
+        else:
+            self.read_failures += 1
+        return self.copy
+
+    # -- views of the last copy
+    @property
+    def state(self) -> str:
+        return STATE_NAMES.get(int(self.copy.state), f"state {int(self.copy.state)}")
+
+    def timing(self, histograms: bool = False) -> dict:
+        """{"turnaround": {...}, "execution": {...}, "wakeup_latency": {...}}."""
+        s = self.copy
+        out = {}
+        for key, _, last, peak in TIMES:
+            fig = hist_percentiles(self._hists[key], getattr(s, peak))
+            fig["last_us"] = float(getattr(s, last))
+            if histograms:
+                fig["histogram"] = sparse_hist(self._hists[key])
+            out[key] = fig
+        return out
+
+    def counts(self) -> dict:
+        """Every counter of the loop, as plain ints."""
+        s = self.copy
+        rx = {key: int(getattr(s, field)) for key, field in _RX_COUNTS}
+        rx["rejected"] = rx["unknown_id"] + rx["bad_length"] + rx["bad_crc"] + rx["bad_counter"]
+        tcu = {
+            name: {"accepted": int(s.rx_per_msg[i]),
+                   "timeouts": int(s.timeout_events[i]),
+                   "timed_out": bool(s.timed_out[i])}
+            for i, name in enumerate(self.rx_names)
+        }
+        return {
+            "ticks": int(s.ticks),
+            "overruns": int(s.overruns),
+            "skipped_ticks": int(s.skipped_ticks),
+            "rx": rx,
+            "tx": {key: int(getattr(s, field)) for key, field in _TX_COUNTS},
+            "tcu_messages": tcu,
+            "timeouts": sum(m["timeouts"] for m in tcu.values()),
+        }
+
+    def plant(self) -> dict:
+        """Key plant signals and the commands applied in the last tick."""
+        o, c = self.copy.outputs, self.copy.commands
+        syncs = [(int(round(getattr(o, f"sync{i}_state"))), int(round(getattr(o, f"sync{i}_gear"))))
+                 for i in range(1, 5)]
+        return {
+            "engine_speed_rpm": float(o.engine_speed_rpm),
+            "vehicle_speed_kmh": float(o.vehicle_speed_kmh),
+            "clutch1_pressure_bar": float(o.clutch1_pressure_bar),
+            "clutch2_pressure_bar": float(o.clutch2_pressure_bar),
+            "line_pressure_bar": float(o.line_pressure_bar),
+            "sync_state": [state for state, _ in syncs],
+            "sync_gear": [gear for _, gear in syncs],
+            "solenoid_current1_a": float(c.solenoid_current1_a),
+            "solenoid_current2_a": float(c.solenoid_current2_a),
+            "line_solenoid_current_a": float(c.line_solenoid_current_a),
+            "engine_torque_request_nm": float(c.engine_torque_request_nm),
+            "torque_request_active": float(c.torque_request_active),
+        }
+
+
+# --------------------------------------------------------------------------
+# the machine, for the JSON file
+# --------------------------------------------------------------------------
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() in ("model name", "Model", "Hardware"):
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _preempt_rt() -> bool:
+    try:
+        with open("/sys/kernel/realtime", encoding="ascii") as f:
+            return f.read().strip() == "1"
+    except OSError:
+        return "PREEMPT_RT" in platform.uname().version
+
+
+def machine_info() -> dict:
+    """CPU, kernel, Python and date of this run."""
+    uname = platform.uname()
+    return {
+        "cpu": _cpu_model(),
+        "nproc": os.cpu_count(),
+        "kernel": uname.release,
+        "kernel_version": uname.version,
+        "preempt_rt": _preempt_rt(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }

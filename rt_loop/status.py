@@ -1,0 +1,212 @@
+"""What ``dct-hil serve`` prints: start-up banner, live status, exit summary.
+
+The live status is one screen redrawn in place (ANSI cursor movement) about
+5 times per second when the output is a terminal; otherwise (a pipe, a log
+file, a service manager) one line per second, so unattended runs leave a
+readable record.
+"""
+
+from __future__ import annotations
+
+import shutil
+from typing import Any, TextIO
+
+__all__ = ["LiveStatus", "banner_lines", "screen_lines", "status_line", "summary_lines"]
+
+SLEEVES = ("1/3", "2/4", "5/R", "6/N")
+_CSI = "\x1b["
+
+
+def _z(x: float, digits: int = 2) -> float:
+    """``x`` rounded for display, without a minus sign on zero."""
+    return round(x, digits) + 0.0
+
+
+def _gear(gear: int) -> str:
+    return {0: "-", -1: "R"}.get(gear, str(gear))
+
+
+def _engaged(plant: dict) -> str:
+    gears = [_gear(g) for s, g in zip(plant["sync_state"], plant["sync_gear"]) if s == 2 and g]
+    return ",".join(gears) if gears else "none"
+
+
+def _timed_out(counts: dict) -> list[str]:
+    return [name for name, m in counts["tcu_messages"].items() if m["timed_out"]]
+
+
+def banner_lines(server: Any, stats_path: str) -> list[str]:
+    t = server.transport
+    lines = [f"dct-hil serve     {t.describe()}"]
+    if t.chosen_because:
+        lines.append(f"interface         {t.interface} (default: {t.chosen_because})")
+    if server.priority:
+        sched = f"SCHED_FIFO {server.priority}" + (" + mlockall" if server.lock_memory else "")
+    else:
+        sched = "normal scheduling (priority 0)"
+    cpu = "any CPU" if server.cpu is None else f"CPU {server.cpu}"
+    policy = {"skip": "overruns counted and skipped", "stop": "stop at the first overrun"}
+    until = (f"for {server.duration_s:g} s" if server.duration_s is not None
+             else "until Ctrl-C or SIGTERM")
+    lines.append(f"loop              {server.rate_hz:g} Hz (period {server.period_s * 1e6:g} us), "
+                 f"{sched}, {cpu}, {policy[server.overrun_policy]}, {until}")
+    lines.append(f"plant             {server.params_path or 'default parameters'}; "
+                 "solenoid currents drive the clutch hydraulics")
+    if server.logger is not None:
+        lines.append(f"log               {server.logger.path} ({server.logger.format})")
+    lines.append(f"stats             {stats_path} (written on exit)")
+    return lines
+
+
+def _short(name: str) -> str:
+    return name.removeprefix("TCU_")
+
+
+def screen_lines(snap: dict, server: Any = None) -> list[str]:
+    """The live status as a screen of lines (each under 80 columns for usual figures)."""
+    c, p = snap["counts"], snap["plant"]
+    rx, tx = c["rx"], c["tx"]
+    sleeves = "   ".join(
+        f"{name} " + ({0: "-", 1: "sync"}.get(s, "in") + (f" {_gear(g)}" if s and g else ""))
+        for name, s, g in zip(SLEEVES, p["sync_state"], p["sync_gear"]))
+    lines = [
+        f"t {snap['sim_time_s']:.2f} s   {snap['state']}   ticks {c['ticks']}",
+        f"turnaround  {snap['turnaround_us']:.1f} us (max {snap['turnaround_max_us']:.1f})   "
+        f"exec {snap['exec_us']:.1f} ({snap['exec_max_us']:.1f})   "
+        f"wake-up {snap['latency_us']:.1f} ({snap['latency_max_us']:.1f})",
+        f"overruns    {c['overruns']} (skipped ticks {c['skipped_ticks']})",
+        f"rx          {rx['frames']} frames, {rx['accepted']} accepted, {rx['rejected']} rejected "
+        f"(id {rx['unknown_id']} len {rx['bad_length']} crc {rx['bad_crc']} ctr "
+        f"{rx['bad_counter']}), {rx['overflow']} lost",
+        f"tx          {tx['frames']} frames, {tx['dropped']} dropped",
+        "timeouts    " + "   ".join(
+            f"{_short(name)} {m['timeouts']}{' TIMED OUT' if m['timed_out'] else ''}"
+            for name, m in c["tcu_messages"].items()),
+        f"engine      {p['engine_speed_rpm']:.0f} rpm, torque request "
+        f"{p['engine_torque_request_nm']:.0f} Nm {'on' if p['torque_request_active'] else 'off'}"
+        f"   vehicle {_z(p['vehicle_speed_kmh'], 1):.1f} km/h",
+        f"clutches    K1 {_z(p['clutch1_pressure_bar']):.2f} bar "
+        f"{p['solenoid_current1_a']:.2f} A   "
+        f"K2 {_z(p['clutch2_pressure_bar']):.2f} bar {p['solenoid_current2_a']:.2f} A   "
+        f"line {_z(p['line_pressure_bar']):.2f} bar {p['line_solenoid_current_a']:.2f} A",
+        f"sleeves     {sleeves}",
+    ]
+    bridge = c.get("bridge")
+    if bridge:
+        lines.append(f"bridge      {bridge['rx_forwarded']} in, {bridge['tx_forwarded']} out, "
+                     f"ring full {bridge['rx_ring_full']}, bus errors {bridge['rx_errors']}"
+                     f"/{bridge['tx_errors']}, error frames {bridge['rx_error_frames']}")
+    if server is not None and server.logger is not None:
+        lines.append(f"log         {c['log']['written']} frames written, "
+                     f"{c['log']['dropped']} lost")
+    return lines
+
+
+def status_line(snap: dict) -> str:
+    """The live status as one line (output that is not a terminal)."""
+    c, p = snap["counts"], snap["plant"]
+    rx, tx = c["rx"], c["tx"]
+    late = _timed_out(c)
+    bridge = c.get("bridge")
+    extra = ""
+    if bridge:
+        extra = (f" | bridge ring full {bridge['rx_ring_full']} bus errors "
+                 f"{bridge['rx_errors'] + bridge['tx_errors']}")
+    return (f"t={snap['sim_time_s']:.1f}s {snap['state']} turnaround {snap['turnaround_us']:.1f}us "
+            f"max {snap['turnaround_max_us']:.1f}us overruns {c['overruns']} | rx {rx['frames']} "
+            f"rejected {rx['rejected']} overflow {rx['overflow']} tx {tx['frames']} dropped "
+            f"{tx['dropped']} | timeouts {c['timeouts']}"
+            + (f" (timed out: {','.join(late)})" if late else "")
+            + f" | engine {p['engine_speed_rpm']:.0f}rpm {_z(p['vehicle_speed_kmh'], 1):.1f}km/h "
+            f"K1 {_z(p['clutch1_pressure_bar']):.2f} K2 {_z(p['clutch2_pressure_bar']):.2f} "
+            f"line {_z(p['line_pressure_bar']):.2f}bar gears {_engaged(p)}" + extra)
+
+
+class LiveStatus:
+    """Redraws the status in place on a terminal, else prints a line per update."""
+
+    def __init__(self, out: TextIO, quiet: bool = False, tty: bool | None = None) -> None:
+        self.out = out
+        self.quiet = quiet
+        if tty is None:
+            try:
+                tty = out.isatty()
+            except (AttributeError, ValueError):
+                tty = False
+        self.tty = bool(tty)
+        #: how often update() should be called
+        self.interval_s = 0.2 if self.tty else 1.0
+        self._drawn = 0
+
+    def update(self, snap: dict, server: Any = None) -> None:
+        if self.quiet:
+            return
+        try:
+            self._draw(snap, server)
+        except OSError:   # the reader went away (a closed pipe): the server goes on
+            self.quiet = True
+
+    def _draw(self, snap: dict, server: Any) -> None:
+        if not self.tty:
+            print(status_line(snap), file=self.out, flush=True)
+            return
+        # a line wider than the terminal wraps and the redraw would drift: cut it
+        width = max(20, shutil.get_terminal_size((100, 24)).columns - 1)
+        lines = [line[:width] for line in screen_lines(snap, server)]
+        text = f"{_CSI}{self._drawn}F" if self._drawn else ""
+        text += "".join(f"{line}{_CSI}K\n" for line in lines) + f"{_CSI}J"
+        self.out.write(text)
+        self.out.flush()
+        self._drawn = len(lines)
+
+    def close(self) -> None:
+        """Leaves the last screen in place; the summary follows below it."""
+        if self._drawn:
+            self.out.write("\n")
+            self.out.flush()
+
+
+def _fig(x: Any) -> str:
+    return "       -" if x is None else f"{x:8.1f}"
+
+
+def summary_lines(report: dict, stats_path: str) -> list[str]:
+    run, cfg, c = report["run"], report["config"], report["counts"]
+    rx, tx = c["rx"], c["tx"]
+    lines = [
+        f"run               {run['state']}: {run['wall_s']:.3f} s, {run['ticks']} ticks at "
+        f"{cfg['rate_hz']:g} Hz, {run['sim_time_s']:.3f} s simulated; {cfg['real_time']} real "
+        f"time over {cfg['transport']}"
+        + ("" if cfg["rt_policy_ok"] and cfg["memory_locked"] else " (timing not real time)"),
+        "timing (us)            p50      p90      p99    p99.9      max",
+    ]
+    for key, label in (("turnaround", "turnaround"), ("execution", "execution"),
+                       ("wakeup_latency", "wake-up latency")):
+        f = report[key]
+        figures = (_fig(f[k]) for k in ("p50_us", "p90_us", "p99_us", "p99_9_us", "max_us"))
+        lines.append(f"  {label:<16}" + " ".join(figures))
+    lines += [
+        f"overruns          {c['overruns']} (skipped ticks {c['skipped_ticks']})",
+        f"received          {rx['frames']} frames: {rx['accepted']} accepted, {rx['rejected']} "
+        f"rejected (unknown id {rx['unknown_id']}, length {rx['bad_length']}, CRC "
+        f"{rx['bad_crc']}, counter {rx['bad_counter']}), {rx['overflow']} lost to overflow",
+        f"sent              {tx['frames']} frames, {tx['dropped']} dropped",
+        "TCU timeouts      " + ", ".join(
+            f"{name} {m['timeouts']}" + (" (timed out at the end)" if m["timed_out"] else "")
+            for name, m in c["tcu_messages"].items()),
+    ]
+    if c.get("bridge"):
+        b = c["bridge"]
+        lines.append(f"bridge            {b['rx_forwarded']} frames in, {b['tx_forwarded']} out; "
+                     f"{b['rx_ring_full']} refused by a full ring; bus errors "
+                     f"{b['rx_errors']} receive / {b['tx_errors']} send; not forwarded: "
+                     f"{b['rx_error_frames']} error, {b['rx_remote_frames']} remote, "
+                     f"{b['rx_fd_frames']} CAN FD frames")
+        if report["transport"].get("last_error"):
+            lines.append(f"bridge error      {report['transport']['last_error']}")
+    log = report.get("log")
+    if log:
+        lines.append(f"log               {log['path']} ({log['format']}): {log['written']} frames, "
+                     f"{log['dropped']} lost" + (f"; ERROR {log['error']}" if log["error"] else ""))
+    lines.append(f"stats             {stats_path}")
+    return lines
