@@ -269,10 +269,8 @@ RX_STATUS = {"DCT_RX_OK": codec.OK, "DCT_RX_UNKNOWN_ID": codec.UNKNOWN_ID, "DCT_
 @pytest.fixture(scope="module")
 def c():
     """The C facade as the real-time loop's extension builds it."""
-    try:
-        from rt_loop._rt_loop import ffi, lib
-    except ImportError as e:
-        pytest.skip(f"rt_loop._rt_loop is not built ({e}); run scripts/setup")
+    from rt_loop._rt_loop import ffi, lib  # built by scripts/setup: a missing build fails here
+
     assert hasattr(lib, "dct_can_encode_tx"), "rt_loop._rt_loop does not include the CAN facade"
     return ffi, lib
 
