@@ -209,18 +209,6 @@ def bench_figures(step_ns, step_s):
     }
 
 
-def _cpu_model():
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                if key.strip() in ("model name", "Model", "Hardware"):
-                    return value.strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _git(*args):
     here = os.path.dirname(os.path.abspath(__file__))
     try:
@@ -232,12 +220,13 @@ def _git(*args):
 
 def machine_info():
     from plant.model import build_info
+    from rt_loop.stats import cpu_model
 
     compiler, _, flags = build_info().partition("; ")
     commit = _git("rev-parse", "HEAD")
     dirty = _git("status", "--porcelain", "--untracked-files=no") if commit else None
     return {
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "nproc": os.cpu_count(),
         "python": platform.python_version(),
         "platform": platform.platform(),

@@ -194,7 +194,8 @@ class StatsReader:
 # the machine, for the JSON file
 # --------------------------------------------------------------------------
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU's model name (for benchmark reports)."""
     try:
         with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
             for line in f:
@@ -218,7 +219,7 @@ def machine_info() -> dict:
     """CPU, kernel, Python and date of this run."""
     uname = platform.uname()
     return {
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "nproc": os.cpu_count(),
         "kernel": uname.release,
         "kernel_version": uname.version,
