@@ -779,6 +779,8 @@ typedef struct {
     double accel_pedal_pct;           /* as applied */
     double brake_pedal_pct;
     double input_clamps;              /* inputs limited to their range so far */
+    double gear;                      /* gear carrying the drive torque: the engaged gear of the
+                                         clutch with the larger torque, -1 R, 0 none */
 } dct_outputs;
 
 /* Initial conditions for dct_plant_reset(). */

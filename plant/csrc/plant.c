@@ -157,6 +157,28 @@ static double sync_gear_number(const dct_sync_state *s, int sleeve)
     return g == DCT_GEAR_R ? -1.0 : (double)(g + 1);
 }
 
+/* clutch torque below which a clutch is taken to carry no drive torque */
+#define GEAR_TORQUE_MIN_NM 2.0
+
+/* the engaged gear behind the clutch that transmits the larger torque:
+ * 1..6, -1 for R, 0 when neither clutch carries torque or its shaft has no
+ * gear engaged */
+static double torque_gear(const dct_state *s, const coupling *c)
+{
+    double t0 = fabs(c->clutch[0].torque_nm), t1 = fabs(c->clutch[1].torque_nm);
+    int shaft = t1 > t0 ? 1 : 0;
+    if ((shaft ? t1 : t0) < GEAR_TORQUE_MIN_NM)
+        return 0.0;
+    for (int k = 0; k < DCT_N_SLEEVES; k++) {
+        const dct_sync_state *y = &s->gearbox.sync[k];
+        int g = dct_sleeve_gear(k, (int)y->side);
+        if (g < 0 || y->phase != DCT_SYNC_ENGAGED || dct_gear_input_shaft(g) != shaft)
+            continue;
+        return g == DCT_GEAR_R ? -1.0 : (double)(g + 1);
+    }
+    return 0.0;
+}
+
 static void write_outputs(dct_plant *pl, const coupling *c)
 {
     const dct_params *p = &pl->params;
@@ -218,6 +240,7 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     o->accel_pedal_pct = pl->applied.accel_pedal_pct;
     o->brake_pedal_pct = pl->applied.brake_pedal_pct;
     o->input_clamps = pl->input_clamps;
+    o->gear = torque_gear(s, c);
 }
 
 /* limit one input to [lo, hi], counting the values that had to be limited */

@@ -150,7 +150,8 @@ void dct_sync_advance(const dct_sync_params *p, dct_sync_state *s,
     if (fabs(x1) >= cone) {
         double side = x1 > 0.0 ? 1.0 : -1.0;
         s->position_m = side * cone;
-        s->velocity_m_s = 0.0;
+        if (v1 * side > 0.0)
+            s->velocity_m_s = 0.0; /* stopped by the cone; a sleeve pulled back keeps moving */
         if (f * side > 0.0) {
             s->phase = DCT_SYNC_SYNCHRONIZING;
             s->side = side;

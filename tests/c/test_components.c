@@ -115,6 +115,28 @@ static void test_sync_clash(void)
     CHECK(s.phase == DCT_SYNC_ENGAGED && s.clashes == 1.0, "clash counted (%g)", s.clashes);
 }
 
+/* a sleeve on the cone whose fork force reverses leaves the cone and
+ * crosses neutral towards the other gear */
+static void test_sync_released_from_the_cone(void)
+{
+    dct_sync_params p = sync_params();
+    dct_sync_state s;
+    dct_sync_init(&p, &s, 0);
+    dct_sync_input in = {400.0, 200.0, 0.0, 1.0};
+    dct_sync_output o;
+    for (int i = 0; i < 4000 && s.phase != DCT_SYNC_SYNCHRONIZING; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, 1.25e-4);
+    }
+    CHECK(s.phase == DCT_SYNC_SYNCHRONIZING, "on the cone");
+    in.fork_force_n = -400.0;
+    for (int i = 0; i < 4000; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, 1.25e-4);
+    }
+    CHECK(s.position_m < 0.0 && s.side <= 0.0, "pulled back across neutral: %g mm", s.position_m * 1e3);
+}
+
 static void test_magic_formula(void)
 {
     dct_tyre_params p;
@@ -152,6 +174,7 @@ int main(void)
     test_curve();
     test_sync_phases();
     test_sync_clash();
+    test_sync_released_from_the_cone();
     test_magic_formula();
     test_differential();
     printf("%d passed, %d failed\n", checks - failures, failures);

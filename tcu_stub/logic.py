@@ -1,0 +1,572 @@
+"""The reference TCU of the DSG 02E, written once and free of I/O.
+
+``TcuLogic.step(t_s, sensors)`` runs every ``PERIOD_S`` (2 ms). ``sensors``
+holds the DBC signals of the plant messages (EngineSpeed, InputShaft1Speed,
+..., SyncState1..4, AccelPedal, BrakePedal, EngineTorque) plus ``stale``
+(True when a plant message is missing or was rejected). The result holds the
+TCU command signals (SolenoidCurrent1/2, LineSolenoidCurrent, ForkForce1..4,
+EngineTorqueRequest, TorqueRequestActive).
+
+Control structure, from the top:
+
+1. Phase machine (``phase``): ``standstill`` (clutches open, 1st and 2nd
+   pre-selected), ``launch`` (the clutch slips and holds the engine at a
+   speed that rises with the pedal, then locks), ``drive`` (a clutch locked
+   in ``gear``), ``upshift_torque`` / ``upshift_inertia`` (clutch-to-clutch
+   power upshift), ``downshift_inertia`` / ``downshift_torque``
+   (clutch-to-clutch downshift, coasting or kick-down), ``stale``
+   (plant messages missing: both clutches open, 0 A; when they return the
+   TCU picks the gear for the speed and closes its clutch by slip control).
+2. Shift schedule: up and down engine-speed lines over the pedal, turned
+   into vehicle-speed thresholds per gear; the down line sits well below the
+   up line divided by the gear step (hysteresis). Kick-down at full pedal
+   goes down as far as the engine stays below ``KICKDOWN_MAX_RPM``.
+3. Pre-selection: the gear next to ``gear`` (up when driving, down when
+   slowing) is synchronised on the idle input shaft by fork force; the
+   sleeve that carries another gear of that shaft is pushed to neutral
+   first (a PD position loop, so it does not overshoot onto the other cone);
+   a sleeve that is synchronising is never released before it engages; a
+   shift starts only when ForkPosition and SyncState say the new gear is
+   engaged.
+4. Clutch torque -> pressure through the TCU's clutch model (kiss point
+   and Nm per bar), pressure -> current through the valve characteristic
+   (feed-forward) plus PI feedback on the measured ClutchPressure; a fill
+   pulse strokes an empty piston before the first torque.
+5. Engine interventions through EngineTorqueRequest (it replaces the
+   pedal demand, so it is sent only below the driver's demand estimated from
+   the pedal and the full-load curve): the torque cut of the inertia phase of
+   an upshift, and a traction limit (feed-forward from the tyre force the
+   front axle carries, trimmed on the driven-wheel slip seen as output-shaft
+   speed against VehicleSpeed) while launching and driving.
+
+The schedule and the slip estimate use the output shaft speed (wheel speed
+as the gearbox sees it), not VehicleSpeed, so a spinning wheel cannot keep
+the engine on the rev limiter. ``events`` lists every shift started.
+"""
+
+import math
+
+# ------------------------------------------------------------------ timing
+PERIOD_S = 0.002                    # TCU task period, s
+
+# ------------------------------------------------------------ the car (TCU calibration)
+GEAR_OVERALL_RATIO = {1: 14.257, 2: 8.442, 3: 5.353, 4: 3.714, 5: 2.781, 6: 2.301}  # gear x final drive
+FINAL_DRIVE = (4.118, 3.043)        # output shaft 1 (gears 1-4), output shaft 2 (5, 6)
+TYRE_RADIUS_M = 0.316
+TOP_GEAR = 6
+# gear -> (input shaft 0/1, sleeve 0..3, side +1/-1)
+GEAR_LAYOUT = {1: (0, 0, 1), 2: (1, 1, 1), 3: (0, 0, -1), 4: (1, 1, -1), 5: (0, 2, 1), 6: (1, 3, 1)}
+SHAFT_SLEEVES = {0: (0, 2), 1: (1, 3)}
+ENGINE_INERTIA_KGM2 = 0.20          # crank + flywheel + clutch drum
+IDLE_RPM = 750.0
+
+# ------------------------------------------------------------ clutch model, K1 and K2
+CLUTCH_KISS_BAR = (1.56, 1.27)      # pressure at which the pack closes (return spring / piston area)
+CLUTCH_NM_PER_BAR = (35.6, 36.3)    # capacity gain above the kiss point (static mu)
+CLUTCH_LOCK_BAR = 14.0              # clamp pressure of a locked clutch
+CLUTCH_MAX_BAR = 19.0
+
+# ------------------------------------------------------------ valve and pressure loop
+VALVE_FEEDBACK_AREA_M2 = 15.7e-6    # i = (p * A + F0) / k
+VALVE_SPRING_N = 3.0
+VALVE_GAIN_N_PER_A = 36.0
+VALVE_MAX_A = 1.0
+PRESSURE_KP_A_PER_BAR = 0.01
+PRESSURE_KI_A_PER_BAR_S = 0.4
+PRESSURE_I_LIMIT_A = 0.08
+FILL_CURRENT_A = 0.5                # fill pulse current
+FILL_TIME_S = 0.036                 # fill pulse length (piston stroke about 40 ms at 0.5 A)
+EMPTY_BAR = 0.5                     # below this measured pressure an open clutch counts as empty
+LINE_CURRENT_A = 0.0                # line pressure solenoid: 0 A = 20 bar
+
+# ------------------------------------------------------------ forks
+FORK_ENGAGE_N = 900.0               # below the blocker overpower force: no clash
+FORK_HOLD_N = 80.0                  # keeps an engaged sleeve home
+FORK_NEUTRAL_N_PER_MM = 50.0        # PD position loop back to neutral: stiffness ...
+FORK_NEUTRAL_NS_PER_MM = 0.55       # ... and damping (N per mm/s), about critical with the sleeve mass
+FORK_NEUTRAL_MAX_N = 600.0
+FORK_ENGAGED_MM = 7.0               # |position| beyond which a sleeve with SyncState 2 is engaged
+FORK_NEUTRAL_MM = 0.6               # |position| within which a sleeve is in neutral
+SYNC_ENGAGED = 2
+
+# ------------------------------------------------------------ launch and drive
+PEDAL_ON_PCT = 2.0                  # pedal above this starts a launch
+BRAKE_ON_PCT = 2.0
+LAUNCH_RPM_MIN = 1100.0             # engine speed held by clutch slip at a light pedal
+LAUNCH_RPM_MAX = 3400.0             # ... and at full pedal
+LAUNCH_KP_NM_PER_RPM = 0.25         # clutch torque correction over engine speed error
+LAUNCH_LOCK_SLIP_RPM = 80.0         # slip below which the launch clutch locks
+LOCK_RAMP_BAR_PER_S = 60.0          # pressure rise from slip control to clamp
+OPEN_BELOW_INPUT_RPM = 900.0        # pedal released in 1st below this input speed: open the clutch
+
+# ------------------------------------------------------------ shifts
+# (accelerator pedal %, engine speed rpm in the present gear): up and down lines
+UPSHIFT_RPM = ((0.0, 1900.0), (25.0, 2100.0), (50.0, 2700.0), (75.0, 4200.0), (100.0, 6300.0))
+DOWNSHIFT_RPM = ((0.0, 1050.0), (25.0, 1150.0), (50.0, 1400.0), (75.0, 2000.0), (100.0, 2800.0))
+KICKDOWN_PCT = 95.0
+KICKDOWN_MAX_RPM = 5200.0
+TORQUE_PHASE_S = 0.12               # on-coming takes over the engine torque in this time
+TORQUE_MARGIN = 1.15                # sum of capacities >= margin x engine torque
+TORQUE_MARGIN_NM = 15.0
+INERTIA_PHASE_S = 0.25              # engine speed pulled to the new shaft in this time
+SYNC_DONE_RPM = 60.0                # slip below which the on-coming clutch locks
+COAST_PULL_NM = 35.0                # on-coming torque pulling the engine up in a coast downshift
+DOWN_OFFGOING_SHARE = 0.6           # off-going capacity share of engine torque in a power downshift
+SHIFT_TIMEOUT_S = 1.5
+PRESELECT_MAX_RPM = 5000.0          # a lower gear is pre-selected only if its shaft stays below this
+
+# ------------------------------------------------------------ traction (drive slip) limit
+TRACTION_FORCE_N = 7500.0           # drive force the front tyres carry near peak slip (calibration)
+TRACTION_ACCEL_MPS2 = 5.0           # vehicle acceleration at that force
+MESH_EFFICIENCY = 0.97
+ASR_SLIP_TARGET = 0.12              # driven-wheel slip held by the feedback trim
+ASR_MIN_SPEED_KMH = 3.0
+ASR_KI_NM_PER_S = 1500.0            # trim change per unit slip error and second
+ASR_TRIM_MAX_NM = 150.0
+ASR_KP_NM = 300.0                   # immediate torque cut per unit slip above the target
+ASR_MIN_NM = 40.0
+# the engine's full-load torque as the TCU knows it (rpm, Nm): estimates the driver's demand
+ENGINE_FULL_LOAD = ((600.0, 120.0), (1000.0, 170.0), (1500.0, 240.0), (1800.0, 280.0), (5000.0, 280.0),
+                    (5500.0, 255.0), (6000.0, 234.0), (6500.0, 200.0), (7000.0, 0.0))
+
+RPM_PER_KMH = 1.0 / 3.6 / TYRE_RADIUS_M * 60.0 / (2.0 * math.pi)  # wheel rpm per km/h
+
+
+def _interp(x, table):
+    if x <= table[0][0]:
+        return table[0][1]
+    for (x0, y0), (x1, y1) in zip(table, table[1:]):
+        if x <= x1:
+            return y0 + (y1 - y0) * (x - x0) / (x1 - x0)
+    return table[-1][1]
+
+
+def _ramp(value, target, rate, dt):
+    step = rate * dt
+    return min(value + step, target) if target > value else max(value - step, target)
+
+
+def gear_rpm(gear, vehicle_speed_kmh):
+    """Input shaft speed of ``gear`` at a vehicle speed, rpm."""
+    return vehicle_speed_kmh * RPM_PER_KMH * GEAR_OVERALL_RATIO[gear]
+
+
+class ClutchLoop:
+    """Target pressure -> solenoid current: valve feed-forward + PI on the measured pressure."""
+
+    def __init__(self, index):
+        self.index = index
+        self.integral_a = 0.0
+        self.fill_left_s = 0.0
+        self.target_bar = 0.0
+
+    def reset(self):
+        self.integral_a = 0.0
+        self.fill_left_s = 0.0
+        self.target_bar = 0.0
+
+    def current(self, target_bar, measured_bar, dt):
+        target_bar = min(max(target_bar, 0.0), CLUTCH_MAX_BAR)
+        was_open = self.target_bar <= 0.0
+        self.target_bar = target_bar
+        if target_bar <= 0.0:
+            self.integral_a = 0.0
+            self.fill_left_s = 0.0
+            return 0.0
+        if was_open and measured_bar < EMPTY_BAR:
+            self.fill_left_s = FILL_TIME_S
+        if self.fill_left_s > 0.0:
+            self.fill_left_s -= dt
+            return FILL_CURRENT_A
+        feed = (target_bar * 1e5 * VALVE_FEEDBACK_AREA_M2 + VALVE_SPRING_N) / VALVE_GAIN_N_PER_A
+        err = target_bar - measured_bar
+        self.integral_a = min(max(self.integral_a + PRESSURE_KI_A_PER_BAR_S * err * dt,
+                                  -PRESSURE_I_LIMIT_A), PRESSURE_I_LIMIT_A)
+        return min(max(feed + PRESSURE_KP_A_PER_BAR * err + self.integral_a, 0.0), VALVE_MAX_A)
+
+
+def torque_to_bar(clutch, torque_nm):
+    """Pressure for a clutch capacity, bar (0 = open)."""
+    if torque_nm <= 0.0:
+        return CLUTCH_KISS_BAR[clutch]
+    return CLUTCH_KISS_BAR[clutch] + torque_nm / CLUTCH_NM_PER_BAR[clutch]
+
+
+class TcuLogic:
+    """The TCU: ``step`` every PERIOD_S with the plant signals, returns the commands."""
+
+    PERIOD_S = PERIOD_S
+
+    def __init__(self):
+        self.loops = (ClutchLoop(0), ClutchLoop(1))
+        self.reset()
+
+    def reset(self):
+        self.phase = "standstill"
+        self.gear = 1                 # gear the TCU drives in (or will launch in)
+        self.target_gear = 1
+        self.preselect = 2
+        self.pressure_bar = [0.0, 0.0]
+        self.sleeve_side = [0, 0, 0, 0]
+        self.fork_pos_prev = [0.0, 0.0, 0.0, 0.0]
+        self.torque_request_nm = None
+        self.shift_t0 = 0.0
+        self.shift_from = 1
+        self.latched_torque_nm = 0.0
+        self.shift_slip0_rpm = 0.0
+        self.asr_trim_nm = 0.0
+        self.asr_cut_nm = 0.0
+        self.launch_rpm = LAUNCH_RPM_MIN
+        self.t_s = 0.0
+        self.events = []              # (time_s, from_gear, to_gear) of every shift started
+        for loop in self.loops:
+            loop.reset()
+
+    # ---------------------------------------------------------- sensors
+    def _read(self, s):
+        self.s = s
+        self.pedal = float(s.get("AccelPedal", 0.0))
+        self.brake = float(s.get("BrakePedal", 0.0))
+        self.n_engine = float(s.get("EngineSpeed", 0.0))
+        self.n_shaft = (float(s.get("InputShaft1Speed", 0.0)), float(s.get("InputShaft2Speed", 0.0)))
+        self.v_kmh = float(s.get("VehicleSpeed", 0.0))
+        # the schedule runs on the output shaft speed (driven wheels), as the gearbox sees it
+        self.v_sched_kmh = float(s.get("OutputShaft1Speed", 0.0)) / FINAL_DRIVE[0] / RPM_PER_KMH
+        self.t_engine = float(s.get("EngineTorque", 0.0))
+        self.p_meas = (float(s.get("ClutchPressure1", 0.0)), float(s.get("ClutchPressure2", 0.0)))
+
+    def _sleeve_engaged(self, sleeve, side):
+        pos = float(self.s.get(f"ForkPosition{sleeve + 1}", 0.0))
+        state = int(round(float(self.s.get(f"SyncState{sleeve + 1}", 0))))
+        return state == SYNC_ENGAGED and pos * side >= FORK_ENGAGED_MM
+
+    def _sleeve_neutral(self, sleeve):
+        pos = float(self.s.get(f"ForkPosition{sleeve + 1}", 0.0))
+        return abs(pos) <= FORK_NEUTRAL_MM + 0.5
+
+    def gear_ready(self, gear):
+        """``gear`` engaged and the other sleeve of its shaft in neutral."""
+        shaft, sleeve, side = GEAR_LAYOUT[gear]
+        others = [k for k in SHAFT_SLEEVES[shaft] if k != sleeve]
+        return self._sleeve_engaged(sleeve, side) and all(self._sleeve_neutral(k) for k in others)
+
+    # ---------------------------------------------------------- forks
+    def _want_gears(self, *gears):
+        """Sleeve sides for the given gears (one per input shaft); everything else neutral."""
+        sides = [0, 0, 0, 0]
+        for g in gears:
+            if g:
+                _, sleeve, side = GEAR_LAYOUT[g]
+                sides[sleeve] = side
+        self.sleeve_side = sides
+
+    def _neutral_force(self, k, pos):
+        """PD loop that brings sleeve ``k`` to neutral without overshooting onto the other cone."""
+        vel = (pos - self.fork_pos_prev[k]) / PERIOD_S
+        if abs(pos) <= FORK_NEUTRAL_MM and abs(vel) < 20.0:
+            return 0.0
+        f = -FORK_NEUTRAL_N_PER_MM * pos - FORK_NEUTRAL_NS_PER_MM * vel
+        return min(max(f, -FORK_NEUTRAL_MAX_N), FORK_NEUTRAL_MAX_N)
+
+    def _fork_forces(self):
+        forces = []
+        for k, side in enumerate(self.sleeve_side):
+            pos = float(self.s.get(f"ForkPosition{k + 1}", 0.0))
+            state = int(round(float(self.s.get(f"SyncState{k + 1}", 0))))
+            if state == 1 and pos != 0.0 and side != (1 if pos > 0 else -1):
+                # never let go of a sleeve on its cone: finish that synchronisation first
+                side = 1 if pos > 0 else -1
+            if side == 0:
+                f = self._neutral_force(k, pos)
+            else:
+                # a sleeve that still sits on the other gear of its shaft first goes to neutral
+                shaft = 0 if k in SHAFT_SLEEVES[0] else 1
+                blocked = any(not self._sleeve_neutral(j) and self.sleeve_side[j] == 0
+                              for j in SHAFT_SLEEVES[shaft] if j != k)
+                if blocked:
+                    f = self._neutral_force(k, pos)
+                elif self._sleeve_engaged(k, side):
+                    f = side * FORK_HOLD_N
+                else:
+                    f = side * FORK_ENGAGE_N
+            forces.append(f)
+            self.fork_pos_prev[k] = pos
+        return forces
+
+    # ---------------------------------------------------------- schedule
+    def _scheduled_gear(self):
+        """Gear the shift map asks for from ``gear`` (one step at a time, kick-down several)."""
+        g = self.gear
+        up_rpm = _interp(self.pedal, UPSHIFT_RPM)
+        down_rpm = _interp(self.pedal, DOWNSHIFT_RPM)
+        braking = self.brake > BRAKE_ON_PCT
+        if g < TOP_GEAR and gear_rpm(g, self.v_sched_kmh) > up_rpm and not braking:
+            return g + 1
+        if self.pedal >= KICKDOWN_PCT:
+            lower = g
+            while lower > 1 and gear_rpm(lower - 1, self.v_sched_kmh) < KICKDOWN_MAX_RPM and \
+                    gear_rpm(lower, self.v_sched_kmh) < 0.75 * up_rpm:
+                lower -= 1
+            if lower < g:
+                return lower
+        if g > 1 and gear_rpm(g, self.v_sched_kmh) < down_rpm:
+            return g - 1
+        return g
+
+    def _preselection(self):
+        g = self.gear
+        if self.target_gear != g:
+            return self.target_gear
+        rising = self.pedal > PEDAL_ON_PCT and self.brake < BRAKE_ON_PCT
+        if g == 1:
+            return 2
+        if not rising and gear_rpm(g - 1, self.v_sched_kmh) < PRESELECT_MAX_RPM:
+            return g - 1
+        return g + 1 if g < TOP_GEAR else 0
+
+    # ---------------------------------------------------------- phases
+    def _standstill(self):
+        self._want_gears(1, 2)
+        self.gear = self.target_gear = 1
+        self.pressure_bar = [0.0, 0.0]
+        if self.pedal > PEDAL_ON_PCT and self.brake < BRAKE_ON_PCT and self.gear_ready(1):
+            self._start_launch()
+
+    def _start_launch(self):
+        self.phase = "launch"
+
+    def _launch(self):
+        """Slip the clutch of ``gear``, holding the engine at a speed that rises with the pedal."""
+        shaft = GEAR_LAYOUT[self.gear][0]
+        self._want_gears(self.gear, self._preselection())
+        if self.pedal <= PEDAL_ON_PCT and self.n_shaft[shaft] < OPEN_BELOW_INPUT_RPM:
+            self.phase = "standstill"
+            return
+        n_target = LAUNCH_RPM_MIN + (LAUNCH_RPM_MAX - LAUNCH_RPM_MIN) * min(self.pedal, 100.0) / 100.0
+        n_target = max(n_target, self.n_shaft[shaft])
+        self.launch_rpm = n_target
+        err = self.n_engine - n_target
+        # the clutch takes the engine torque in proportion to how far the engine has risen
+        share = min(max((self.n_engine - IDLE_RPM) / max(n_target - IDLE_RPM, 1.0), 0.0), 1.0)
+        torque = share * max(self.t_engine, 0.0) + LAUNCH_KP_NM_PER_RPM * max(err, 0.0)
+        torque = min(max(torque, 0.0), self._traction_clutch_nm(self.gear))
+        slip = self.n_engine - self.n_shaft[shaft]
+        if abs(slip) < LAUNCH_LOCK_SLIP_RPM and self.n_engine > LAUNCH_RPM_MIN - 200:
+            self.phase = "drive"
+        bars = [0.0, 0.0]
+        if self.gear_ready(self.gear):          # no torque on a shaft without its gear
+            bars[shaft] = torque_to_bar(shaft, torque)
+        self.pressure_bar = bars
+
+    def _drive(self):
+        shaft = GEAR_LAYOUT[self.gear][0]
+        other = 1 - shaft
+        bars = [0.0, 0.0]
+        bars[shaft] = _ramp(self.pressure_bar[shaft], CLUTCH_LOCK_BAR, LOCK_RAMP_BAR_PER_S, PERIOD_S)
+        self.pressure_bar = bars
+        if self.gear == 1 and self.pedal <= PEDAL_ON_PCT and self.n_shaft[shaft] < OPEN_BELOW_INPUT_RPM:
+            self.phase = "standstill"
+            return
+        if self.gear > 1 and self.n_shaft[shaft] < IDLE_RPM + 50:
+            # too slow for this gear (a missed downshift): slip it like a launch
+            self._start_launch()
+            return
+        target = self._scheduled_gear()
+        if target != self.gear and GEAR_LAYOUT[target][0] != other:
+            # kick-down over two steps lands on the same shaft: go one step now
+            target = self.gear - 1 if target < self.gear else self.gear + 1
+        self.target_gear = target
+        self._want_gears(self.gear, self._preselection())
+        if target != self.gear and self.gear_ready(target):
+            self._start_shift()
+
+    def _start_shift(self):
+        self.shift_from = self.gear
+        self.shift_t0 = self.t_s
+        self.latched_torque_nm = max(self.t_engine, 0.0)
+        up = self.target_gear > self.gear
+        self.phase = "upshift_torque" if up else "downshift_inertia"
+        self.events.append((self.t_s, self.gear, self.target_gear))
+
+    def _shift_shafts(self):
+        return GEAR_LAYOUT[self.shift_from][0], GEAR_LAYOUT[self.target_gear][0]
+
+    def _upshift_torque(self):
+        """Off-going pressure down while on-coming pressure up; sum of capacities >= engine torque."""
+        off, on = self._shift_shafts()
+        self._want_gears(self.shift_from, self.target_gear)
+        t_e = max(self.t_engine, 0.0)
+        frac = min((self.t_s - self.shift_t0) / TORQUE_PHASE_S, 1.0)
+        need = TORQUE_MARGIN * t_e + TORQUE_MARGIN_NM
+        t_on = frac * need
+        t_off = max(need - t_on, 0.0)
+        bars = [0.0, 0.0]
+        bars[on] = torque_to_bar(on, t_on)
+        bars[off] = min(torque_to_bar(off, t_off), self.pressure_bar[off]) if frac < 1.0 else 0.0
+        self.pressure_bar = bars
+        if frac >= 1.0:
+            self.phase = "upshift_inertia"
+            self.gear = self.target_gear
+            self.shift_t0 = self.t_s
+            self.latched_torque_nm = t_e
+            self.shift_slip0_rpm = max(self.n_engine - self.n_shaft[on], 1.0)
+
+    def _upshift_inertia(self):
+        """Pull the engine to the new shaft: on-coming holds the drive torque, the engine gives less."""
+        off, on = self._shift_shafts()
+        self._want_gears(self.target_gear, self.shift_from)
+        slip = self.n_engine - self.n_shaft[on]
+        t_clutch = TORQUE_MARGIN * self.latched_torque_nm + TORQUE_MARGIN_NM
+        rate_target = self.shift_slip0_rpm / INERTIA_PHASE_S        # rpm/s wanted
+        j_torque = ENGINE_INERTIA_KGM2 * rate_target * 2.0 * math.pi / 60.0
+        request = t_clutch - j_torque
+        self.torque_request_nm = max(min(request, self.latched_torque_nm), 0.0)
+        bars = [0.0, 0.0]
+        bars[on] = torque_to_bar(on, t_clutch)
+        self.pressure_bar = bars
+        if slip < SYNC_DONE_RPM or self.t_s - self.shift_t0 > SHIFT_TIMEOUT_S:
+            self._finish_shift()
+
+    def _downshift_inertia(self):
+        """Let the engine rise to the lower gear's shaft: off-going slips (power) or opens (coast)."""
+        off, on = self._shift_shafts()
+        self._want_gears(self.shift_from, self.target_gear)
+        t_e = max(self.t_engine, 0.0)
+        bars = [0.0, 0.0]
+        if t_e > 2 * COAST_PULL_NM:
+            bars[off] = torque_to_bar(off, DOWN_OFFGOING_SHARE * t_e)
+            bars[on] = torque_to_bar(on, 0.0)
+        else:
+            bars[on] = torque_to_bar(on, COAST_PULL_NM)
+        self.pressure_bar = bars
+        if self.n_engine > self.n_shaft[on] - SYNC_DONE_RPM or self.t_s - self.shift_t0 > SHIFT_TIMEOUT_S:
+            self.phase = "downshift_torque"
+            self.gear = self.target_gear
+            self.shift_t0 = self.t_s
+            self.latched_torque_nm = bars[off]
+
+    def _downshift_torque(self):
+        off, on = self._shift_shafts()
+        self._want_gears(self.target_gear, self.shift_from)
+        t_e = max(self.t_engine, 0.0)
+        frac = min((self.t_s - self.shift_t0) / TORQUE_PHASE_S, 1.0)
+        need = TORQUE_MARGIN * t_e + TORQUE_MARGIN_NM
+        bars = [0.0, 0.0]
+        bars[on] = torque_to_bar(on, max(frac * need, COAST_PULL_NM))
+        bars[off] = torque_to_bar(off, (1.0 - frac) * DOWN_OFFGOING_SHARE * t_e) if frac < 1.0 and \
+            self.latched_torque_nm > 0 else 0.0
+        self.pressure_bar = bars
+        if frac >= 1.0:
+            self._finish_shift()
+
+    def _finish_shift(self):
+        self.gear = self.target_gear
+        self.torque_request_nm = None
+        self.phase = "drive"
+
+    def _update_slip_trim(self):
+        """Feedback on the driven-wheel slip: integral trim plus an immediate cut."""
+        self.asr_cut_nm = 0.0
+        if self.v_kmh < ASR_MIN_SPEED_KMH or self.pedal <= PEDAL_ON_PCT:
+            return
+        slip = (self.v_sched_kmh - self.v_kmh) / max(self.v_kmh, ASR_MIN_SPEED_KMH)
+        err = ASR_SLIP_TARGET - slip
+        self.asr_trim_nm += ASR_KI_NM_PER_S * err * PERIOD_S
+        self.asr_trim_nm = min(max(self.asr_trim_nm, -ASR_TRIM_MAX_NM), ASR_TRIM_MAX_NM)
+        self.asr_cut_nm = min(ASR_KP_NM * err, 0.0)
+
+    def _traction_clutch_nm(self, gear):
+        """Clutch torque the tyres can take in ``gear`` (feed-forward + slip trim), Nm."""
+        ratio = GEAR_OVERALL_RATIO[gear]
+        return TRACTION_FORCE_N * TYRE_RADIUS_M / (ratio * MESH_EFFICIENCY) + self.asr_trim_nm + \
+            self.asr_cut_nm
+
+    def _traction_limit(self):
+        """Engine torque limit that keeps the driven wheels near the peak of the tyre force
+        (None: the driver asks for less, no limit)."""
+        if self.pedal <= PEDAL_ON_PCT or self.phase not in ("launch", "drive"):
+            self.asr_trim_nm = self.asr_cut_nm = 0.0
+            return None
+        self._update_slip_trim()
+        ratio = GEAR_OVERALL_RATIO[self.gear]
+        limit = self._traction_clutch_nm(self.gear)
+        if self.phase == "drive":     # the engine also accelerates its own inertia
+            limit += ENGINE_INERTIA_KGM2 * TRACTION_ACCEL_MPS2 * ratio / TYRE_RADIUS_M
+        else:                         # launch: the engine torque holds the launch speed
+            limit += LAUNCH_KP_NM_PER_RPM * (self.launch_rpm - self.n_engine)
+        demand = self.pedal / 100.0 * _interp(self.n_engine, ENGINE_FULL_LOAD)
+        if limit >= demand:
+            return None
+        return max(limit, ASR_MIN_NM)
+
+    def _stale(self):
+        self.pressure_bar = [0.0, 0.0]
+        self.torque_request_nm = None
+
+    # ---------------------------------------------------------- step
+    def step(self, t_s, sensors):
+        """One TCU period: sensors (DBC signal names) -> commands (DBC signal names)."""
+        self.t_s = float(t_s)
+        self._read(sensors)
+        if sensors.get("stale"):
+            if self.phase != "stale":
+                self.phase = "stale"
+            self._stale()
+            return self._commands(stale=True)
+        if self.phase == "stale":
+            self._recover()
+        handler = {
+            "standstill": self._standstill,
+            "launch": self._launch,
+            "drive": self._drive,
+            "upshift_torque": self._upshift_torque,
+            "upshift_inertia": self._upshift_inertia,
+            "downshift_inertia": self._downshift_inertia,
+            "downshift_torque": self._downshift_torque,
+        }[self.phase]
+        handler()
+        return self._commands()
+
+    def _recover(self):
+        """Plant messages back: re-engage by slip control in the gear the speed asks for."""
+        for loop in self.loops:
+            loop.reset()
+        self.torque_request_nm = None
+        if self.v_kmh < 5.0:
+            self.phase = "standstill"
+            return
+        g = 1
+        while g < TOP_GEAR and gear_rpm(g, self.v_sched_kmh) > _interp(self.pedal, UPSHIFT_RPM):
+            g += 1
+        self.gear = self.target_gear = g
+        self.phase = "launch"
+        self._want_gears(g, self._preselection())
+
+    def _commands(self, stale=False):
+        dt = PERIOD_S
+        if stale:
+            i1 = i2 = 0.0
+            for loop in self.loops:
+                loop.reset()
+            forces = [0.0] * 4
+        else:
+            i1 = self.loops[0].current(self.pressure_bar[0], self.p_meas[0], dt)
+            i2 = self.loops[1].current(self.pressure_bar[1], self.p_meas[1], dt)
+            forces = self._fork_forces()
+        request = self.torque_request_nm
+        if not stale:
+            limit = self._traction_limit()
+            if limit is not None:
+                request = limit if request is None else min(request, limit)
+        active = request is not None and not stale
+        return {
+            "SolenoidCurrent1": i1,
+            "SolenoidCurrent2": i2,
+            "LineSolenoidCurrent": LINE_CURRENT_A,
+            "ForkForce1": forces[0],
+            "ForkForce2": forces[1],
+            "ForkForce3": forces[2],
+            "ForkForce4": forces[3],
+            "EngineTorqueRequest": request if active else 0.0,
+            "TorqueRequestActive": 1 if active else 0,
+        }
