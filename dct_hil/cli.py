@@ -77,11 +77,18 @@ def build_parser():
 
     sim = sub.add_parser("simulate", help="run a scenario offline, as fast as possible")
     sim.add_argument("--scenario", required=True, metavar="NAME_OR_FILE",
-                     help="a shipped scenario name (plant/scenarios) or a CSV file")
+                     help="a maneuver (paper-cycle, wltc, 0-100), a shipped scenario name "
+                          "(plant/scenarios) or a CSV file")
     sim.add_argument("--duration", type=_duration, metavar="S",
                      help="simulated seconds (default: the scenario's length; the last row holds)")
     sim.add_argument("--out", metavar="FILE.csv", help="write the outputs every 10 ms to this CSV")
     sim.add_argument("--params", metavar="FILE.toml", help="parameter override file")
+    sim.add_argument("--tcu", choices=("stub", "none"), default=None,
+                     help="stub: the in-process TCU stub drives clutches and forks (default when "
+                          "the scenario scripts neither, and for the maneuvers); none: play the "
+                          "scenario's own clutch and fork columns")
+    sim.add_argument("--plot", action="store_true",
+                     help="write PNG plots next to the CSV (or in out/NAME/ without --out)")
     sim.set_defaults(func=cmd_simulate)
 
     bench = sub.add_parser("bench", help="measure the cost of one plant step")
@@ -147,22 +154,219 @@ def build_parser():
 
 
 # --------------------------------------------------------------------- simulate
+MANEUVER_NAMES = ("paper-cycle", "wltc", "0-100")
+RECORD_EVERY_S = 0.01
+
+
+def _tcu_columns():
+    """Scenario columns the stub TCU drives itself: clutches, forks, engine requests."""
+    from can_dbc import codec
+    from plant.scenario import PRESSURE_COLUMNS
+
+    cols = set(PRESSURE_COLUMNS)
+    for targets in codec.TCU_SIGNAL_TARGETS.values():
+        cols.update(input_name for _, input_name in targets.values())
+    return cols
+
+
+def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
+                   csv_target_gear=True):
+    """Plant + stub TCU in one process, every message through the CAN contract.
+
+    Each 2 ms TCU tick: the scenario rows due (or, every 10 ms, ``pedals_fn``)
+    set the driver inputs, the TCU reads the plant messages and writes its
+    commands, the plant steps. Records all plant outputs plus ``tcu_target_gear``
+    every 10 ms (the CSV has ``tcu_target_gear`` only with ``csv_target_gear``);
+    the rows so far are written to ``out_path`` also when a KeyboardInterrupt or
+    a PlantError stops the run (then re-raised).
+    Returns (names, data, shifts, wall_s)."""
+    import time
+
+    import numpy as np
+
+    from plant.model import PlantError
+    from plant.simulate import write_csv
+    from tcu_stub.logic import PERIOD_S, TcuLogic
+    from tcu_stub.offline import DRIVER_PERIOD_S, apply_commands, sensors_from_plant
+
+    tcu = TcuLogic()
+    steps_per_tick = max(1, int(round(PERIOD_S / plant.step_s)))
+    tick_s = steps_per_tick * plant.step_s
+    ticks_per_record = max(1, int(round(RECORD_EVERY_S / tick_s)))
+    ticks_per_driver = max(1, int(round(DRIVER_PERIOD_S / tick_s)))
+    n_ticks = int(round(duration_s / tick_s))
+    names = list(plant.output_names) + ["tcu_target_gear"]
+    n_out = len(plant.output_names)
+    n_csv = len(names) if csv_target_gear else n_out
+    data = np.empty((n_ticks // ticks_per_record + 1, len(names)))
+    row_t = scenario.times if scenario is not None else ()
+    row = 0
+    j = 0
+    t0 = plant.time_s
+    wall0 = time.perf_counter()
+    try:
+        for k in range(n_ticks + 1):
+            t = k * tick_s
+            changed = False
+            while row < len(row_t) and row_t[row] <= t + 1e-9:
+                for name, value in zip(scenario.columns, scenario.values[row]):
+                    plant.inputs[name] = value
+                row += 1
+                changed = True
+            if pedals_fn is not None and k % ticks_per_driver == 0:
+                accel, brake = pedals_fn(plant.time_s - t0, plant.outputs)
+                plant.inputs["accel_pedal_pct"] = accel
+                plant.inputs["brake_pedal_pct"] = brake
+                changed = True
+            if changed:
+                plant.update_outputs()
+            if k % ticks_per_record == 0:
+                data[j, :n_out] = plant.output_values
+                data[j, n_out] = tcu.target_gear
+                data[j, 0] = plant.time_s - t0
+                j += 1
+            if k == n_ticks:
+                break
+            cmd = tcu.step(plant.time_s - t0, sensors_from_plant(plant.outputs, k % 16))
+            apply_commands(plant, cmd, k % 16)
+            plant.step(steps_per_tick)
+    except (KeyboardInterrupt, PlantError):
+        if out_path is not None:
+            write_csv(out_path, names[:n_csv], data[:j, :n_csv])
+        raise
+    wall = time.perf_counter() - wall0
+    if out_path is not None:
+        write_csv(out_path, names[:n_csv], data[:j, :n_csv])
+    return names, data[:j], list(tcu.events), wall
+
+
+def _plots(args, names, data, title):
+    from plant.plots import write_plots
+
+    if args.out:
+        out_dir = os.path.dirname(os.path.abspath(args.out))
+    else:
+        out_dir = os.path.join("out", title)
+    rec = {n: data[:, k] for k, n in enumerate(names)}
+    try:
+        paths = write_plots(rec, out_dir, title=title)
+    except ValueError as e:
+        raise UserError(f"--plot: {e}") from None
+    for p in paths:
+        print(f"plot              {p}")
+
+
+def _print_run(plant, simulated_s, wall_s, rows, args):
+    print(f"simulated         {simulated_s:.3f} s  ({int(round(simulated_s / plant.step_s))} steps "
+          f"of {plant.step_s * 1e3:g} ms)")
+    print(f"wall time         {wall_s:.3f} s")
+    rtf = simulated_s / wall_s if wall_s > 0 else math.inf
+    print(f"real-time factor  {rtf:.0f}x")
+    if args.out:
+        print(f"csv               {args.out}  ({rows} rows, every 10 ms)")
+    else:
+        print("csv               not written (use --out FILE.csv)")
+    out = plant.outputs
+    print(
+        f"end state         {float(out['vehicle_speed_kmh']) + 0.0:.1f} km/h, "
+        f"engine {float(out['engine_speed_rpm']):.0f} rpm, "
+        f"gear {float(out['gear']):.0f}, "
+        f"fuel {float(out['fuel_l']):.4f} l, "
+        f"gear clashes {float(out['gear_clashes']):.0f}"
+    )
+
+
+def _interrupted(plant, args):
+    where = f"; partial CSV in {args.out}" if args.out else ""
+    print(f"dct-hil: interrupted at t={plant.time_s:.3f} s{where}", file=sys.stderr)
+    return 130
+
+
+def _simulate_maneuver(args):
+    from plant.maneuvers import get_maneuver, report, format_report
+    from plant.model import Plant, PlantError
+
+    if args.tcu == "none":
+        raise UserError(f"--tcu none: maneuver {args.scenario} needs the TCU stub "
+                        "(give a CSV scenario to play without a TCU)")
+    try:
+        m = get_maneuver(args.scenario)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    duration = m.duration_s if args.duration is None else args.duration
+    if duration <= 0:
+        raise UserError(f"--duration must be > 0 for maneuver {m.name}")
+    plant = Plant(args.params)
+    if m.reset_kwargs:
+        plant.reset(**m.reset_kwargs)
+    try:
+        names, data, shifts, wall = _run_with_stub(plant, duration, args.out, pedals_fn=m.driver)
+    except KeyboardInterrupt:
+        return _interrupted(plant, args)
+    except PlantError as e:
+        if args.out:
+            raise PlantError(f"{e} (outputs up to then in {args.out})") from None
+        raise
+    print(f"maneuver          {m.name}  ({m.description})")
+    print("tcu               stub (in-process, through the CAN contract)")
+    _print_run(plant, float(data[-1, 0]), wall, len(data), args)
+    rec = {n: data[:, k] for k, n in enumerate(names)}
+    figures = report(m, rec)
+    clashes = float(rec["gear_clashes"][-1] - rec["gear_clashes"][0])
+    print(f"report            {format_report(m.name, figures)}, gear_clashes = {clashes:.0f}, "
+          f"shifts = {len(shifts)}")
+    if args.plot:
+        _plots(args, names, data, m.name)
+    return 0
+
+
 def cmd_simulate(args):
     from plant.model import Plant, PlantError
-    from plant.scenario import load_scenario
+    from plant.scenario import ScenarioError, load_scenario
     from plant.simulate import run
 
     if args.out:
         _check_writable(args.out, "--out")
-    scenario = load_scenario(args.scenario)
+    if args.scenario in MANEUVER_NAMES:
+        return _simulate_maneuver(args)
+    try:
+        scenario = load_scenario(args.scenario)
+    except ScenarioError as e:
+        if str(e).startswith("unknown scenario"):
+            raise ScenarioError(f"{e}; maneuvers: {', '.join(MANEUVER_NAMES)}") from None
+        raise
+    scripted = sorted(set(scenario.columns) & _tcu_columns())
+    tcu = args.tcu or ("none" if scripted else "stub")
+    if tcu == "stub" and scripted:
+        raise UserError(f"--tcu stub: scenario {scenario.name} scripts {', '.join(scripted)}, "
+                        "which the stub drives; use --tcu none or drop those columns")
     plant = Plant(args.params, scenario.param_overrides())
+    if tcu == "stub":
+        from plant.simulate import start
+
+        duration = scenario.duration_s if args.duration is None else args.duration
+        start(plant, scenario)
+        try:
+            names, data, _shifts, wall = _run_with_stub(
+                plant, duration, args.out, scenario=scenario, csv_target_gear=False)
+        except KeyboardInterrupt:
+            return _interrupted(plant, args)
+        except PlantError as e:
+            if args.out:
+                raise PlantError(f"{e} (outputs up to then in {args.out})") from None
+            raise
+        print(f"scenario          {scenario.name}  ({scenario.path})")
+        print("tcu               stub (in-process, through the CAN contract): clutches and forks")
+        _print_run(plant, float(data[-1, 0]), wall, len(data), args)
+        if args.plot:
+            _plots(args, names, data, scenario.name)
+        return 0
+
     try:
         res = run(plant, scenario, duration_s=args.duration, out_path=args.out)
     except KeyboardInterrupt:
         # run() has written the rows recorded so far
-        where = f"; partial CSV in {args.out}" if args.out else ""
-        print(f"dct-hil: interrupted at t={plant.time_s:.3f} s{where}", file=sys.stderr)
-        return 130
+        return _interrupted(plant, args)
     except PlantError as e:
         if args.out:
             raise PlantError(f"{e} (outputs up to then in {args.out})") from None
@@ -174,19 +378,10 @@ def cmd_simulate(args):
             if plant.params["hydraulics"]["pressure_commanded"]
             else "valve currents through the clutch hydraulics")
     print(f"clutch command    {mode}")
-    print(f"simulated         {res.simulated_s:.3f} s  ({res.steps} steps of {plant.step_s * 1e3:g} ms)")
-    print(f"wall time         {res.wall_s:.3f} s")
-    print(f"real-time factor  {res.real_time_factor:.0f}x")
-    if args.out:
-        print(f"csv               {args.out}  ({len(res.data)} rows, every 10 ms)")
-    else:
-        print("csv               not written (use --out FILE.csv)")
-    print(
-        f"end state         {float(out['vehicle_speed_kmh']):.1f} km/h, "
-        f"engine {float(out['engine_speed_rpm']):.0f} rpm, "
-        f"fuel {float(out['fuel_l']):.4f} l, "
-        f"gear clashes {float(out['gear_clashes']):.0f}"
-    )
+    print("tcu               none (the scenario scripts the clutches and forks)")
+    _print_run(plant, res.simulated_s, res.wall_s, len(res.data), args)
+    if args.plot:
+        _plots(args, res.names, res.data, scenario.name)
     return 0
 
 

@@ -38,6 +38,22 @@ static inline double dct_gauss(double x)
     return q > 40.0 ? 0.0 : exp(-q);
 }
 
+/* linear interpolation in a table of n points (x increasing), held flat
+ * outside; 0 for an empty table */
+static inline double dct_interp1(const double *x, const double *y, int n, double xq)
+{
+    if (n <= 0)
+        return 0.0;
+    if (xq <= x[0])
+        return y[0];
+    if (xq >= x[n - 1])
+        return y[n - 1];
+    int i = 1;
+    while (i < n - 1 && xq > x[i])
+        i++;
+    return y[i - 1] + (xq - x[i - 1]) / (x[i] - x[i - 1]) * (y[i] - y[i - 1]);
+}
+
 /* 1 at 0, 0 from `width` on, smooth (raised cosine) in between */
 static inline double dct_fade(double x, double width)
 {

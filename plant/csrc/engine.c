@@ -18,19 +18,7 @@
 
 double dct_curve_eval(const dct_torque_curve *c, double speed_rpm)
 {
-    int n = c->n;
-    if (n <= 0)
-        return 0.0;
-    if (speed_rpm <= c->speed_rpm[0])
-        return c->torque_nm[0];
-    if (speed_rpm >= c->speed_rpm[n - 1])
-        return c->torque_nm[n - 1];
-    int i = 1;
-    while (i < n - 1 && speed_rpm > c->speed_rpm[i])
-        i++;
-    double x0 = c->speed_rpm[i - 1], x1 = c->speed_rpm[i];
-    double f = (speed_rpm - x0) / (x1 - x0);
-    return c->torque_nm[i - 1] + f * (c->torque_nm[i] - c->torque_nm[i - 1]);
+    return dct_interp1(c->speed_rpm, c->torque_nm, c->n, speed_rpm);
 }
 
 /* index i and fraction f so that x lies between axis[i] and axis[i+1] */

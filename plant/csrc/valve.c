@@ -42,18 +42,7 @@ double dct_orifice_flow(const dct_oil_params *oil, double cd_max, double transit
 
 double dct_pressure_map_eval(const dct_pressure_map *m, double current_a)
 {
-    int n = m->n;
-    if (n <= 0)
-        return 0.0;
-    if (current_a <= m->current_a[0])
-        return m->pressure_bar[0];
-    if (current_a >= m->current_a[n - 1])
-        return m->pressure_bar[n - 1];
-    int i = 1;
-    while (i < n - 1 && current_a > m->current_a[i])
-        i++;
-    double f = (current_a - m->current_a[i - 1]) / (m->current_a[i] - m->current_a[i - 1]);
-    return m->pressure_bar[i - 1] + f * (m->pressure_bar[i] - m->pressure_bar[i - 1]);
+    return dct_interp1(m->current_a, m->pressure_bar, m->n, current_a);
 }
 
 void dct_valve_init(const dct_valve_params *p, dct_valve_state *s)

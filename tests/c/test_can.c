@@ -12,19 +12,7 @@
 #include "dct_can.h"
 #include "dct_hil.h"
 
-static int failures = 0;
-static int checks = 0;
-
-#define CHECK(cond, ...)                                   \
-    do {                                                   \
-        checks++;                                          \
-        if (!(cond)) {                                     \
-            failures++;                                    \
-            printf("FAIL %s:%d: ", __FILE__, __LINE__);    \
-            printf(__VA_ARGS__);                           \
-            printf("\n");                                  \
-        }                                                  \
-    } while (0)
+#include "check.h"
 
 static void test_crc(void)
 {
