@@ -282,9 +282,32 @@ def _interrupted(plant, args):
     return 130
 
 
+class _Interrupted(Exception):
+    """Ctrl-C during a run; carries the exit code."""
+
+    def __init__(self, code):
+        super().__init__(code)
+        self.code = code
+
+
+def _guarded_run(plant, args, fn, *a, **kw):
+    """Runs ``fn``; Ctrl-C becomes _Interrupted (the run has written the rows
+    recorded so far) and a plant error names the partial CSV."""
+    from plant.model import PlantError
+
+    try:
+        return fn(*a, **kw)
+    except KeyboardInterrupt:
+        raise _Interrupted(_interrupted(plant, args)) from None
+    except PlantError as e:
+        if args.out:
+            raise PlantError(f"{e} (outputs up to then in {args.out})") from None
+        raise
+
+
 def _simulate_maneuver(args):
     from plant.maneuvers import get_maneuver, report, format_report
-    from plant.model import Plant, PlantError
+    from plant.model import Plant
 
     if args.tcu == "none":
         raise UserError(f"--tcu none: maneuver {args.scenario} needs the TCU stub "
@@ -300,13 +323,10 @@ def _simulate_maneuver(args):
     if m.reset_kwargs:
         plant.reset(**m.reset_kwargs)
     try:
-        names, data, shifts, wall = _run_with_stub(plant, duration, args.out, pedals_fn=m.driver)
-    except KeyboardInterrupt:
-        return _interrupted(plant, args)
-    except PlantError as e:
-        if args.out:
-            raise PlantError(f"{e} (outputs up to then in {args.out})") from None
-        raise
+        names, data, shifts, wall = _guarded_run(plant, args, _run_with_stub, plant, duration,
+                                                 args.out, pedals_fn=m.driver)
+    except _Interrupted as e:
+        return e.code
     print(f"maneuver          {m.name}  ({m.description})")
     print("tcu               stub (in-process, through the CAN contract)")
     _print_run(plant, float(data[-1, 0]), wall, len(data), args)
@@ -321,7 +341,7 @@ def _simulate_maneuver(args):
 
 
 def cmd_simulate(args):
-    from plant.model import Plant, PlantError
+    from plant.model import Plant
     from plant.scenario import ScenarioError, load_scenario
     from plant.simulate import run
 
@@ -347,14 +367,11 @@ def cmd_simulate(args):
         duration = scenario.duration_s if args.duration is None else args.duration
         start(plant, scenario)
         try:
-            names, data, _shifts, wall = _run_with_stub(
-                plant, duration, args.out, scenario=scenario, csv_target_gear=False)
-        except KeyboardInterrupt:
-            return _interrupted(plant, args)
-        except PlantError as e:
-            if args.out:
-                raise PlantError(f"{e} (outputs up to then in {args.out})") from None
-            raise
+            names, data, _shifts, wall = _guarded_run(
+                plant, args, _run_with_stub, plant, duration, args.out, scenario=scenario,
+                csv_target_gear=False)
+        except _Interrupted as e:
+            return e.code
         print(f"scenario          {scenario.name}  ({scenario.path})")
         print("tcu               stub (in-process, through the CAN contract): clutches and forks")
         _print_run(plant, float(data[-1, 0]), wall, len(data), args)
@@ -363,16 +380,11 @@ def cmd_simulate(args):
         return 0
 
     try:
-        res = run(plant, scenario, duration_s=args.duration, out_path=args.out)
-    except KeyboardInterrupt:
-        # run() has written the rows recorded so far
-        return _interrupted(plant, args)
-    except PlantError as e:
-        if args.out:
-            raise PlantError(f"{e} (outputs up to then in {args.out})") from None
-        raise
+        res = _guarded_run(plant, args, run, plant, scenario, duration_s=args.duration,
+                           out_path=args.out)
+    except _Interrupted as e:
+        return e.code
 
-    out = plant.outputs
     print(f"scenario          {scenario.name}  ({scenario.path})")
     mode = ("clutch pressures commanded (hydraulics bypassed)"
             if plant.params["hydraulics"]["pressure_commanded"]
