@@ -396,13 +396,17 @@ def test_every_plant_frame_on_the_bus_is_sent_and_protected(run, stats):
     for name in PLANT_MESSAGES:
         assert run.record.of(name), f"{name} never on vcan0"
     check = codec.E2eReceiver(sender="PLANT")
-    for _t, ident, _ext, data in plant:
-        check.check(ident, data)
+    rejected = []                   # (time, message, counter, previous counter of that message)
+    previous = {}
+    for t, ident, _ext, data in plant:
+        if check.check(ident, data) != codec.OK:
+            rejected.append((t, PLANT_IDS[ident], data[1] & 0x0F, previous.get(ident)))
+        previous[ident] = data[1] & 0x0F
     tx = stats["counts"]["tx"]
     for name, c in check.counts.items():
         assert c["bad_length"] == c["bad_crc"] == 0, (name, c)
         if tx["dropped"] == 0 and lossless(run):
-            assert c["ok"] == c["received"], (name, c)          # counters +1 every frame
+            assert c["ok"] == c["received"], (name, c, rejected[:5])   # counters +1 every frame
     if lossless(run):
         assert len(plant) == tx["frames"]                     # sent = seen on the bus
 
