@@ -80,7 +80,8 @@ class Loop:
     """One rt_loop: prepared on creation, run in a thread of its own."""
 
     def __init__(self, period_s=0.0005, duration_s=0.0, transport=lib.RT_TRANSPORT_RING, fd=-1,
-                 log_frames=0, overrun_stop=0, tweak=None):
+                 log_frames=0, overrun_stop=0, tweak=None, step_s=0.0, record_every=0,
+                 driver=None):
         self.c = ffi.new("rt_loop *")
         fill_params(ffi, ffi.addressof(self.c[0].plant, "params"), _PARAMS)
         if tweak:
@@ -95,6 +96,16 @@ class Loop:
         cfg.transport = transport
         cfg.fd = fd
         cfg.log_frames = log_frames
+        cfg.step_s = step_s
+        cfg.record_every = record_every
+        if driver is not None:      # dict: rows [(t_s, accel, brake)], linear, start_on_tcu, end_s
+            d = self.c.driver
+            d.rows = len(driver["rows"])
+            for i, (t, a, b) in enumerate(driver["rows"]):
+                d.t_s[i], d.accel_pedal_pct[i], d.brake_pedal_pct[i] = t, a, b
+            d.linear = driver.get("linear", 0)
+            d.start_on_tcu = driver.get("start_on_tcu", 0)
+            d.end_s = driver.get("end_s", 0.0)
         self.prepare_rc = lib.rt_loop_prepare(self.c)
         self.thread = None
         self.result = None
@@ -165,6 +176,18 @@ class Loop:
             out.extend((buf[i].time_s, buf[i].dir, buf[i].frame.id, buf[i].frame.len,
                         bytes(ffi.buffer(buf[i].frame.data, 8))) for i in range(n))
             if n < 4096:
+                return out
+
+
+    def pop_rec(self):
+        out = []
+        buf = ffi.new("rt_sample[512]")
+        while True:
+            n = lib.rt_rec_pop_many(ring_addr(self, "rec"), buf, 512)
+            out.extend((buf[i].tick, buf[i].time_s, buf[i].maneuver_time_s,
+                        buf[i].outputs.accel_pedal_pct, buf[i].outputs.brake_pedal_pct,
+                        buf[i].commands.solenoid_current1_a) for i in range(n))
+            if n < 512:
                 return out
 
 
@@ -640,3 +663,108 @@ def test_scheduling_is_recorded_and_restored():
     assert s.rt_policy_ok in (0, 1)                 # SCHED_FIFO needs CAP_SYS_NICE: recorded, not fatal
     assert s.memory_locked == 0                     # not asked
     assert seen["after"] == seen["before"]
+
+
+# ------------------------------------------------- time scale, driver, recorder
+def test_a_slowed_down_run_steps_the_plant_by_step_s_and_stretches_the_bus_cycles():
+    period, step = 0.005, 0.0005                  # one tenth of real time
+    loop = Loop(period_s=period, step_s=step, duration_s=0.4, record_every=1)
+    assert loop.prepare_rc == 0
+    assert loop.c.plant.params.solver.step_s == step
+    loop.start()
+    assert loop.join() == lib.RT_STATE_STOPPED
+    s = loop.stats()
+    assert s.ticks + s.skipped_ticks == round(0.4 / period)            # deadlines: wall clock
+    assert s.sim_time_s == pytest.approx(s.ticks * step, abs=1e-9)     # plant: step_s per tick
+    frames = loop.pop_tx()
+    shaft = [f for f in frames if f[0] == DB.get_message_by_name("DCT_ShaftSpeeds").frame_id]
+    # 2 ms of simulated time = every 4th tick, whatever the wall-clock period
+    assert abs(len(shaft) - s.ticks / 4) <= 1
+    rec = loop.pop_rec()
+    assert [r[0] for r in rec] == list(range(s.ticks))
+    assert rec[-1][1] == pytest.approx(s.ticks * step, abs=1e-9)
+
+
+def test_step_longer_than_the_period_or_out_of_range_is_refused():
+    assert Loop(period_s=0.0005, step_s=0.001).prepare_rc == -errno.EINVAL   # faster than real time
+    assert Loop(period_s=0.05, step_s=0.02).prepare_rc == -errno.EINVAL      # step above 10 ms
+    assert Loop(period_s=0.2, step_s=0.0005).prepare_rc == -errno.EINVAL     # period above 100 ms
+    assert Loop(record_every=-1).prepare_rc == -errno.EINVAL
+
+
+@pytest.mark.parametrize("rows", [
+    [(0.0, 0.0, 10.0), (0.0, 10.0, 0.0)],          # times not increasing
+    [(0.0, 101.0, 0.0)],                            # pedal above 100 %
+    [(0.0, 0.0, -1.0)],                             # below 0
+    [(float("nan"), 0.0, 0.0)],
+])
+def test_a_bad_driver_table_is_refused(rows):
+    assert Loop(driver={"rows": rows}).prepare_rc == -errno.EINVAL
+
+
+def test_too_many_driver_rows_are_refused():
+    loop = Loop()
+    loop.c.driver.rows = lib.RT_DRIVER_ROWS + 1
+    assert lib.rt_loop_prepare(loop.c) == -errno.EINVAL
+
+
+def test_the_driver_plays_its_table_over_maneuver_time_and_ends_the_run():
+    rows = [(0.0, 0.0, 30.0), (0.05, 40.0, 0.0), (0.1, 80.0, 0.0)]
+    loop = Loop(driver={"rows": rows, "end_s": 0.15}, record_every=1, duration_s=5.0)
+    assert loop.c.stats.maneuver_state == lib.RT_MANEUVER_WAITING
+    loop.start()
+    assert loop.join() == lib.RT_STATE_STOPPED           # stopped by end_s, long before 5 s
+    s = loop.stats()
+    assert s.maneuver_state == lib.RT_MANEUVER_DONE
+    assert s.maneuver_time_s == pytest.approx(0.15, abs=1e-9)
+    assert s.sim_time_s == pytest.approx(0.15, abs=1e-9)   # started at the first tick
+    rec = loop.pop_rec()
+    assert len(rec) == s.ticks == 300
+    for _tick, t, mt, accel, brake, _i in rec:
+        assert mt == pytest.approx(t, abs=1e-12)
+        before = mt - 0.0005                              # the pedals of the tick's start
+        want = [r for r in rows if r[0] <= before + 1e-12][-1]
+        assert (accel, brake) == (want[1], want[2]), (mt, accel, brake)
+
+
+def test_linear_driver_interpolates_between_rows():
+    rows = [(0.0, 0.0, 0.0), (0.1, 100.0, 0.0)]
+    loop = Loop(driver={"rows": rows, "linear": 1, "end_s": 0.1}, record_every=1)
+    loop.start()
+    loop.join()
+    for _tick, _t, mt, accel, _b, _i in loop.pop_rec():
+        assert accel == pytest.approx(1000.0 * (mt - 0.0005), abs=1e-9)
+
+
+def test_the_maneuver_waits_for_the_tcu_then_starts():
+    clutch = DB.get_message_by_name("TCU_ClutchCmd")
+    rows = [(0.0, 0.0, 30.0), (0.02, 60.0, 0.0)]
+    with Loop(driver={"rows": rows, "start_on_tcu": 1, "end_s": 0.05}, record_every=1,
+              duration_s=10.0) as loop:
+        time.sleep(0.1)
+        s = loop.stats()
+        assert s.maneuver_state == lib.RT_MANEUVER_WAITING and s.maneuver_time_s < 0
+        assert s.outputs.brake_pedal_pct == 30.0 and s.outputs.accel_pedal_pct == 0.0
+        t_heard = s.sim_time_s
+        assert loop.push([tcu_frame(clutch, 0, SolenoidCurrent1=0.2)]) == 1
+        assert loop.join() == lib.RT_STATE_STOPPED
+    s = loop.stats()
+    assert s.maneuver_state == lib.RT_MANEUVER_DONE
+    assert s.sim_time_s > t_heard + 0.05 - 1e-9
+    rec = loop.pop_rec()
+    waiting = [r for r in rec if r[2] < 0]
+    running = [r for r in rec if r[2] >= 0]
+    assert waiting and all(r[3] == 0.0 and r[4] == 30.0 for r in waiting)
+    assert running[0][5] == pytest.approx(0.2, abs=0.01)   # started with the TCU's first frame
+    assert running[-1][2] == pytest.approx(0.05, abs=1e-9)
+    assert running[-1][3] == 60.0
+
+
+def test_a_full_recorder_ring_counts_the_samples_it_drops():
+    loop = Loop(record_every=1, duration_s=(lib.RT_REC_SIZE + 500) * 0.0001, period_s=0.0001)
+    loop.start()
+    loop.join()
+    s = loop.stats()
+    got = len(loop.pop_rec())
+    assert got == min(s.ticks, lib.RT_REC_SIZE)
+    assert loop.c.rec.dropped == s.ticks - got

@@ -39,6 +39,26 @@
  *     loop skipped. The frames queued meanwhile are drained first, so a late
  *     loop does not time out a TCU that kept sending.
  *
+ * Time scale: cfg.step_s is the simulated time of one tick (the plant step),
+ * cfg.period_s the wall-clock time between deadlines. Equal, the run is real
+ * time; a longer period runs the same ticks in slow motion (a machine too
+ * slow for real time, an emulated test kernel). Everything the bus sees
+ * counts ticks, so cycle times and timeouts stretch with the period: the
+ * divisors below and the receive timeouts are computed from step_s.
+ *
+ * Scripted driver (l->driver, optional): a pedal table over maneuver time,
+ * played in the tick before the plant step. Maneuver time 0 is the first
+ * tick (start_on_tcu = 0) or the first tick after the first accepted TCU
+ * frame (start_on_tcu = 1: the plant idles on the first row's pedals until
+ * the TCU is there). Maneuver time is plant time since the start, so a run
+ * with skipped deadlines still plays the table against simulated time. At
+ * end_s the loop stops as if its duration ended (RT_MANEUVER_DONE).
+ *
+ * Recorder (cfg.record_every > 0): after the step of every record_every-th
+ * executed tick, a sample (plant time, maneuver time, all plant outputs, the
+ * commands applied) goes into the rec ring; a Python thread writes it to a
+ * file. A full ring drops the sample and counts it (rec.dropped).
+ *
  * Offsets: computed once at the start of rt_loop_run, shortest cycle first;
  * each message takes the offset whose ticks it shares with the fewest frames
  * already planned (two messages of divisors a and b with offsets x and y
@@ -56,7 +76,9 @@
  * duration) or 3 (overrun stop, plant error); none after a transport error.
  *
  * Return codes: rt_loop_prepare gives -EINVAL (a cfg field out of range:
- * period outside 50 us .. 10 ms, unknown transport, priority outside 0..99,
+ * period outside 50 us .. 100 ms, a step outside 50 us .. 10 ms or longer
+ * than the period, a negative record_every, a driver table with more than
+ * RT_DRIVER_ROWS rows, times not increasing or pedals outside 0..100 %, unknown transport, priority outside 0..99,
  * cpu < -1, NaN duration), -EBADF (fd < 0), -ENOTSOCK / -EPROTOTYPE (fd not
  * a datagram socket), another -errno (SO_RXQ_OVFL refused) or -EDOM (the
  * plant rejected its parameters). rt_loop_run gives -EINVAL when the loop
@@ -137,8 +159,10 @@
 
 #include <linux/can.h>
 
+#define RT_STEP_MIN_S 50e-6
+#define RT_STEP_MAX_S 10e-3
 #define RT_PERIOD_MIN_S 50e-6
-#define RT_PERIOD_MAX_S 10e-3
+#define RT_PERIOD_MAX_S 0.1           /* a slowed-down run: step_s / period_s down to 1/2000 */
 #define RT_PRIORITY_MAX 99
 #define RT_RX_BATCH 64                  /* frames per recvmmsg / ring pop */
 #define RT_RX_MAX_PER_TICK 256          /* drained per tick at most */
@@ -155,6 +179,7 @@
 
 _Static_assert((RT_RING_SIZE & (RT_RING_SIZE - 1)) == 0, "RT_RING_SIZE must be a power of two");
 _Static_assert((RT_LOG_SIZE & (RT_LOG_SIZE - 1)) == 0, "RT_LOG_SIZE must be a power of two");
+_Static_assert((RT_REC_SIZE & (RT_REC_SIZE - 1)) == 0, "RT_REC_SIZE must be a power of two");
 _Static_assert(sizeof(_Atomic uint32_t) == sizeof(uint32_t) &&
                    _Alignof(_Atomic uint32_t) == _Alignof(uint32_t),
                "atomic uint32_t must have the layout of uint32_t");
@@ -258,6 +283,38 @@ int rt_log_pop(rt_log_ring *r, rt_log_entry *e)
     return rt_log_pop_many(r, e, 1) == 1 ? 0 : -1;
 }
 
+static inline void rec_push(rt_rec_ring *g, uint64_t tick, double time_s, double maneuver_time_s,
+                            const dct_outputs *o, const dct_tcu_commands *c)
+{
+    uint32_t head = atomic_load_explicit(A32(&g->head), RELAXED);
+    uint32_t tail = atomic_load_explicit(A32(&g->tail), ACQUIRE);
+    if (head - tail >= RT_REC_SIZE) {
+        count_dropped(&g->dropped, 1);
+        return;
+    }
+    rt_sample *e = &g->samples[head & (RT_REC_SIZE - 1u)];
+    e->tick = tick;
+    e->time_s = time_s;
+    e->maneuver_time_s = maneuver_time_s;
+    e->outputs = *o;
+    e->commands = *c;
+    atomic_store_explicit(A32(&g->head), head + 1, RELEASE);
+}
+
+int rt_rec_pop_many(rt_rec_ring *r, rt_sample *s, int n)
+{
+    if (n <= 0)
+        return 0;
+    uint32_t tail = atomic_load_explicit(A32(&r->tail), RELAXED);
+    uint32_t head = atomic_load_explicit(A32(&r->head), ACQUIRE);
+    uint32_t avail = head - tail;
+    uint32_t k = (uint32_t)n < avail ? (uint32_t)n : avail;
+    for (uint32_t i = 0; i < k; i++)
+        s[i] = r->samples[(tail + i) & (RT_REC_SIZE - 1u)];
+    atomic_store_explicit(A32(&r->tail), tail + k, RELEASE);
+    return (int)k;
+}
+
 /* ------------------------------------------------------------------ */
 /* Statistics: sequence counter                                        */
 /* ------------------------------------------------------------------ */
@@ -308,6 +365,24 @@ static inline int stop_requested(rt_loop *l)
 /* Prepare                                                             */
 /* ------------------------------------------------------------------ */
 
+/* rows within 1..RT_DRIVER_ROWS (or 0), times finite and strictly
+ * increasing, pedals within 0..100 %, end_s finite */
+static int check_driver(const rt_driver *d)
+{
+    if (d->rows == 0)
+        return 0;
+    if (d->rows < 0 || d->rows > RT_DRIVER_ROWS || !isfinite(d->end_s))
+        return -1;
+    for (int i = 0; i < d->rows; i++) {
+        if (!isfinite(d->t_s[i]) || (i > 0 && !(d->t_s[i] > d->t_s[i - 1])))
+            return -1;
+        if (!(d->accel_pedal_pct[i] >= 0.0 && d->accel_pedal_pct[i] <= 100.0) ||
+            !(d->brake_pedal_pct[i] >= 0.0 && d->brake_pedal_pct[i] <= 100.0))
+            return -1;
+    }
+    return 0;
+}
+
 static int prepare_socket(int fd)
 {
     int type = 0;
@@ -336,6 +411,13 @@ int rt_loop_prepare(rt_loop *l)
     const rt_config *c = &l->cfg;
     if (!(c->period_s >= RT_PERIOD_MIN_S && c->period_s <= RT_PERIOD_MAX_S))
         return -EINVAL;
+    double step_s = c->step_s > 0.0 ? c->step_s : c->period_s;
+    if (!(step_s >= RT_STEP_MIN_S && step_s <= RT_STEP_MAX_S && step_s <= c->period_s * (1.0 + 1e-9)))
+        return -EINVAL; /* a tick may run slower than real time, never faster */
+    if (c->record_every < 0)
+        return -EINVAL;
+    if (check_driver(&l->driver) != 0)
+        return -EINVAL;
     if (c->transport != RT_TRANSPORT_SOCKETCAN && c->transport != RT_TRANSPORT_RING)
         return -EINVAL;
     if (c->priority < 0 || c->priority > RT_PRIORITY_MAX)
@@ -356,7 +438,7 @@ int rt_loop_prepare(rt_loop *l)
 
     memset(&l->stats, 0, sizeof l->stats);
     l->stats.state = RT_STATE_IDLE;
-    l->plant.params.solver.step_s = c->period_s;
+    l->plant.params.solver.step_s = step_s;
     int st = dct_plant_init(&l->plant);
     if (st != DCT_OK) {
         l->stats.error = -st;
@@ -378,6 +460,15 @@ int rt_loop_prepare(rt_loop *l)
     memset(&l->rx, 0, sizeof l->rx);
     memset(&l->tx, 0, sizeof l->tx);
     memset(&l->log, 0, sizeof l->log);
+    memset(&l->rec, 0, sizeof l->rec);
+    l->stats.maneuver_state = l->driver.rows > 0 ? RT_MANEUVER_WAITING : RT_MANEUVER_NONE;
+    l->stats.maneuver_time_s = -1.0;
+    if (l->driver.rows > 0) { /* the pedals of the first row until the maneuver starts */
+        l->plant.inputs.accel_pedal_pct = l->driver.accel_pedal_pct[0];
+        l->plant.inputs.brake_pedal_pct = l->driver.brake_pedal_pct[0];
+        dct_plant_update_outputs(&l->plant);
+        l->stats.outputs = l->plant.outputs;
+    }
     atomic_store_explicit(AINT(&l->stop_request), 0, RELEASE);
     return 0;
 }
@@ -402,7 +493,8 @@ typedef struct {
 
 typedef struct {
     rt_loop *l;
-    int64_t period_ns;
+    int64_t period_ns;               /* wall clock between deadlines */
+    int64_t step_ns;                 /* simulated time per tick */
     int64_t spin_ns;                 /* early wake-up before each deadline */
     int64_t t0_ns;                   /* first deadline */
     uint32_t tx_div[DCT_CAN_N_TX];
@@ -411,6 +503,9 @@ typedef struct {
     uint32_t ovfl_last;              /* last SO_RXQ_OVFL drop count seen */
     uint64_t ovfl_total;
     int tcu_heard;                   /* a TCU frame was accepted */
+    int maneuver_state;              /* RT_MANEUVER_* */
+    double maneuver_t0_s;            /* plant time at which the maneuver started */
+    double maneuver_time_s;          /* after this tick's step; < 0 before the start */
     double time_s;                   /* deadline of this tick since t0 */
     rt_counts c;
     dct_tcu_commands cmd;
@@ -465,7 +560,7 @@ static void plan_tx(rt_run *r)
         }
     for (int i = 0; i < DCT_CAN_N_TX; i++) {
         int m = order[i];
-        double ticks = dct_can_tx_cycle_ms(m) * 1e6 / (double)r->period_ns;
+        double ticks = dct_can_tx_cycle_ms(m) * 1e6 / (double)r->step_ns;
         uint32_t div = ticks < 1.5 ? 1u : (uint32_t)llround(ticks);
         uint32_t best = 0;
         double best_cost = INFINITY;
@@ -490,7 +585,7 @@ static void plan_tx(rt_run *r)
 static void plan_rx(rt_run *r)
 {
     for (int m = 0; m < DCT_CAN_N_RX; m++) {
-        double ticks = RT_TIMEOUT_CYCLES * dct_can_rx_cycle_ms(m) * 1e6 / (double)r->period_ns;
+        double ticks = RT_TIMEOUT_CYCLES * dct_can_rx_cycle_ms(m) * 1e6 / (double)r->step_ns;
         r->rx_timeout_ticks[m] = (uint64_t)ceil(ticks - 1e-9);
     }
 }
@@ -706,6 +801,35 @@ static void tx_final(rt_run *r, double state)
     (void)tx_send(r, 1);
 }
 
+/* the scripted driver: starts the maneuver when due, writes the pedals of
+ * the maneuver time of this tick (the plant time before its step) */
+static void drive(rt_run *r)
+{
+    rt_loop *l = r->l;
+    const rt_driver *d = &l->driver;
+    if (r->maneuver_state == RT_MANEUVER_NONE || r->maneuver_state == RT_MANEUVER_DONE)
+        return;
+    if (r->maneuver_state == RT_MANEUVER_WAITING) {
+        if (d->start_on_tcu && !r->tcu_heard)
+            return;
+        r->maneuver_state = RT_MANEUVER_RUNNING;
+        r->maneuver_t0_s = l->plant.state.time_s;
+        r->maneuver_time_s = 0.0;
+    }
+    double t = l->plant.state.time_s - r->maneuver_t0_s;
+    int k = 0; /* the last row at or before t (the first row before it) */
+    while (k + 1 < d->rows && d->t_s[k + 1] <= t)
+        k++;
+    double accel = d->accel_pedal_pct[k], brake = d->brake_pedal_pct[k];
+    if (d->linear && k + 1 < d->rows && t > d->t_s[k]) {
+        double w = (t - d->t_s[k]) / (d->t_s[k + 1] - d->t_s[k]);
+        accel += w * (d->accel_pedal_pct[k + 1] - accel);
+        brake += w * (d->brake_pedal_pct[k + 1] - brake);
+    }
+    l->plant.inputs.accel_pedal_pct = accel;
+    l->plant.inputs.brake_pedal_pct = brake;
+}
+
 static inline int hist_bin(double us)
 {
     if (!(us > 0.0))
@@ -741,6 +865,8 @@ static void copy_counts(rt_stats *s, const rt_run *r)
     s->commands = r->cmd;
     s->outputs = r->l->plant.outputs;
     s->sim_time_s = r->l->plant.state.time_s;
+    s->maneuver_state = r->maneuver_state;
+    s->maneuver_time_s = r->maneuver_time_s;
 }
 
 static void publish_tick(rt_run *r, double turnaround_us, double exec_us, double latency_us)
@@ -828,6 +954,9 @@ int rt_loop_run(rt_loop *l)
     memset(&r, 0, sizeof r);
     r.l = l;
     r.period_ns = llround(l->cfg.period_s * 1e9);
+    r.step_ns = llround(l->plant.params.solver.step_s * 1e9);
+    r.maneuver_state = l->stats.maneuver_state;
+    r.maneuver_time_s = -1.0;
     r.spin_ns = llround(l->cfg.spin_us * 1e3);
     plan_tx(&r);
     plan_rx(&r);
@@ -879,6 +1008,7 @@ int rt_loop_run(rt_loop *l)
             break;
         }
         check_timeouts(&r, n);
+        drive(&r);
         dct_can_apply_commands(&r.cmd, &l->plant.inputs);
         int st = dct_plant_step(&l->plant, 1);
         if (st != DCT_OK) {
@@ -887,6 +1017,11 @@ int rt_loop_run(rt_loop *l)
             final_sim_state = RT_SIM_FAULT;
             break;
         }
+        if (r.maneuver_state == RT_MANEUVER_RUNNING)
+            r.maneuver_time_s = l->plant.state.time_s - r.maneuver_t0_s;
+        if (l->cfg.record_every > 0 && r.c.ticks % (uint64_t)l->cfg.record_every == 0)
+            rec_push(&l->rec, r.c.ticks, l->plant.state.time_s, r.maneuver_time_s,
+                     &l->plant.outputs, &r.cmd);
         err = tx_tick(&r, r.c.ticks);
         r.c.ticks++;
         if (err) {
@@ -895,6 +1030,10 @@ int rt_loop_run(rt_loop *l)
             final_sim_state = -1.0;
             break;
         }
+        int maneuver_done = r.maneuver_state == RT_MANEUVER_RUNNING && l->driver.end_s > 0.0 &&
+                            r.maneuver_time_s >= l->driver.end_s - 0.5 * (double)r.step_ns * 1e-9;
+        if (maneuver_done)
+            r.maneuver_state = RT_MANEUVER_DONE;
 
         int64_t end = now_ns();
         double turnaround_us = (double)(end - deadline) / 1e3;
@@ -919,6 +1058,8 @@ int rt_loop_run(rt_loop *l)
             }
         }
         publish_tick(&r, turnaround_us, exec_us, latency_us);
+        if (maneuver_done)
+            break;
         if (overrun && l->cfg.overrun_stop) {
             state = RT_STATE_OVERRUN_STOP;
             final_sim_state = RT_SIM_FAULT;

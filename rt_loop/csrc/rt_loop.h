@@ -7,8 +7,10 @@
  *     (sleep to deadline - spin_us, then busy-wait to the deadline)
  *   drain received frames, E2E check, decode    -> TCU commands
  *   timeouts: a TCU message missing for 10 of its cycles -> safe values
- *   plant step (one step = one period)
+ *   scripted driver (optional): pedals from a table over maneuver time
+ *   plant step (one step = step_s of simulated time)
  *   encode and send the frames due this tick
+ *   recorder (optional): a copy of the plant outputs every record_every ticks
  *   statistics: turnaround = end - deadline, execution = end - wake-up,
  *               overrun = the tick ends after the next deadline
  * No Python, no allocation, no locks, no logging per tick. Python starts
@@ -32,6 +34,8 @@
 
 #define RT_RING_SIZE 8192             /* frames, a power of two */
 #define RT_LOG_SIZE 65536             /* log entries, a power of two */
+#define RT_REC_SIZE 4096              /* recorder samples, a power of two */
+#define RT_DRIVER_ROWS 64             /* rows of the in-loop pedal table */
 #define RT_HIST_BINS 5000             /* 1 us bins, 0 .. 4.999 ms; the last bin holds everything above */
 #define RT_TIMEOUT_CYCLES 10
 
@@ -41,11 +45,20 @@
 #define RT_STATE_OVERRUN_STOP 3       /* stopped by the overrun policy */
 #define RT_STATE_ERROR 4              /* transport error (errno in stats.error) */
 
+#define RT_MANEUVER_NONE 0            /* no pedal table: the pedals stay as Python writes them */
+#define RT_MANEUVER_WAITING 1         /* table loaded, waiting for the first TCU frame */
+#define RT_MANEUVER_RUNNING 2
+#define RT_MANEUVER_DONE 3            /* end_s reached: the loop stopped */
+
 #define RT_DIR_RX 0
 #define RT_DIR_TX 1
 
 typedef struct {
-    double period_s;                  /* 0.0005 for 2 kHz */
+    double period_s;                  /* wall-clock time between deadlines: 0.0005 for 2 kHz */
+    double step_s;                    /* simulated time per tick (the plant step; the CAN
+                                         cycles and timeouts count it): 0 means period_s.
+                                         step_s / period_s is the time scale: 1 is real
+                                         time, 0.1 a ten times slower run of the same ticks */
     int priority;                     /* SCHED_FIFO priority, 0: leave the policy alone */
     int cpu;                          /* CPU to pin the loop to, -1: any */
     int lock_memory;                  /* 1: mlockall(MCL_CURRENT | MCL_FUTURE) */
@@ -56,7 +69,39 @@ typedef struct {
     int log_frames;                   /* 1: copy every received and sent frame to the log ring */
     double spin_us;                   /* wake this long before each deadline and busy-wait to it:
                                          hides the OS wake-up latency up to spin_us (0: sleep only) */
+    int record_every;                 /* push a recorder sample every this many ticks (0: off) */
 } rt_config;
+
+/* the driver of a scripted maneuver, played by the loop itself: pedals as a
+ * function of maneuver time, so that a run does not depend on when a Python
+ * thread gets the CPU */
+typedef struct {
+    int rows;                         /* 0: no table (RT_MANEUVER_NONE) */
+    int linear;                       /* 0: each row held until the next; 1: linear between rows */
+    int start_on_tcu;                 /* 1: maneuver time 0 is the first tick after the first
+                                         accepted TCU frame; 0: the first tick */
+    double end_s;                     /* maneuver time at which the loop stops (<= 0: never;
+                                         the last row is held) */
+    double t_s[RT_DRIVER_ROWS];       /* strictly increasing */
+    double accel_pedal_pct[RT_DRIVER_ROWS];
+    double brake_pedal_pct[RT_DRIVER_ROWS];
+} rt_driver;
+
+/* one recorder sample: the plant after a tick's step */
+typedef struct {
+    uint64_t tick;                    /* executed tick index */
+    double time_s;                    /* plant time after the step */
+    double maneuver_time_s;           /* plant time since the maneuver started (< 0: not yet) */
+    dct_outputs outputs;
+    dct_tcu_commands commands;        /* as applied in this tick */
+} rt_sample;
+
+typedef struct {
+    uint32_t head;
+    uint32_t tail;
+    uint64_t dropped;                 /* samples lost because the reader fell behind */
+    rt_sample samples[RT_REC_SIZE];
+} rt_rec_ring;
 
 /* single-producer single-consumer ring of frames (lock-free) */
 typedef struct {
@@ -90,6 +135,8 @@ typedef struct {
     uint64_t overruns;                /* ticks that ended after the next deadline */
     uint64_t skipped_ticks;           /* deadlines skipped to catch up after overruns */
     double sim_time_s;
+    int maneuver_state;               /* RT_MANEUVER_* */
+    double maneuver_time_s;           /* < 0 before the maneuver started */
     double turnaround_us;             /* last tick */
     double turnaround_max_us;
     double exec_us;
@@ -126,6 +173,8 @@ typedef struct {
     rt_ring rx;                       /* bridge: python-can -> loop */
     rt_ring tx;                       /* bridge: loop -> python-can */
     rt_log_ring log;                  /* loop -> traffic log writer */
+    rt_driver driver;                 /* filled by Python before rt_loop_prepare() */
+    rt_rec_ring rec;                  /* loop -> recorder */
 } rt_loop;
 
 /* validates cfg, initialises the plant (dct_plant_init) with its step set
@@ -146,5 +195,6 @@ int rt_log_pop(rt_log_ring *r, rt_log_entry *e);        /* 0, or -1 empty */
 int rt_ring_push_many(rt_ring *r, const dct_can_frame *f, int n);
 int rt_ring_pop_many(rt_ring *r, dct_can_frame *f, int n);
 int rt_log_pop_many(rt_log_ring *r, rt_log_entry *e, int n);
+int rt_rec_pop_many(rt_rec_ring *r, rt_sample *s, int n);
 
 #endif
