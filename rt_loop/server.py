@@ -33,6 +33,7 @@ import weakref
 from typing import Any, TextIO
 
 from rt_loop import status as _status
+from rt_loop.recorder import Recorder
 from rt_loop.stats import StatsReader, machine_info
 from rt_loop.transport import Transport, TransportError, open_transport
 
@@ -59,6 +60,14 @@ LOG_FORMATS = {".log": "candump", ".blf": "Vector BLF", ".asc": "Vector ASC",
                ".db": "SQLite", ".txt": "text"}
 #: the plant parameters the server always uses: the TCU drives solenoid currents
 HYDRAULICS = {"hydraulics": {"pressure_commanded": 0}}
+
+#: the loop's longest wall-clock period (a slowed-down run, rt_loop_prepare)
+MAX_PERIOD_S = 0.1
+#: rows of the in-loop driver table (RT_DRIVER_ROWS)
+MAX_DRIVER_ROWS = 64
+MANEUVER_STARTS = ("tcu", "now")
+#: RT_MANEUVER_* -> name
+MANEUVER_STATES = {0: "none", 1: "waiting for the TCU", 2: "running", 3: "done"}
 
 #: below this many frames of receive buffer a SocketCAN run warns
 SOCKET_FRAMES_WANTED = 10_000
@@ -230,6 +239,18 @@ class Server:
     traffic (format by suffix, ``LOG_FORMATS``). ``bus_kwargs`` go to
     ``can.Bus`` for the bridge (e.g. ``bitrate``).
 
+    ``time_scale`` (0 < s <= 1) runs the same ticks slower than real time:
+    the plant still steps 1 / rate_hz per tick and the bus cycles count
+    ticks, but the deadlines are 1 / (rate_hz x time_scale) apart (for a
+    machine or an emulated kernel too slow for real time; the TCU must be
+    slowed by the same factor). ``driver``: a scripted maneuver the loop
+    plays itself (``plant.driver.ScriptedDriver`` or rows of (t_s,
+    accel_pedal_pct, brake_pedal_pct)), started at the first accepted TCU
+    frame (``maneuver_start`` "tcu") or at once ("now"); the run ends when
+    its maneuver time reaches ``maneuver_end_s`` (None: never).
+    ``record_path``: a CSV recording of every plant output each
+    ``record_every_s`` of plant time (``rt_loop.recorder``).
+
     Errors in the arguments, the parameters (``ParamError``) or the
     transport (``TransportError``) are raised with one-line messages.
     """
@@ -239,13 +260,39 @@ class Server:
                  params_path: str | os.PathLike | None = None,
                  log_path: str | os.PathLike | None = None, overrun_policy: str = "skip",
                  lock_memory: bool | None = None, bus_kwargs: dict | None = None,
-                 spin_us: float | None = None) -> None:
+                 spin_us: float | None = None, time_scale: float = 1.0, driver: Any = None,
+                 maneuver_start: str = "tcu", maneuver_end_s: float | None = None,
+                 record_path: str | os.PathLike | None = None,
+                 record_every_s: float = 0.002) -> None:
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
         self.channel = _check_channel(channel)
         self.interface = interface
         self.rate_hz = _check_rate(rate_hz)
-        self.period_s = 1.0 / self.rate_hz
+        self.time_scale = _check_time_scale(time_scale)
+        self.step_s = 1.0 / self.rate_hz                 # simulated time per tick
+        self.period_s = self.step_s / self.time_scale    # wall clock between deadlines
+        if self.period_s > MAX_PERIOD_S:
+            raise ServerError(f"time scale {time_scale} at {self.rate_hz:g} Hz gives a period of "
+                              f"{self.period_s * 1e3:g} ms; the loop allows up to "
+                              f"{MAX_PERIOD_S * 1e3:g} ms")
+        self.driver_rows, self.driver_linear = _check_driver(driver)
+        if maneuver_start not in MANEUVER_STARTS:
+            raise ServerError(f"maneuver start {maneuver_start!r}: choose "
+                              + " or ".join(MANEUVER_STARTS))
+        self.maneuver_start = maneuver_start
+        self.maneuver_end_s = None if maneuver_end_s is None else _check_duration(maneuver_end_s)
+        if self.maneuver_end_s is not None and not self.driver_rows:
+            raise ServerError("a maneuver end needs a driver table")
+        self.record_path = None if record_path is None else os.fspath(record_path)
+        try:
+            every = float(record_every_s)
+        except (TypeError, ValueError):
+            raise ServerError(f"record interval {record_every_s!r} is not a number") from None
+        if not (math.isfinite(every) and every > 0):
+            raise ServerError(f"record interval must be a number of seconds above 0, "
+                              f"got {record_every_s}")
+        self.record_every = max(1, int(round(every / self.step_s)))
         self.priority = _check_priority(priority)
         self.cpu = _check_cpu(cpu)
         self.duration_s = _check_duration(duration_s)
@@ -268,7 +315,7 @@ class Server:
         self.bus_kwargs = dict(bus_kwargs or {})
 
         self._ffi, self._lib = ffi, lib = _extension()
-        overrides = {**HYDRAULICS, "solver": {"step_s": self.period_s}}
+        overrides = {**HYDRAULICS, "solver": {"step_s": self.step_s}}
         self.params = load_params(self.params_path, ffi, overrides)
         self._l = ffi.new("rt_loop *")  # zeroed; lives as long as this object
         fill_params(ffi, self._l.plant.params, self.params)
@@ -277,6 +324,7 @@ class Server:
 
         self.transport: Transport | None = None
         self.logger: TrafficLogger | None = None
+        self.recorder: Recorder | None = None
         self.warnings: list[str] = []
         self._thread: threading.Thread | None = None
         self._done = threading.Event()
@@ -300,9 +348,23 @@ class Server:
             self.transport = open_transport(self.interface, self.channel, **self.bus_kwargs)
             if self.log_path is not None:
                 self.logger = TrafficLogger(self.log_path, self.channel)
+            if self.record_path is not None:
+                try:
+                    self.recorder = Recorder(self.record_path)
+                except OSError as e:
+                    raise ServerError(str(e)) from None
 
             cfg = loop.cfg
             cfg.period_s = self.period_s
+            cfg.step_s = self.step_s
+            cfg.record_every = self.record_every if self.recorder is not None else 0
+            d = loop.driver
+            d.rows = len(self.driver_rows)
+            for i, (t, accel, brake) in enumerate(self.driver_rows):
+                d.t_s[i], d.accel_pedal_pct[i], d.brake_pedal_pct[i] = t, accel, brake
+            d.linear = int(self.driver_linear)
+            d.start_on_tcu = int(self.maneuver_start == "tcu")
+            d.end_s = 0.0 if self.maneuver_end_s is None else self.maneuver_end_s
             cfg.priority = self.priority
             cfg.cpu = -1 if self.cpu is None else self.cpu
             cfg.lock_memory = int(self.lock_memory)
@@ -325,6 +387,8 @@ class Server:
             wall0 = time.time()
             if self.logger is not None:
                 self.logger.start(ffi, lib, loop, wall0)
+            if self.recorder is not None:
+                self.recorder.start(ffi, lib, loop)
             self._thread = threading.Thread(target=self._run, name="rt-loop", daemon=True)
             _LIVE.add(self)
             self._thread.start()
@@ -404,7 +468,8 @@ class Server:
         self._stopped = True
         _LIVE.discard(self)
         errors: list[Exception] = []
-        for step in (self._stop_transport, self._stop_logger, self._close_transport):
+        for step in (self._stop_transport, self._stop_logger, self._stop_recorder,
+                     self._close_transport):
             try:
                 step()
             except Exception as e:  # noqa: BLE001 (every step runs; the first error is raised)
@@ -421,6 +486,10 @@ class Server:
     def _stop_logger(self) -> None:
         if self.logger is not None:
             self.logger.stop()
+
+    def _stop_recorder(self) -> None:
+        if self.recorder is not None:
+            self.recorder.stop()
 
     def _close_transport(self) -> None:
         if self.transport is not None:
@@ -455,6 +524,8 @@ class Server:
         return {
             "state": self.stats.state,
             "sim_time_s": float(s.sim_time_s),
+            "maneuver": MANEUVER_STATES.get(int(s.maneuver_state), "?"),
+            "maneuver_time_s": float(s.maneuver_time_s) if s.maneuver_time_s >= 0 else None,
             "turnaround_us": float(s.turnaround_us),
             "turnaround_max_us": float(s.turnaround_max_us),
             "exec_us": float(s.exec_us),
@@ -474,6 +545,8 @@ class Server:
             bridge = {key: value for key, value in self.transport.counters.items()
                       if key != "last_error"}
         counts["bridge"] = bridge
+        counts["record"] = {"written": 0 if self.recorder is None else self.recorder.written,
+                            "dropped": int(self._l.rec.dropped)}
         return counts
 
     def transport_counters(self) -> dict:
@@ -484,6 +557,8 @@ class Server:
         t = self.transport
         return {
             "rate_hz": self.rate_hz,
+            "step_us": self.step_s * 1e6,
+            "time_scale": self.time_scale,
             "period_us": self.period_s * 1e6,
             "priority": self.priority,
             "cpu": self.cpu,
@@ -499,6 +574,11 @@ class Server:
             "params": self.params_path,
             "hydraulics": "solenoid currents (pressure_commanded = 0)",
             "log": self.log_path,
+            "record": self.record_path,
+            "record_every_s": self.record_every * self.step_s if self.record_path else None,
+            "driver_rows": len(self.driver_rows),
+            "maneuver_start": self.maneuver_start if self.driver_rows else None,
+            "maneuver_end_s": self.maneuver_end_s,
             "rt_policy_ok": bool(s.rt_policy_ok),
             "memory_locked": bool(s.memory_locked),
             "affinity_ok": bool(s.affinity_ok) if self.cpu is not None else None,
@@ -531,6 +611,8 @@ class Server:
                 "error": error,
                 "wall_s": wall_s,
                 "sim_time_s": float(s.sim_time_s),
+                "maneuver": MANEUVER_STATES.get(int(s.maneuver_state), "?"),
+                "maneuver_time_s": float(s.maneuver_time_s) if s.maneuver_time_s >= 0 else None,
                 "ticks": int(s.ticks),
                 "warnings": list(self.warnings),
                 "stats_read_failures": self.stats.read_failures,
@@ -542,6 +624,7 @@ class Server:
             "counts": self._counts(),
             "transport": {key: value for key, value in self.transport_counters().items()},
             "log": self.logger.counters() if self.logger is not None else None,
+            "record": self.recorder.counters() if self.recorder is not None else None,
             "plant": self.stats.plant(),
             "machine": machine,
         }
@@ -600,6 +683,40 @@ def _check_cpu(cpu: Any) -> int | None:
         raise ServerError(f"cpu {cpu}: not one of the CPUs this process may use "
                           f"({', '.join(map(str, allowed))})")
     return cpu
+
+
+def _check_time_scale(time_scale: Any) -> float:
+    try:
+        scale = float(time_scale)
+    except (TypeError, ValueError):
+        raise ServerError(f"time scale {time_scale!r} is not a number") from None
+    if not (math.isfinite(scale) and 0 < scale <= 1):
+        raise ServerError(f"time scale must be above 0 and at most 1 (1: real time, 0.1: ten "
+                          f"times slower), got {time_scale}")
+    return scale
+
+
+def _check_driver(driver: Any) -> tuple[list, bool]:
+    """(rows, linear) of a driver table: a ScriptedDriver or rows (t_s, accel %, brake %)."""
+    if driver is None:
+        return [], False
+    table = getattr(driver, "table", driver)
+    linear = getattr(driver, "mode", "step") == "linear"
+    try:
+        rows = [(float(t), float(a), float(b)) for t, a, b in table]
+    except (TypeError, ValueError):
+        raise ServerError("driver table: rows must be (t_s, accel_pedal_pct, brake_pedal_pct)"
+                          ) from None
+    if not rows:
+        raise ServerError("driver table: no rows")
+    if len(rows) > MAX_DRIVER_ROWS:
+        raise ServerError(f"driver table: {len(rows)} rows; the loop holds {MAX_DRIVER_ROWS}")
+    for k, (t, a, b) in enumerate(rows):
+        if not math.isfinite(t) or (k and not t > rows[k - 1][0]):
+            raise ServerError(f"driver table row {k + 1}: times must be finite and increasing")
+        if not (0 <= a <= 100 and 0 <= b <= 100):
+            raise ServerError(f"driver table row {k + 1}: pedals must be within 0..100 %")
+    return rows, linear
 
 
 def _check_duration(duration_s: Any) -> float | None:

@@ -177,6 +177,9 @@ class StatsReader:
         return {
             "engine_speed_rpm": float(o.engine_speed_rpm),
             "vehicle_speed_kmh": float(o.vehicle_speed_kmh),
+            "gear": int(round(o.gear)),
+            "accel_pedal_pct": float(o.accel_pedal_pct),
+            "brake_pedal_pct": float(o.brake_pedal_pct),
             "clutch1_pressure_bar": float(o.clutch1_pressure_bar),
             "clutch2_pressure_bar": float(o.clutch2_pressure_bar),
             "line_pressure_bar": float(o.line_pressure_bar),

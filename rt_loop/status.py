@@ -50,10 +50,23 @@ def banner_lines(server: Any, stats_path: str) -> list[str]:
              else "until Ctrl-C or SIGTERM")
     lines.append(f"loop              {server.rate_hz:g} Hz (period {server.period_s * 1e6:g} us), "
                  f"{sched}, {cpu}, {policy[server.overrun_policy]}, {until}")
+    if server.time_scale != 1.0:
+        lines.append(f"time scale        {server.time_scale:g}: a {server.step_s * 1e6:g} us plant "
+                     f"step every {server.period_s * 1e6:g} us, bus cycles "
+                     f"{1 / server.time_scale:g}x longer (slow motion, not real time)")
+    if server.driver_rows:
+        start = {"tcu": "at the first TCU frame", "now": "at once"}[server.maneuver_start]
+        end = (f", ends at {server.maneuver_end_s:g} s" if server.maneuver_end_s is not None
+               else "")
+        lines.append(f"driver            pedal table of {len(server.driver_rows)} rows, starts "
+                     f"{start}{end}")
     lines.append(f"plant             {server.params_path or 'default parameters'}; "
                  "solenoid currents drive the clutch hydraulics")
     if server.logger is not None:
         lines.append(f"log               {server.logger.path} ({server.logger.format})")
+    if server.recorder is not None:
+        lines.append(f"recording         {server.recorder.path} (every "
+                     f"{server.record_every * server.step_s * 1e3:g} ms of plant time)")
     lines.append(f"stats             {stats_path} (written on exit)")
     return lines
 
@@ -69,8 +82,12 @@ def screen_lines(snap: dict, server: Any = None) -> list[str]:
     sleeves = "   ".join(
         f"{name} " + ({0: "-", 1: "sync"}.get(s, "in") + (f" {_gear(g)}" if s and g else ""))
         for name, s, g in zip(SLEEVES, p["sync_state"], p["sync_gear"]))
+    maneuver = ""
+    if snap.get("maneuver", "none") != "none":
+        mt = snap.get("maneuver_time_s")
+        maneuver = f"   maneuver {snap['maneuver']}" + (f" {mt:.2f} s" if mt is not None else "")
     lines = [
-        f"t {snap['sim_time_s']:.2f} s   {snap['state']}   ticks {c['ticks']}",
+        f"t {snap['sim_time_s']:.2f} s   {snap['state']}   ticks {c['ticks']}{maneuver}",
         f"turnaround  {snap['turnaround_us']:.1f} us (max {snap['turnaround_max_us']:.1f})   "
         f"exec {snap['exec_us']:.1f} ({snap['exec_max_us']:.1f})   "
         f"wake-up {snap['latency_us']:.1f} ({snap['latency_max_us']:.1f})",
@@ -89,7 +106,7 @@ def screen_lines(snap: dict, server: Any = None) -> list[str]:
         f"{p['solenoid_current1_a']:.2f} A   "
         f"K2 {_z(p['clutch2_pressure_bar']):.2f} bar {p['solenoid_current2_a']:.2f} A   "
         f"line {_z(p['line_pressure_bar']):.2f} bar {p['line_solenoid_current_a']:.2f} A",
-        f"sleeves     {sleeves}",
+        f"sleeves     {sleeves}   driving gear {p.get('gear', 0)}",
     ]
     bridge = c.get("bridge")
     if bridge:
@@ -99,6 +116,9 @@ def screen_lines(snap: dict, server: Any = None) -> list[str]:
     if server is not None and server.logger is not None:
         lines.append(f"log         {c['log']['written']} frames written, "
                      f"{c['log']['dropped']} lost")
+    if server is not None and server.recorder is not None:
+        lines.append(f"recording   {c['record']['written']} samples written, "
+                     f"{c['record']['dropped']} lost")
     return lines
 
 
@@ -112,14 +132,17 @@ def status_line(snap: dict) -> str:
     if bridge:
         extra = (f" | bridge ring full {bridge['rx_ring_full']} bus errors "
                  f"{bridge['rx_errors'] + bridge['tx_errors']}")
-    return (f"t={snap['sim_time_s']:.1f}s {snap['state']} turnaround {snap['turnaround_us']:.1f}us "
+    mt = snap.get("maneuver_time_s")
+    maneuver = f" maneuver {mt:.1f}s" if mt is not None else ""
+    return (f"t={snap['sim_time_s']:.1f}s{maneuver} {snap['state']} turnaround {snap['turnaround_us']:.1f}us "
             f"max {snap['turnaround_max_us']:.1f}us overruns {c['overruns']} | rx {rx['frames']} "
             f"rejected {rx['rejected']} overflow {rx['overflow']} tx {tx['frames']} dropped "
             f"{tx['dropped']} | timeouts {c['timeouts']}"
             + (f" (timed out: {','.join(late)})" if late else "")
             + f" | engine {p['engine_speed_rpm']:.0f}rpm {_z(p['vehicle_speed_kmh'], 1):.1f}km/h "
             f"K1 {_z(p['clutch1_pressure_bar']):.2f} K2 {_z(p['clutch2_pressure_bar']):.2f} "
-            f"line {_z(p['line_pressure_bar']):.2f}bar gears {_engaged(p)}" + extra)
+            f"line {_z(p['line_pressure_bar']):.2f}bar gears {_engaged(p)} driving "
+            f"{p.get('gear', 0)}" + extra)
 
 
 class LiveStatus:

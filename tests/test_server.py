@@ -500,3 +500,82 @@ def test_early_wake_up_outside_the_period_is_a_one_line_error(channel, spin_us):
     with pytest.raises(ServerError) as e:
         Server(channel, interface="virtual", priority=0, spin_us=spin_us)
     assert "spin" in str(e.value) and "\n" not in str(e.value)
+
+
+# ---------------------------------------------------- time scale, driver, recording
+def test_a_slowed_down_server_steps_the_plant_and_stretches_the_bus_cycles(channel, tmp_path):
+    peer = CanPeer.open(side="tcu", interface="virtual", channel=channel)
+    try:
+        with Server(channel, interface="virtual", priority=0, time_scale=0.25,
+                    record_path=tmp_path / "rec.csv") as srv:
+            assert srv.step_s == 0.0005 and srv.period_s == pytest.approx(0.002)
+            assert srv.config()["time_scale"] == 0.25
+            assert peer.wait_for(lambda p: p.counts("DCT_ShaftSpeeds")["accepted"] >= 50, WAIT_S)
+            time.sleep(0.3)
+        report = peer.report()
+        rec = srv.report()
+    finally:
+        peer.close()
+    # 2 ms of plant time between frames = 8 ms of wall time at a quarter of real time
+    mean_ms = report["received"]["DCT_ShaftSpeeds"]["mean_interval_ms"]
+    assert 4.0 < mean_ms < 16.0, mean_ms
+    assert rec["config"]["period_us"] == pytest.approx(2000.0)
+    assert rec["run"]["sim_time_s"] == pytest.approx(rec["run"]["ticks"] * 0.0005, abs=1e-9)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"time_scale": 0}, "time scale must be above 0"),
+    ({"time_scale": 2}, "at most 1"),
+    ({"time_scale": "x"}, "is not a number"),
+    ({"time_scale": 0.001}, "allows up to 100 ms"),
+    ({"driver": [(0, 0, 0), (0, 1, 0)]}, "times must be finite and increasing"),
+    ({"driver": [(0, 120, 0)]}, "pedals must be within"),
+    ({"driver": [(k, 0, 0) for k in range(65)]}, "the loop holds 64"),
+    ({"driver": [(0, 0)]}, "rows must be (t_s"),
+    ({"maneuver_end_s": 3.0}, "needs a driver table"),
+    ({"driver": [(0, 0, 0)], "maneuver_start": "later"}, "maneuver start"),
+    ({"record_every_s": 0}, "record interval"),
+])
+def test_bad_time_scale_driver_or_recording_is_a_one_line_error(channel, kwargs, words):
+    with pytest.raises(ServerError) as e:
+        Server(channel, interface="virtual", priority=0, **kwargs)
+    assert words in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_driver_table_waits_for_the_tcu_and_the_recording_holds_the_run(channel, tmp_path):
+    from rt_loop.recorder import read_recording
+
+    rows = [(0.0, 0.0, 30.0), (0.2, 20.0, 0.0)]
+    path = tmp_path / "rec.csv"
+    srv = Server(channel, interface="virtual", priority=0, driver=rows, maneuver_end_s=0.5,
+                 record_path=path, record_every_s=0.002)
+    srv.start()
+    try:
+        time.sleep(0.2)
+        snap = srv.snapshot()
+        assert snap["maneuver"] == "waiting for the TCU" and snap["maneuver_time_s"] is None
+        assert snap["plant"]["brake_pedal_pct"] == 30.0
+        peer = CanPeer.open(side="tcu", interface="virtual", channel=channel,
+                            values={"SolenoidCurrent1": 0.1})
+        try:
+            assert srv.wait(WAIT_S), "the maneuver end did not stop the loop"
+        finally:
+            peer.close()
+    finally:
+        srv.stop()
+    report = srv.report()
+    assert report["run"]["state"] == "stopped" and report["run"]["maneuver"] == "done"
+    assert report["run"]["maneuver_time_s"] == pytest.approx(0.5, abs=1e-9)
+    assert report["record"]["dropped"] == 0 and report["record"]["error"] is None
+    rec = read_recording(path)
+    assert report["record"]["written"] == len(rec["time_s"]) > 0
+    assert np.all(np.diff(rec["tick"]) == 4)                       # every 2 ms of plant time
+    assert np.allclose(np.diff(rec["time_s"]), 0.002)
+    waiting = np.isnan(rec["maneuver_time_s"])
+    assert waiting.any() and not waiting[-1]
+    assert np.all(rec["brake_pedal_pct"][waiting] == 30.0)
+    mt = rec["maneuver_time_s"][~waiting]
+    pedal = rec["accel_pedal_pct"][~waiting]
+    assert np.all(pedal[mt < 0.2 - 1e-9] == 0.0) and np.all(pedal[mt > 0.2 + 0.001] == 20.0)
+    assert 0.5 - 0.002 < mt[-1] <= 0.5 + 1e-9                       # the last 2 ms sample
+    assert "cmd_fork_force1_n" in rec and "cmd_torque_request_active" in rec

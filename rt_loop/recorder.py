@@ -1,0 +1,146 @@
+"""The measurement recorder: the loop's plant samples written to a CSV file.
+
+Every ``record_every`` executed ticks the C loop copies the plant outputs
+and the commands it applied into a ring of ``rt_sample`` (no allocation, no
+lock); this thread drains the ring about 20 times per second and appends the
+rows to a CSV file. The columns are those of ``dct-hil simulate`` (every
+plant output, ``time_s`` first, in plant time), then ``maneuver_time_s``
+(plant time since the scripted maneuver started, empty before), ``tick``
+(the executed tick), and the commands the loop applied that the outputs do
+not already hold, as ``cmd_<name>``. Samples the loop could not put in the
+ring because this thread fell behind are counted (``dropped``), never lost
+silently.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Recorder"]
+
+_BATCH = 1024
+
+
+class Recorder:
+    """Drains the loop's ``rec`` ring into ``path`` (CSV) in a thread of its own."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = os.fspath(path)
+        folder = os.path.dirname(os.path.abspath(self.path))
+        try:
+            os.makedirs(folder, exist_ok=True)
+            self._file = open(self.path, "w", encoding="ascii", newline="\n")  # noqa: SIM115
+        except OSError as e:
+            raise OSError(f"recording {self.path}: {e.strerror}") from None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._loop: Any = None
+        self.written = 0
+        self.error: str | None = None
+
+    def start(self, ffi: Any, lib: Any, loop: Any) -> None:
+        self._ffi, self._lib, self._loop = ffi, lib, loop
+        self._ring = ffi.addressof(loop[0], "rec")
+        outputs = [name for name, _ in ffi.typeof("dct_outputs").fields]
+        commands = _flat_doubles(ffi, "dct_tcu_commands")
+        sample = ffi.typeof("rt_sample")
+        fields = dict(sample.fields)
+        self._n_doubles = ffi.sizeof(sample) // 8
+        if ffi.sizeof(sample) % 8 or fields["tick"].offset != 0:
+            raise TypeError("rt_sample must be a uint64 tick followed by doubles")
+        base_o = fields["outputs"].offset // 8
+        base_c = fields["commands"].offset // 8
+        cmd_extra = [(k, n) for n, k in commands if n not in outputs]
+        # column order: outputs (time_s first), maneuver_time_s, tick, cmd_*
+        self.columns = outputs + ["maneuver_time_s", "tick"] + [f"cmd_{n}" for _, n in cmd_extra]
+        self._out_idx = np.arange(base_o, base_o + len(outputs))
+        self._mt_idx = fields["maneuver_time_s"].offset // 8
+        self._cmd_idx = np.array([base_c + k for k, _ in cmd_extra], dtype=int)
+        self._file.write(",".join(self.columns) + "\n")
+        self._buf = ffi.new("rt_sample[]", _BATCH)
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._thread.start()
+
+    @property
+    def dropped(self) -> int:
+        """Samples the loop could not put in the ring."""
+        return int(self._loop.rec.dropped) if self._loop is not None else 0
+
+    def _run(self) -> None:
+        while True:
+            stopping = self._stop.is_set()
+            n = self._drain()
+            if stopping and n == 0:
+                break
+            if n < _BATCH:
+                self._stop.wait(0.05)
+
+    def _drain(self) -> int:
+        n = self._lib.rt_rec_pop_many(self._ring, self._buf, _BATCH)
+        if n == 0 or self.error is not None:
+            return n
+        raw = np.frombuffer(self._ffi.buffer(self._buf, n * self._n_doubles * 8), dtype=np.float64)
+        raw = raw.reshape(n, self._n_doubles)
+        ticks = raw[:, 0].view(np.uint64)
+        lines = []
+        for i in range(n):
+            row = raw[i]
+            mt = row[self._mt_idx]
+            parts = [f"{v:.9g}" for v in row[self._out_idx]]
+            parts.append(f"{mt:.9g}" if mt >= 0 else "")
+            parts.append(str(int(ticks[i])))
+            parts.extend(f"{v:.9g}" for v in row[self._cmd_idx])
+            lines.append(",".join(parts))
+        try:
+            self._file.write("\n".join(lines) + "\n")
+            self.written += n
+        except OSError as e:  # disk full: reported, not fatal to the loop
+            self.error = f"{self.path}: {e.strerror}"
+        return n
+
+    def stop(self) -> None:
+        """Writes what is left in the ring, then closes the file."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        try:
+            self._file.close()
+        except OSError as e:
+            self.error = self.error or f"{self.path}: closing: {e.strerror}"
+
+    def counters(self) -> dict:
+        return {"path": self.path, "written": self.written, "dropped": self.dropped,
+                "error": self.error}
+
+
+def _flat_doubles(ffi: Any, cname: str) -> list[tuple[str, int]]:
+    """(name, index in doubles) of every double of a struct; an array field
+    ``fork_force_n[4]`` gives fork_force1_n .. fork_force4_n."""
+    out = []
+    for name, field in ffi.typeof(cname).fields:
+        first = field.offset // 8
+        if field.type.kind == "array":
+            base, _, unit = name.rpartition("_")
+            out.extend((f"{base}{i + 1}_{unit}", first + i) for i in range(field.type.length))
+        else:
+            out.append((name, first))
+    return out
+
+
+def read_recording(path: str | os.PathLike) -> dict:
+    """A recording as {column: float array}; empty maneuver times are NaN."""
+    path = os.fspath(path)
+    with open(path, encoding="ascii") as f:
+        header = f.readline().strip().split(",")
+    if not header or header[0] != "time_s":
+        raise ValueError(f"{path}: not a dct-hil recording (no time_s column first)")
+    data = np.genfromtxt(path, delimiter=",", skip_header=1, dtype=float,
+                         missing_values="", filling_values=np.nan)
+    data = np.atleast_2d(data)
+    if data.size == 0:
+        return {name: np.zeros(0) for name in header}
+    return {name: data[:, k] for k, name in enumerate(header)}
