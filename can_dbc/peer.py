@@ -6,7 +6,9 @@ against a TCU.
 (its own thread on absolute deadlines, AliveCounter and CRC per frame),
 receives the plant's messages in a second thread, checks them with
 ``E2eReceiver`` and keeps the last decoded values and per-message counts.
-``side="plant"`` is the reverse.
+``side="plant"`` is the reverse. With ``send_thread=False`` there is no send
+thread: the caller sends each frame when it is due with ``send_now`` (an ECU
+task that computes, then sends; ``tcu_stub.can_tcu`` does so).
 
 Command line (a test TCU for a while, then a JSON report)::
 
@@ -34,7 +36,8 @@ SIDES = {"tcu": ("TCU", "PLANT"), "plant": ("PLANT", "TCU")}
 
 
 class _RxStats:
-    __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last", "last_t_any")
+    __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last", "last_t_any",
+                 "last_ok")
 
     def __init__(self):
         self.received = 0
@@ -45,6 +48,7 @@ class _RxStats:
         self.max_interval_s = 0.0
         self.last = None              # decoded values of the last accepted frame
         self.last_t_any = None
+        self.last_ok = False          # the last frame received was accepted
 
 
 class CanPeer:
@@ -56,12 +60,17 @@ class CanPeer:
             "plant": sends the plant's messages, receives TCU_*
     values  initial signal values ({signal: value}); unset signals are 0
     start   start the send and receive threads now (else call ``start()``)
+    send_thread
+            False: no send thread; the caller sends each frame with
+            ``send_now`` when it is due (a task that computes and then
+            sends, as an ECU does). Reception is the same either way.
     """
 
-    def __init__(self, bus, side="tcu", values=None, start=True):
+    def __init__(self, bus, side="tcu", values=None, start=True, send_thread=True):
         if side not in SIDES:
             raise ValueError(f"side must be one of {', '.join(SIDES)}, got {side!r}")
         self.side = side
+        self.send_thread = bool(send_thread)
         self.node, self.peer_node = SIDES[side]
         self.bus = bus
         self._owns_bus = False
@@ -79,6 +88,7 @@ class CanPeer:
         self.error_frames = 0
         self._rx_stats = {name: _RxStats() for name in self.rx.names}
         self._lock = threading.Lock()
+        self._send_lock = threading.Lock()   # one frame at a time: send thread and send_now share counters
         self._changed = threading.Condition(self._lock)
         self._stop = threading.Event()
         self._threads = []
@@ -91,7 +101,7 @@ class CanPeer:
 
     @classmethod
     def open(cls, side="tcu", interface="socketcan", channel="vcan0", bitrate=None, values=None, start=True,
-             **bus_kwargs):
+             send_thread=True, **bus_kwargs):
         """A peer on a new python-can Bus (closed again by ``close()``)."""
         import can
 
@@ -104,7 +114,7 @@ class CanPeer:
             msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise ConnectionError(f"cannot open {interface} bus on {channel}: {msg}") from None
         try:
-            peer = cls(bus, side=side, values=values, start=start)
+            peer = cls(bus, side=side, values=values, start=start, send_thread=send_thread)
         except Exception:
             bus.shutdown()
             raise
@@ -117,7 +127,9 @@ class CanPeer:
         if self._threads:
             return
         self.started_at = time.monotonic()
-        for target, name in ((self._send_loop, "send"), (self._recv_loop, "recv")):
+        loops = ((self._send_loop, "send"), (self._recv_loop, "recv")) if self.send_thread else \
+            ((self._recv_loop, "recv"),)
+        for target, name in loops:
             t = threading.Thread(target=target, name=f"can-peer-{self.side}-{name}", daemon=True)
             t.start()
             self._threads.append(t)
@@ -187,7 +199,35 @@ class CanPeer:
         with self._lock:
             self.injected += 1
 
+    def send_now(self, message, values=None):
+        """Sends one frame of ``message`` now, from the calling thread (the
+        next AliveCounter, the CRC), after taking ``values`` ({signal: value},
+        the others keep their last values) as the values sent from now on.
+        Returns True when the bus took the frame; a refused send is counted
+        in ``send_errors`` and the counter does not move. Values are limited
+        to the DBC ranges by the encoder; NaN raises ValueError."""
+        msg = codec.message(message)
+        if msg.name not in self._values:
+            raise ValueError(f"{msg.name} is not a message the {self.node} sends")
+        if values:
+            current = self._values[msg.name]
+            unknown = [name for name in values if name not in current]
+            if unknown:
+                raise ValueError(f"{msg.name} has no signal {unknown[0]} (it has {', '.join(current)})")
+            with self._lock:
+                current.update(values)
+        return self._send_one(msg)
+
     # -- what was received --------------------------------------------------
+
+    def rx_snapshot(self):
+        """{message: (decoded values of the last accepted frame or None,
+        monotonic time it was received or None, whether the last frame
+        received was accepted)} for every received message, in one consistent
+        copy. The value dicts are the peer's own (never changed after they
+        were stored): read them, do not modify them."""
+        with self._lock:
+            return {name: (st.last, st.last_t, st.last_ok) for name, st in self._rx_stats.items()}
 
     def last(self, message):
         """Decoded values of the last accepted frame of a received message (None before the first)."""
@@ -262,11 +302,15 @@ class CanPeer:
     # -- threads ------------------------------------------------------------
 
     def _send_one(self, msg):
+        with self._send_lock:
+            return self._send_one_locked(msg)
+
+    def _send_one_locked(self, msg):
         import can
 
         with self._lock:
             if not self._enabled[msg.name]:
-                return
+                return False
             values = dict(self._values[msg.name])
             counter = self._counter[msg.name]
         data = codec.encode(msg.name, values, counter)
@@ -276,10 +320,11 @@ class CanPeer:
             with self._lock:
                 self.send_errors[msg.name] += 1
                 self.last_send_error = f"{msg.name}: {str(e).strip() or type(e).__name__}"
-            return
+            return False
         with self._lock:
             self._counter[msg.name] = (counter + 1) & 0x0F
             self.sent[msg.name] += 1
+        return True
 
     def _send_loop(self):
         t0 = time.monotonic()
@@ -323,6 +368,7 @@ class CanPeer:
                     st = self._rx_stats[name]
                     st.received += 1
                     st.last_t_any = t
+                    st.last_ok = status == codec.OK
                     if status == codec.OK:
                         st.accepted += 1
                         if st.last_t is not None:

@@ -147,14 +147,63 @@ def build_parser():
                             "(default 300 us, at most 60 %% of the period, with SCHED_FIFO; 0 without)")
     serve.add_argument("--bitrate", type=_serve_bitrate, metavar="BPS",
                        help="bit rate passed to the python-can bus (bridged interfaces only)")
+    serve.add_argument("--time-scale", type=_time_scale, default=1.0, metavar="X",
+                       help="run slower than real time: the same 1/rate plant step every "
+                            "1/(rate x X) s of wall time; bus cycles and timeouts stretch by 1/X "
+                            "(0 < X <= 1, default 1: real time). For machines too slow for real "
+                            "time; the TCU must run at the same scale")
+    serve.add_argument("--maneuver", choices=SCRIPTED_MANEUVERS, metavar="NAME",
+                       help="the driver inside the loop plays a scripted maneuver ("
+                            + ", ".join(SCRIPTED_MANEUVERS) + ") from the first accepted TCU "
+                            "frame; the run ends with it")
+    serve.add_argument("--record", metavar="FILE.csv",
+                       help="record every plant output (the columns of dct-hil simulate) to "
+                            "this CSV, in plant time")
+    serve.add_argument("--record-every", type=_record_every, default=0.002, metavar="S",
+                       help="recording interval in plant time (default 0.002)")
     serve.add_argument("--quiet", action="store_true",
                        help="no live status (the banner, warnings and summary stay)")
     serve.set_defaults(func=cmd_serve)
+
+    from tcu_stub import can_tcu
+
+    tcu = sub.add_parser(
+        "tcu", help="the reference TCU stub on a CAN bus, against dct-hil serve",
+        description="The reference TCU (tcu_stub.logic) as a CAN node: reads only the plant's "
+                    "DBC messages, sends TCU_ClutchCmd, TCU_ShiftCmd and TCU_EngineCmd with "
+                    "AliveCounter and CRC. Ctrl-C or SIGTERM send safe values and stop.")
+    can_tcu.add_arguments(tcu)
+    tcu.set_defaults(func=cmd_tcu)
+
+    demo = sub.add_parser(
+        "demo", help="the plant server and the TCU stub over CAN, a maneuver in real time, "
+                     "then plots and logs",
+        description="Runs the plant server and the TCU stub as two processes on vcan0 when "
+                    "vcan0 is up, otherwise on the embedded transport (python-can's in-process "
+                    "virtual bus, the TCU in a thread); plays the maneuver with a live status, "
+                    "then writes the plots, the recording, the CAN log and the statistics.")
+    demo.add_argument("--maneuver", choices=SCRIPTED_MANEUVERS, default="paper-cycle",
+                      metavar="NAME", help="paper-cycle (default) or 0-100")
+    demo.add_argument("--out", default="out/demo", metavar="DIR",
+                      help="where to write everything (default out/demo)")
+    demo.add_argument("--channel", metavar="NAME",
+                      help="a CAN network interface that is up (default: vcan0 if it is, else "
+                           "the embedded transport)")
+    demo.add_argument("--interface", metavar="NAME",
+                      help="python-can interface (default: socketcan on a CAN network "
+                           "interface, else virtual)")
+    demo.add_argument("--time-scale", type=_time_scale, default=1.0, metavar="X",
+                      help="slow motion for machines too slow for real time (0 < X <= 1)")
+    demo.add_argument("--priority", type=_serve_priority, default=None, metavar="0..99",
+                      help="SCHED_FIFO priority of the loop (default 80 as root, else 0)")
+    demo.add_argument("--quiet", action="store_true", help="no live status")
+    demo.set_defaults(func=cmd_demo)
     return parser
 
 
 # --------------------------------------------------------------------- simulate
 MANEUVER_NAMES = ("paper-cycle", "wltc", "0-100")
+SCRIPTED_MANEUVERS = ("paper-cycle", "0-100")      # pedal tables the loop plays itself
 RECORD_EVERY_S = 0.01
 
 
@@ -187,9 +236,10 @@ def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
     from plant.model import PlantError
     from plant.simulate import write_csv
     from tcu_stub.logic import PERIOD_S, TcuLogic
-    from tcu_stub.offline import DRIVER_PERIOD_S, apply_commands, sensors_from_plant
+    from tcu_stub.offline import DRIVER_PERIOD_S, ContractLink
 
     tcu = TcuLogic()
+    link = ContractLink()
     steps_per_tick = max(1, int(round(PERIOD_S / plant.step_s)))
     tick_s = steps_per_tick * plant.step_s
     ticks_per_record = max(1, int(round(RECORD_EVERY_S / tick_s)))
@@ -227,8 +277,8 @@ def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
                 j += 1
             if k == n_ticks:
                 break
-            cmd = tcu.step(plant.time_s - t0, sensors_from_plant(plant.outputs, k % 16))
-            apply_commands(plant, cmd, k % 16)
+            cmd = tcu.step(plant.time_s - t0, link.sensors(plant.outputs, k))
+            link.apply(plant, cmd, k)
             plant.step(steps_per_tick)
     except (KeyboardInterrupt, PlantError):
         if out_path is not None:
@@ -615,6 +665,27 @@ def _serve_duration(text):
     return x
 
 
+def _time_scale(text):
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(x) and 0 < x <= 1):
+        raise argparse.ArgumentTypeError(f"must be above 0 and at most 1 (1: real time), got {text}")
+    return x
+
+
+def _record_every(text):
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(x) and 0 < x <= 10):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0 and at most 10, "
+                                         f"got {text}")
+    return x
+
+
 def _serve_bitrate(text):
     try:
         n = int(text)
@@ -635,15 +706,44 @@ def cmd_serve(args):
         _check_writable(args.stats, "--stats")
         if args.log:
             _check_writable(args.log, "--log")
+        if args.record:
+            _check_writable(args.record, "--record")
+        driver = end = None
+        if args.maneuver:
+            from plant.maneuvers import get_maneuver
+
+            m = get_maneuver(args.maneuver)
+            driver, end = m.driver, m.duration_s
         server = Server(
             args.channel, interface=args.interface, rate_hz=args.rate, priority=args.priority,
             cpu=args.cpu, duration_s=args.duration, params_path=args.params, log_path=args.log,
             overrun_policy=args.overrun,
             bus_kwargs={"bitrate": args.bitrate} if args.bitrate else None,
-            spin_us=args.spin_us,
+            spin_us=args.spin_us, time_scale=args.time_scale, driver=driver,
+            maneuver_end_s=end, record_path=args.record, record_every_s=args.record_every,
         )
         return run_console(server, args.stats, quiet=args.quiet)
     except (ServerError, TransportError) as e:
+        raise UserError(str(e)) from None
+
+
+# -------------------------------------------------------------------- tcu, demo
+def cmd_tcu(args):
+    from tcu_stub import can_tcu
+
+    return can_tcu.run(args)
+
+
+def cmd_demo(args):
+    from dct_hil.demo import DemoError, run_demo
+    from rt_loop.server import ServerError
+    from rt_loop.transport import TransportError
+
+    _check_writable(os.path.join(args.out, "summary.json"), "--out")
+    try:
+        return run_demo(args.maneuver, args.out, channel=args.channel, interface=args.interface,
+                        time_scale=args.time_scale, priority=args.priority, quiet=args.quiet)
+    except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 
 
@@ -670,7 +770,8 @@ def main(argv=None):
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise UserError("choose a command: simulate, bench, valve or serve (dct-hil --help)")
+            raise UserError("choose a command: demo, simulate, serve, tcu, bench or valve "
+                            "(dct-hil --help)")
         try:
             user_errors = _user_errors()
         except ImportError as e:

@@ -149,6 +149,49 @@ def fuel_l_per_100km(rec):
     return float((rec["fuel_l"][-1] - rec["fuel_l"][0]) / d_km * 100.0)
 
 
+SHIFT_MIN_HOLD_S = 0.1
+
+
+def gear_shifts(time_s, gear, min_hold_s=SHIFT_MIN_HOLD_S):
+    """The shifts of a recorded run, seen from the plant: (t_s, from_gear, to_gear).
+
+    ``gear`` is the plant's gear carrying the drive torque (0 when no clutch
+    carries torque). Samples with gear 0 are gaps, not a gear: a coasting car
+    whose clutch torque crosses zero keeps its gear. A gear carrying the
+    torque for less than ``min_hold_s`` is a flicker of the torque handover
+    (both clutches near zero torque, or the drag of the open clutch at
+    launch), not a shift, and is dropped. A shift is the first sample of the
+    next gear held that long; the first gear of the run is no shift."""
+    t = np.asarray(time_s, dtype=float)
+    g = np.rint(np.asarray(gear, dtype=float)).astype(int)
+    if t.shape != g.shape:
+        raise ValueError("time_s and gear must have the same length")
+    segments = []                               # [gear, first t, last t]
+    for tk, gk in zip(t, g):
+        if gk == 0:
+            continue
+        if segments and segments[-1][0] == gk:
+            segments[-1][2] = tk
+        else:
+            segments.append([gk, tk, tk])
+    kept = []
+    for seg in segments:
+        if seg[2] - seg[1] < min_hold_s:
+            continue
+        if kept and kept[-1][0] == seg[0]:
+            kept[-1][2] = seg[2]
+        else:
+            kept.append(seg)
+    return [(float(b[1]), int(a[0]), int(b[0])) for a, b in zip(kept, kept[1:])]
+
+
+def compare_shifts(reference, other):
+    """Shift sequences side by side: (same_sequence, [time differences other - reference, s])."""
+    same = [(a, b) for _, a, b in reference] == [(a, b) for _, a, b in other]
+    diffs = [o[0] - r[0] for r, o in zip(reference, other)] if same else []
+    return same, diffs
+
+
 def report(maneuver, recorded):
     """Figures of a recorded run: dict name -> value (None when not defined)."""
     m = get_maneuver(maneuver) if isinstance(maneuver, str) else maneuver

@@ -82,8 +82,14 @@ LINE_CURRENT_A = 0.0                # line pressure solenoid: 0 A = 20 bar
 # ------------------------------------------------------------ forks
 FORK_ENGAGE_N = 900.0               # below the blocker overpower force: no clash
 FORK_HOLD_N = 80.0                  # keeps an engaged sleeve home
-FORK_NEUTRAL_N_PER_MM = 50.0        # PD position loop back to neutral: stiffness ...
-FORK_NEUTRAL_NS_PER_MM = 0.55       # ... and damping (N per mm/s), about critical with the sleeve mass
+# P position loop back to neutral. ForkPosition arrives every 10 ms and a fork
+# force holds for 10 ms (DCT_Shift, TCU_ShiftCmd), so the loop is designed
+# for that sample time: with the actuator's damping c (2000 N s/m) the sleeve
+# follows x' = -(k / c) x, a factor 1 - k T / c = 0.75 per 10 ms at k = 50 N/mm,
+# without overshoot even when the position seen is one sample old. No
+# derivative term: a difference of 10 ms samples taken every 2 ms is noise.
+FORK_NEUTRAL_N_PER_MM = 50.0
+FORK_NEUTRAL_NS_PER_MM = 0.0
 FORK_NEUTRAL_MAX_N = 600.0
 FORK_ENGAGED_MM = 7.0               # |position| beyond which a sleeve with SyncState 2 is engaged
 FORK_NEUTRAL_MM = 0.6               # |position| within which a sleeve is in neutral

@@ -4,6 +4,13 @@ Every TCU period the plant outputs go through the CAN contract: each plant
 message is encoded with ``can_dbc.codec.encode`` and decoded again, so the TCU
 sees exactly the quantized signals it would receive on CAN; its commands are
 encoded and decoded the same way before they drive the plant inputs.
+
+Each message also keeps its DBC cycle time, as on the bus: the TCU sees a
+10 ms message (fork positions, vehicle speed, pedals) refreshed every fifth
+period only, and its 10 ms commands (fork forces, engine torque request)
+reach the plant every fifth period (``ContractLink``). The phase of each
+message within its cycle follows the server's staggering, so an offline run
+and a run over CAN see their data equally old.
 """
 
 import numpy as np
@@ -28,10 +35,37 @@ _TCU_MESSAGES = [(name, codec.message(name).frame_id, targets)
                  for name, targets in codec.TCU_SIGNAL_TARGETS.items()]
 
 
-def sensors_from_plant(outputs, counter=0):
-    """The TCU's view of the plant outputs: every plant message through encode/decode."""
-    sensors = {}
+def _phase_plan(names):
+    """{message: (divisor, offset)} in TCU periods: a 10 ms message every fifth
+    period; messages of one cycle time take consecutive offsets (DBC order)."""
+    plan, used = {}, {}
+    for name in names:
+        div = max(1, int(round(codec.message(name).cycle_time / 1000.0 / PERIOD_S)))
+        off = used.get(div, 0)
+        used[div] = off + 1
+        plan[name] = (div, off % div)
+    return plan
+
+
+_PLANT_PLAN = _phase_plan([m[0] for m in _PLANT_MESSAGES])
+_TCU_PLAN = {name: (max(1, int(round(codec.message(name).cycle_time / 1000.0 / PERIOD_S))), 0)
+             for name, _, _ in _TCU_MESSAGES}
+
+
+def _due(plan, name, k):
+    div, off = plan[name]
+    return k % div == off
+
+
+def sensors_from_plant(outputs, counter=0, sensors=None, due=None):
+    """The TCU's view of the plant outputs: the plant messages through encode/decode.
+
+    ``sensors`` (a dict, updated in place) and ``due(name) -> bool`` refresh
+    only the messages due now; by default every message is refreshed."""
+    sensors = {} if sensors is None else sensors
     for name, frame_id, fields in _PLANT_MESSAGES:
+        if due is not None and not due(name):
+            continue
         values = {sig: float(outputs[field]) for sig, field in fields.items()}
         _, decoded = codec.decode(frame_id, codec.encode(name, values, counter))
         for sig in fields:
@@ -40,13 +74,36 @@ def sensors_from_plant(outputs, counter=0):
     return sensors
 
 
-def apply_commands(plant, commands, counter=0):
-    """Write the TCU commands, quantized by the CAN contract, into the plant inputs."""
+def apply_commands(plant, commands, counter=0, due=None):
+    """Write the TCU commands, quantized by the CAN contract, into the plant inputs
+    (only the messages for which ``due(name)`` is true, if given)."""
     for name, frame_id, targets in _TCU_MESSAGES:
+        if due is not None and not due(name):
+            continue
         values = {sig: float(commands[sig]) for sig in targets}
         _, decoded = codec.decode(frame_id, codec.encode(name, values, counter))
         for sig, (_, input_name) in targets.items():
             plant.inputs[input_name] = decoded[sig]
+
+
+class ContractLink:
+    """The CAN contract between plant and TCU in one process, with cycle times.
+
+    ``sensors(outputs, k)`` gives the TCU's view at TCU period ``k``: the plant
+    messages due at ``k`` refreshed, the others as last received.
+    ``apply(plant, commands, k)`` writes the TCU messages due at ``k``."""
+
+    def __init__(self):
+        self._sensors = {}
+
+    def sensors(self, outputs, k):
+        first = not self._sensors
+        sensors_from_plant(outputs, k % 16, self._sensors,
+                           None if first else (lambda name: _due(_PLANT_PLAN, name, k)))
+        return dict(self._sensors, stale=False)
+
+    def apply(self, plant, commands, k):
+        apply_commands(plant, commands, k % 16, lambda name: _due(_TCU_PLAN, name, k))
 
 
 RECORDED = ("vehicle_speed_kmh", "vehicle_accel_mps2", "engine_speed_rpm", "input_shaft1_speed_rpm",
@@ -72,6 +129,7 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
     n = int(round(duration_s / PERIOD_S))
     rec = {k: [] for k in ("time_s",) + RECORDED + ("tcu_target_gear", "tcu_gear", "tcu_phase")}
     t0 = plant.time_s
+    link = ContractLink()
     for k in range(n):
         t = plant.time_s - t0
         out = plant.outputs
@@ -80,11 +138,11 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
             plant.inputs["accel_pedal_pct"] = accel
             plant.inputs["brake_pedal_pct"] = brake
             plant.update_outputs()
-        sensors = sensors_from_plant(out, k % 16)
+        sensors = link.sensors(out, k)
         if stale_fn is not None and stale_fn(t):
             sensors["stale"] = True
         cmd = tcu.step(t, sensors)
-        apply_commands(plant, cmd, k % 16)
+        link.apply(plant, cmd, k)
         if k % tcu_per_record == 0:
             rec["time_s"].append(t)
             for name in RECORDED:

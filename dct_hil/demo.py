@@ -1,0 +1,314 @@
+"""``dct-hil demo``: the plant server and the reference TCU closing the loop over CAN.
+
+What a new user runs first. The server plays a scripted maneuver
+(``paper-cycle`` by default: the reference paper's TCU test) with the driver
+inside the real-time loop; the TCU stub (``tcu_stub.can_tcu``) drives the
+clutches, forks and engine interventions through the CAN contract only.
+
+Transport:
+- vcan0 (or the ``--channel`` given) is a CAN network interface that is up:
+  SocketCAN, the server in this process, the TCU stub as a second process
+  (``python -m tcu_stub.can_tcu``), exactly as a TCU on the bench would be;
+- otherwise the embedded default: python-can's in-process ``virtual`` bus,
+  the server bridged onto it and the TCU stub in a thread of this process.
+  The demo says which, and why.
+
+The maneuver starts when the TCU's first frame is accepted and the run ends
+with it. Then the demo writes, into ``--out`` (default out/demo):
+``plant.csv`` (every plant output each 2 ms of plant time),
+``can.log`` (the traffic, candump format), ``serve-stats.json`` (turnaround,
+overruns, counts), ``tcu-report.json`` (the TCU's own counts and shifts),
+``summary.json`` (figures and shifts), and the plots (PNG, like the paper's
+Figs. 10 and 11), and prints where they are.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DEFAULT_CHANNEL = "vcan0"
+EMBEDDED_CHANNEL = "dct-hil-demo"
+SCRIPTED_MANEUVERS = ("paper-cycle", "0-100")
+RECORD_EVERY_S = 0.002
+_TCU_START_TIMEOUT_S = 60.0
+
+
+class DemoError(RuntimeError):
+    """A demo that cannot run (one-line message)."""
+
+
+def can_netdev_up(name: str) -> bool:
+    """True when ``name`` is a CAN network interface of this kernel and it is up."""
+    base = Path("/sys/class/net") / name
+    try:
+        if (base / "type").read_text().strip() != "280":          # ARPHRD_CAN
+            return False
+        flags = int((base / "flags").read_text().strip(), 16)
+    except (OSError, ValueError):
+        return False
+    return bool(flags & 0x1)                                        # IFF_UP
+
+
+def choose_transport(channel: str | None, interface: str | None) -> tuple[str, str, str, bool]:
+    """(interface, channel, why, two_processes)."""
+    if interface is not None:
+        if interface == "virtual":
+            return ("virtual", channel or EMBEDDED_CHANNEL,
+                    "--interface virtual: the in-process bus, the TCU stub in a thread", False)
+        return (interface, channel or DEFAULT_CHANNEL,
+                f"--interface {interface}: the TCU stub as a second process", True)
+    name = channel or DEFAULT_CHANNEL
+    if can_netdev_up(name):
+        return ("socketcan", name,
+                f"{name} is a CAN network interface and up: SocketCAN, the TCU stub as a "
+                "second process", True)
+    if channel is not None:
+        raise DemoError(f"{channel} is not a CAN network interface that is up (create it: "
+                        f"ip link add dev {channel} type vcan && ip link set up {channel}), "
+                        "or leave --channel out for the embedded transport")
+    return ("virtual", EMBEDDED_CHANNEL,
+            f"no {DEFAULT_CHANNEL} on this machine: the embedded transport (python-can's "
+            "in-process virtual bus), the TCU stub in a thread of this process", False)
+
+
+def _driver_for(name: str):
+    from plant.maneuvers import get_maneuver  # noqa: PLC0415
+
+    if name not in SCRIPTED_MANEUVERS:
+        raise DemoError(f"maneuver {name!r}: the demo plays the scripted maneuvers "
+                        f"({', '.join(SCRIPTED_MANEUVERS)}); wltc runs offline: "
+                        "dct-hil simulate --scenario wltc")
+    return get_maneuver(name)
+
+
+class _TcuProcess:
+    """The TCU stub as a second process on the same CAN channel."""
+
+    def __init__(self, interface: str, channel: str, time_scale: float, report: Path,
+                 log: Path) -> None:
+        self.report_path = report
+        self.log_path = log
+        cmd = [sys.executable, "-m", "tcu_stub.can_tcu", "--channel", channel,
+               "--interface", interface, "--time-scale", repr(time_scale),
+               "--report", str(report), "--quiet"]
+        self._log = open(log, "w", encoding="utf-8")  # noqa: SIM115
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def status_line(self) -> str:
+        return "" if self.alive() else f"TCU process ended ({self.proc.returncode})"
+
+    def stop(self) -> int | None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+    def report(self) -> dict | None:
+        try:
+            return json.loads(self.report_path.read_text())
+        except (OSError, ValueError):
+            return None
+
+
+class _TcuThread:
+    """The TCU stub in a thread of this process, on the in-process bus."""
+
+    def __init__(self, channel: str, time_scale: float, report: Path) -> None:
+        from tcu_stub.can_tcu import CanTcu  # noqa: PLC0415
+
+        self.report_path = report
+        self.tcu = CanTcu.open("virtual", channel, time_scale=time_scale)
+        self.tcu.start()
+
+    def alive(self) -> bool:
+        return True
+
+    def status_line(self) -> str:
+        return self.tcu.status_line()
+
+    def stop(self) -> int:
+        self.tcu.stop()
+        self.tcu.write_report(self.report_path)
+        return 0
+
+    def report(self) -> dict | None:
+        try:
+            return json.loads(self.report_path.read_text())
+        except (OSError, ValueError):
+            return None
+
+
+def _status_line(snap: dict, tcu_line: str) -> str:
+    p, c = snap["plant"], snap["counts"]
+    mt = snap.get("maneuver_time_s")
+    head = f"t {mt:6.2f} s" if mt is not None else "waiting for the TCU"
+    line = (f"{head} | {p['vehicle_speed_kmh']:6.1f} km/h  gear {p['gear']}  engine "
+            f"{p['engine_speed_rpm']:5.0f} rpm  K1 {max(p['clutch1_pressure_bar'], 0):4.1f} "
+            f"K2 {max(p['clutch2_pressure_bar'], 0):4.1f} bar | turnaround max "
+            f"{snap['turnaround_max_us']:.0f} us, overruns {c['overruns']}, rx rejected "
+            f"{c['rx']['rejected']}")
+    return line + (f" | {tcu_line}" if tcu_line else "")
+
+
+def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/demo",
+             channel: str | None = None, interface: str | None = None,
+             time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
+             out=None, err=None) -> int:
+    """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C)."""
+    from plant import maneuvers as mv  # noqa: PLC0415
+    from plant.plots import write_plots  # noqa: PLC0415
+    from rt_loop.recorder import read_recording  # noqa: PLC0415
+    from rt_loop.server import Server  # noqa: PLC0415
+
+    out = sys.stdout if out is None else out
+    err = sys.stderr if err is None else err
+    m = _driver_for(maneuver)
+    iface, chan, why, two = choose_transport(channel, interface)
+    folder = Path(out_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {"recording": folder / "plant.csv", "can_log": folder / "can.log",
+             "stats": folder / "serve-stats.json", "tcu_report": folder / "tcu-report.json",
+             "summary": folder / "summary.json"}
+    for p in paths.values():
+        if p.exists():
+            p.unlink()
+    if priority is None:
+        priority = 80 if os.geteuid() == 0 else 0
+    server = Server(chan, interface=iface, priority=priority, driver=m.driver,
+                    maneuver_start="tcu", maneuver_end_s=m.duration_s,
+                    record_path=paths["recording"], record_every_s=RECORD_EVERY_S,
+                    log_path=paths["can_log"], time_scale=time_scale)
+    print(f"dct-hil demo      {maneuver}: {m.description} ({m.duration_s:g} s"
+          + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
+          file=out)
+    print(f"transport         {iface} on {chan}: {why}", file=out)
+
+    stop = threading.Event()
+    received: list[int] = []
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        received.append(signum)
+        stop.set()
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
+    tcu = None
+    tcu_rc = None
+    try:
+        server.start()
+        for w in server.warnings:
+            print(f"dct-hil: warning: {w}", file=err)
+        if two:
+            tcu = _TcuProcess(iface, chan, time_scale, paths["tcu_report"],
+                              folder / "tcu.out")
+        else:
+            tcu = _TcuThread(chan, time_scale, paths["tcu_report"])
+        started = time.monotonic()
+        last = 0.0
+        while not stop.is_set() and server.running:
+            snap = server.snapshot()
+            if snap["maneuver_time_s"] is None and time.monotonic() - started > _TCU_START_TIMEOUT_S:
+                raise DemoError(f"the TCU stub sent no valid frame within "
+                                f"{_TCU_START_TIMEOUT_S:g} s ({tcu.status_line() or 'no reason known'})")
+            if not tcu.alive():
+                raise DemoError(f"the TCU stub stopped: {tcu.status_line()}; see "
+                                f"{folder / 'tcu.out'}")
+            now = time.monotonic()
+            if not quiet and now - last >= 1.0:
+                print(_status_line(snap, tcu.status_line()), file=out, flush=True)
+                last = now
+            stop.wait(0.1)
+    except DemoError as e:
+        print(f"dct-hil: error: {e}", file=err)
+        return_code = 1
+    else:
+        return_code = 0
+    finally:
+        if tcu is not None:
+            tcu_rc = tcu.stop()
+        server.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+    report = server.write_report(paths["stats"])
+    run = report["run"]
+    if run["error"]:
+        print(f"dct-hil: error: the loop stopped: {run['error']}", file=err)
+        return_code = 1
+    rec = read_recording(paths["recording"])
+    started = ~np.isnan(rec["maneuver_time_s"])
+    figures: dict = {}
+    shifts: list = []
+    plots: list = []
+    if started.sum() >= 2:
+        ran = {k: v[started] for k, v in rec.items()}
+        ran["time_s"] = ran["maneuver_time_s"]
+        figures = mv.report(m, ran)
+        shifts = mv.gear_shifts(ran["time_s"], ran["gear"])
+        plots = write_plots(ran, folder, title=f"demo {maneuver}")
+    tcu_report = tcu.report() if tcu is not None else None
+    summary = {
+        "maneuver": maneuver,
+        "completed": run["maneuver"] == "done",
+        "maneuver_time_s": run["maneuver_time_s"],
+        "transport": {"interface": iface, "channel": chan, "why": why,
+                      "tcu": "second process" if two else "thread"},
+        "time_scale": time_scale,
+        "figures": figures,
+        "shifts": [{"time_s": t, "from": a, "to": b} for t, a, b in shifts],
+        "gear_clashes": float(rec["gear_clashes"][-1]) if len(rec["time_s"]) else None,
+        "turnaround": report["turnaround"],
+        "overruns": report["counts"]["overruns"],
+        "skipped_ticks": report["counts"]["skipped_ticks"],
+        "rx": report["counts"]["rx"],
+        "tcu_exit": tcu_rc,
+        "tcu": tcu_report,
+        "files": {k: str(v) for k, v in paths.items()} | {"plots": plots},
+    }
+    paths["summary"].write_text(json.dumps(summary, indent=2, default=float) + "\n")
+
+    print(file=out)
+    if figures:
+        print(mv.format_report(maneuver, figures), file=out)
+    print(f"shifts            {len(shifts)}: "
+          + ", ".join(f"{a}-{b} at {t:.2f} s" for t, a, b in shifts), file=out)
+    ta = report["turnaround"]
+    print(f"loop              turnaround p99.9 {_us(ta.get('p99_9_us'))}, max {_us(ta.get('max_us'))}; "
+          f"overruns {summary['overruns']}; rx rejected {summary['rx']['rejected']}, lost "
+          f"{summary['rx']['overflow']}", file=out)
+    if not summary["completed"]:
+        print(f"dct-hil demo: the maneuver did not complete (state {run['maneuver']})", file=err)
+        return_code = return_code or 1
+    print("written:", file=out)
+    for name, p in [("plots", ", ".join(plots) or "none")] + [
+            (k, str(v)) for k, v in paths.items()]:
+        print(f"  {name:<15} {p}", file=out)
+    out.flush()
+    if received and received[0] == signal.SIGINT:
+        return 130
+    return return_code
+
+
+def _us(v) -> str:
+    return "n/a" if v is None else f"{v:.1f} us"

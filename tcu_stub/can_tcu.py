@@ -1,0 +1,700 @@
+"""The reference TCU as a CAN node: ``tcu_stub.logic.TcuLogic`` against
+``dct-hil serve`` (or any plant) on a python-can bus.
+
+    dct-hil tcu --channel vcan0                          # SocketCAN (vcan0, can0)
+    dct-hil tcu --interface virtual --channel demo       # python-can's in-process bus
+    python -m tcu_stub.can_tcu --channel vcan0 --duration 60 --report out/tcu.json
+
+From Python::
+
+    tcu = CanTcu.open("socketcan", "vcan0")     # or CanTcu(bus) on an open python-can bus
+    print(tcu.status_line())
+    tcu.close()                                 # safe final frames, threads stopped
+    tcu.report()                                # JSON-ready dict
+
+The node reads and writes only the DBC signals of the CAN contract
+(``can_dbc/dct_hil.dbc``); there is no back door into the plant.
+
+Task
+----
+One task runs ``TcuLogic.step`` every ``PERIOD_S`` (2 ms) of TCU time, as the
+2 ms task of a production TCU, on absolute deadlines ``t0 + k * PERIOD_S /
+time_scale`` of ``time.monotonic``. ``time_scale`` (0 < s <= 1, default 1)
+runs the whole HiL in slow motion on a slow machine: the server then runs its
+0.5 ms plant step every 0.5 ms / s of wall time, so every cycle time on the
+bus, and this task's period, stretches by 1 / s. Each tick:
+
+1. builds the sensors dict from the last accepted plant frames (the DBC
+   signal names, as ``tcu_stub.offline.sensors_from_plant`` gives them) and
+   sets ``stale`` when any plant message the logic needs (all plant messages
+   but ``SIM_Status``) was never received, was rejected last (length, CRC,
+   AliveCounter), or has not been accepted for 10 of its DBC cycle times
+   (``GenMsgCycleTime``, scaled by 1 / time_scale);
+2. calls ``logic.step(t_s, sensors)`` with ``t_s = k * PERIOD_S``: TCU time
+   from the tick index, never a wall-clock difference;
+3. sends right away the messages due this tick, each with its own
+   AliveCounter and CRC (``can_dbc.codec.encode``): ``TCU_ClutchCmd`` every
+   tick (2 ms), ``TCU_ShiftCmd`` and ``TCU_EngineCmd`` every 5th tick (10 ms),
+   as the DBC's ``GenMsgCycleTime`` says. The frames leave from the task right
+   after the computation, as on a real TCU, not from a free-running sender.
+
+Late ticks: a tick that starts more than one period after its deadline skips
+the missed deadlines (counted in ``skipped_ticks``) and runs at the next one;
+there is never a burst of catch-up ticks. The tick index, and so ``t_s``,
+advances by the number of periods that really elapsed (executed plus
+skipped), so TCU time stays equal to the bus clock: the plant (and its
+SIM_Status SimTime) keeps running while this task is late, and the logic's
+timers (torque phase length, shift timeout, fill pulse) must measure the time
+the plant experienced. The logic's per-step integrators use their fixed
+PERIOD_S, so a skipped tick costs those one step of integration, nothing more.
+A 10 ms message whose tick was skipped is sent at the next executed tick.
+
+Timing is soft real time: a Python thread on the normal scheduler (with the
+GIL), so single ticks may start late and some may be skipped; the report
+gives the wake-up lateness and the tick cost. A real TCU is the hard
+real-time peer; this node is the reference for behaviour, not for jitter.
+
+Reception
+---------
+A ``can_dbc.peer.CanPeer`` (side "tcu", its send thread off) receives in a
+thread of its own and checks every plant frame with ``codec.E2eReceiver``;
+rejected frames are counted per message and reason (bad_length, bad_crc,
+bad_counter), frames with ids that are not plant messages as unknown. On
+SocketCAN the bus socket's receive buffer is raised (``SO_RCVBUFFORCE`` when
+the process may, else ``SO_RCVBUF``, capped by ``net.core.rmem_max``; asked:
+``RCVBUF_BYTES``, granted: ``rcvbuf_bytes`` in the report) so a late Python
+thread does not lose frames. Frames the kernel drops because that buffer was
+full never reach python-can and are NOT counted here; they show up only as
+AliveCounter jumps (a jump of 2 is accepted, more is rejected) and, when
+long, as timeouts.
+
+Safe state
+----------
+While stale, the logic opens both clutches (0 A), applies no fork force and
+requests no torque, and the node records a stale episode (TCU start and end
+time and, per message, why: missing, rejected or timeout). ``stop()`` ends the
+task, then sends one final frame of each TCU message with the contract's safe
+values (``codec.TCU_SAFE_VALUES``: 0 A, no fork force, no torque request), so
+the last commands on the bus are safe; the plant's own timeout does the same
+if even those are lost.
+
+Records: ``events`` (the shifts the logic started, TCU time), stale episodes,
+counters (ticks, skipped ticks, frames sent and send errors per message,
+frames received, accepted and rejected per message and reason, unknown ids),
+the SimTime of the last SIM_Status; ``report()`` returns them as JSON-ready
+data, ``write_report(path)`` writes them; ``status_line()`` is the one-line
+live status ``dct-hil tcu`` prints once a second.
+"""
+
+import argparse
+import json
+import math
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+
+from can_dbc import codec
+from can_dbc.peer import CanPeer
+from tcu_stub.logic import PERIOD_S, TcuLogic
+
+__all__ = ["CanTcu", "RCVBUF_BYTES", "TIMEOUT_CYCLES", "add_arguments", "run", "main"]
+
+#: a plant message not accepted for this many of its cycle times is timed out
+TIMEOUT_CYCLES = 10
+#: receive buffer asked for on a SocketCAN socket (about 1400 queued frames,
+#: 0.75 s of the plant's traffic at time scale 1)
+RCVBUF_BYTES = 1 << 20
+#: bytes a queued CAN frame costs in a socket receive buffer (a whole skb)
+SKB_BYTES_PER_FRAME = 760
+_SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
+_HIST_BIN_US = 10.0
+_HIST_BINS = 5000                      # 10 us bins up to 50 ms; later goes in the last one
+_MAX_EPISODES = 1000                   # stale episodes kept in the report (all are counted)
+
+PLANT_NEEDED = tuple(m.name for m in codec.messages("PLANT")
+                     if any(src.startswith("o.") for src in codec.PLANT_SIGNAL_SOURCES.get(m.name, {}).values()))
+TCU_MESSAGES = tuple(codec.TCU_SIGNAL_TARGETS)
+
+
+def _one_line(text):
+    return " ".join(str(text).split())
+
+
+def check_time_scale(time_scale):
+    """``time_scale`` as a float in (0, 1]; ValueError otherwise."""
+    try:
+        x = float(time_scale)
+    except (TypeError, ValueError):
+        raise ValueError(f"time scale {time_scale!r} is not a number") from None
+    if not (math.isfinite(x) and 0.0 < x <= 1.0):
+        raise ValueError(f"time scale must be above 0 and at most 1 (1 = real time), got {time_scale}")
+    return x
+
+
+def raise_rcvbuf(sock, want_bytes=RCVBUF_BYTES):
+    """Asks for a ``want_bytes`` receive buffer on ``sock`` (SO_RCVBUFFORCE, needs
+    CAP_NET_ADMIN; else SO_RCVBUF, capped at net.core.rmem_max); returns the
+    size the kernel granted (getsockopt, which on Linux counts its bookkeeping:
+    about twice what was set)."""
+    for option in (_SO_RCVBUFFORCE, socket.SO_RCVBUF):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, option, int(want_bytes))
+            break
+        except OSError:
+            continue
+    return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+
+
+class _Histogram:
+    """Microsecond values in 10 us bins: count, mean, max, percentiles."""
+
+    def __init__(self):
+        self.bins = [0] * _HIST_BINS
+        self.n = 0
+        self.total = 0.0
+        self.max = 0.0
+
+    def add(self, us):
+        self.n += 1
+        self.total += us
+        if us > self.max:
+            self.max = us
+        i = int(us / _HIST_BIN_US)
+        self.bins[min(max(i, 0), _HIST_BINS - 1)] += 1
+
+    def percentile(self, q):
+        if not self.n:
+            return None
+        want = q / 100.0 * self.n
+        seen = 0
+        for i, c in enumerate(self.bins):
+            seen += c
+            if seen >= want:
+                return (i + 1) * _HIST_BIN_US       # upper edge of the bin
+        return self.max
+
+    def summary(self):
+        if not self.n:
+            return {"n": 0, "mean": None, "p50": None, "p99": None, "p99_9": None, "max": None}
+        return {"n": self.n, "mean": round(self.total / self.n, 1), "p50": self.percentile(50),
+                "p99": self.percentile(99), "p99_9": self.percentile(99.9), "max": round(self.max, 1)}
+
+
+class CanTcu:
+    """The reference TCU on an open python-can bus (``CanTcu.open`` makes one).
+
+    bus         an open python-can Bus; shut down by ``close()`` only if
+                ``open`` made it
+    time_scale  0 < s <= 1: the task period is PERIOD_S / s of wall time
+                (slow-motion HiL; the plant server must run at the same scale)
+    logic       a TcuLogic (default: a new one)
+    start       start reception and the task now (else call ``start()``)
+    rcvbuf_bytes  receive buffer asked for when the bus is a SocketCAN socket
+    """
+
+    def __init__(self, bus, time_scale=1.0, logic=None, start=True, rcvbuf_bytes=RCVBUF_BYTES):
+        self.time_scale = check_time_scale(time_scale)
+        self.period_wall_s = PERIOD_S / self.time_scale
+        self.logic = logic if logic is not None else TcuLogic()
+        self.bus = bus
+        self._owns_bus = False
+        self.interface = None
+        self.channel = None
+        self.rcvbuf_bytes = None
+        sock = getattr(bus, "socket", None)
+        if isinstance(sock, socket.socket) and rcvbuf_bytes:
+            try:
+                self.rcvbuf_bytes = raise_rcvbuf(sock, rcvbuf_bytes)
+            except OSError:
+                self.rcvbuf_bytes = None
+        self.peer = CanPeer(bus, side="tcu", start=False, send_thread=False)
+        self._timeout_s = {name: TIMEOUT_CYCLES * codec.message(name).cycle_time / 1000.0 / self.time_scale
+                           for name in PLANT_NEEDED}
+        self._signals = {name: tuple(s.name for s in codec.payload_signals(codec.message(name)))
+                         for name in PLANT_NEEDED}
+        self._tx_signals = {name: tuple(targets) for name, targets in codec.TCU_SIGNAL_TARGETS.items()}
+        self._every_ticks = {name: max(1, int(round(codec.message(name).cycle_time / 1000.0 / PERIOD_S)))
+                             for name in TCU_MESSAGES}
+        self._next_due = {name: 0 for name in TCU_MESSAGES}
+
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._ended = threading.Event()
+        self._thread = None
+        self.ticks = 0
+        self.skipped_ticks = 0
+        self.tick_index = 0
+        self.t_s = 0.0
+        self.stale = True                 # no plant frame yet
+        self._episode = None              # the stale episode going on
+        self.stale_ticks = 0
+        self.stale_episodes = []          # {"start_s", "end_s" (None while stale), "causes": {msg: why}}
+        self.stale_episode_count = 0
+        self.sim_time_s = None
+        self.commands = {sig: 0.0 for sigs in self._tx_signals.values() for sig in sigs}
+        self.sensors = {}
+        self.error = None                 # one line, when the task stopped on an exception
+        self.final_safe_frames = None     # True/False once stop() sent (or tried) them
+        self._exec_us = _Histogram()
+        self._late_us = _Histogram()
+        self.started_at = None
+        self.stopped_at = None
+        if start:
+            self.start()
+
+    @classmethod
+    def open(cls, interface="socketcan", channel="vcan0", bitrate=None, time_scale=1.0, logic=None,
+             start=True, rcvbuf_bytes=RCVBUF_BYTES, **bus_kwargs):
+        """A CanTcu on a new python-can Bus (shut down again by ``close()``).
+        A bus that cannot be opened raises ConnectionError, one line naming the
+        interface and the channel."""
+        import can
+
+        time_scale = check_time_scale(time_scale)
+        kwargs = dict(bus_kwargs)
+        if bitrate:
+            kwargs["bitrate"] = bitrate
+        try:
+            bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        except Exception as e:  # python-can raises many kinds (CanError, OSError, ImportError, ...)
+            msg = _one_line(e) or type(e).__name__
+            raise ConnectionError(f"cannot open {interface} bus on channel {channel}: {msg}") from None
+        try:
+            tcu = cls(bus, time_scale=time_scale, logic=logic, start=False, rcvbuf_bytes=rcvbuf_bytes)
+        except Exception:
+            bus.shutdown()
+            raise
+        tcu._owns_bus = True
+        tcu.interface, tcu.channel = interface, channel
+        if start:
+            tcu.start()
+        return tcu
+
+    # ------------------------------------------------------------ life cycle
+    def start(self):
+        """Starts reception and the task (once)."""
+        if self._thread is not None:
+            return
+        self.peer.start()
+        self.started_at = time.monotonic()
+        self._thread = threading.Thread(target=self._task, name="tcu-task", daemon=True)
+        self._thread.start()
+
+    @property
+    def running(self):
+        """The task thread runs (it ends on stop() or on an error in the task)."""
+        return self._thread is not None and not self._ended.is_set()
+
+    def stop(self):
+        """Ends the task, then sends one final frame of each TCU message with safe
+        values (0 A, no fork force, no torque request). Reception goes on until
+        ``close()``. Safe to call more than once."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        if self.stopped_at is None and self.started_at is not None:
+            self.stopped_at = time.monotonic()
+        if self.final_safe_frames is None and self._thread is not None:
+            self._send_safe()
+
+    def _send_safe(self):
+        """One frame of each TCU message with the contract's safe values."""
+        ok = True
+        for name in TCU_MESSAGES:
+            try:
+                ok = self.peer.send_now(name, codec.TCU_SAFE_VALUES[name]) and ok
+            except Exception as e:  # noqa: BLE001 (a closed bus): reported
+                ok = False
+                self.peer.last_send_error = f"{name}: {_one_line(e) or type(e).__name__}"
+        with self._lock:
+            self.final_safe_frames = ok
+            self.commands = {k: v for vals in codec.TCU_SAFE_VALUES.values() for k, v in vals.items()}
+
+    def close(self):
+        """``stop()``, then ends reception; shuts the bus down if ``open`` made it."""
+        self.stop()
+        self.peer.close()
+        if self._owns_bus:
+            self._owns_bus = False
+            self.bus.shutdown()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def wait_for(self, predicate, timeout=5.0, poll_s=0.01):
+        """Waits until ``predicate(self)`` is true or ``timeout`` seconds passed;
+        returns the predicate's last value."""
+        deadline = time.monotonic() + timeout
+        while True:
+            ok = predicate(self)
+            if ok or time.monotonic() >= deadline:
+                return ok
+            time.sleep(poll_s)
+
+    # ------------------------------------------------------------ the task
+    def _task(self):
+        period = self.period_wall_s
+        t0 = time.monotonic()
+        k = 0
+        try:
+            while not self._stop.is_set():
+                deadline = t0 + k * period
+                now = time.monotonic()
+                while now < deadline:
+                    if self._stop.wait(deadline - now):
+                        return
+                    now = time.monotonic()
+                late = now - deadline
+                if late > period:                       # skip the missed deadlines, no burst
+                    missed = int(late // period)
+                    k += missed
+                    deadline += missed * period
+                    late = now - deadline
+                    with self._lock:
+                        self.skipped_ticks += missed
+                self._tick(k, now)
+                self._late_us.add(late * 1e6)
+                self._exec_us.add((time.monotonic() - now) * 1e6)
+                k += 1
+        except Exception as e:  # noqa: BLE001 (the task stops; stop() sends the safe frames)
+            self.error = f"TCU task stopped at {k * PERIOD_S:.3f} s: {type(e).__name__}: {_one_line(e)}"
+            self._send_safe()                           # the last commands on the bus are safe
+        finally:
+            self._ended.set()
+
+    def _read_sensors(self, now):
+        """(sensors, {message: why} of the stale ones) from the last accepted plant frames."""
+        snap = self.peer.rx_snapshot()
+        sensors = {}
+        causes = {}
+        for name in PLANT_NEEDED:
+            values, t_ok, last_ok = snap[name]
+            if values is None:
+                causes[name] = "missing"
+                continue
+            if not last_ok:
+                causes[name] = "rejected"
+            elif now - t_ok > self._timeout_s[name]:
+                causes[name] = "timeout"
+            for sig in self._signals[name]:
+                sensors[sig] = values[sig]
+        status = snap.get("SIM_Status")
+        sim_time = status[0]["SimTime"] if status is not None and status[0] is not None else None
+        sensors["stale"] = bool(causes)
+        return sensors, causes, sim_time
+
+    def _tick(self, k, now):
+        t_s = k * PERIOD_S
+        sensors, causes, sim_time = self._read_sensors(now)
+        cmd = self.logic.step(t_s, sensors)
+        for name in TCU_MESSAGES:
+            if k >= self._next_due[name]:
+                every = self._every_ticks[name]
+                self.peer.send_now(name, {sig: cmd[sig] for sig in self._tx_signals[name]})
+                self._next_due[name] = (k // every + 1) * every
+        with self._lock:
+            self.tick_index = k
+            self.t_s = t_s
+            self.ticks += 1
+            self.sensors = sensors
+            self.commands = cmd
+            self.sim_time_s = sim_time
+            stale = bool(causes)
+            if stale:
+                self.stale_ticks += 1
+                if self._episode is None:
+                    self.stale_episode_count += 1
+                    self._episode = {"start_s": t_s, "end_s": None, "causes": {}}
+                    if len(self.stale_episodes) < _MAX_EPISODES:
+                        self.stale_episodes.append(self._episode)
+                for name, why in causes.items():
+                    self._episode["causes"].setdefault(name, why)
+            elif self._episode is not None:
+                self._episode["end_s"] = t_s
+                self._episode = None
+            self.stale = stale
+
+    # ------------------------------------------------------------ records
+    @property
+    def events(self):
+        """The shifts the logic started: [(TCU time s, from gear, to gear)]."""
+        return list(self.logic.events)
+
+    def counts(self, message):
+        """{received, accepted, bad_length, bad_crc, bad_counter} of a plant message."""
+        return self.peer.counts(message)
+
+    def sent(self, message):
+        """Frames of a TCU message put on the bus."""
+        return self.peer.sent[codec.message(message).name]
+
+    def status_line(self):
+        """One line: TCU time, phase, gear -> target gear, stale or not, speeds, frames rx/tx."""
+        with self._lock:
+            t_s, stale, s, skipped = self.t_s, self.stale, self.sensors, self.skipped_ticks
+        logic = self.logic
+        rx = sum(self.peer.counts(m)["accepted"] for m in self.peer.rx.names)
+        tx = sum(self.peer.sent.values())
+        v = s.get("VehicleSpeed")
+        n = s.get("EngineSpeed")
+        speeds = (f"v {v:5.1f} km/h  engine {n:5.0f} rpm" if v is not None and n is not None
+                  else "v   -   km/h  engine   -   rpm")
+        return (f"TCU {t_s:8.2f} s  {logic.phase:<17} gear {logic.gear} -> {logic.target_gear}  "
+                f"{'STALE' if stale else 'ok   '}  {speeds}  rx {rx}  tx {tx}  skipped {skipped}")
+
+    def report(self):
+        """Everything recorded, as JSON-ready data."""
+        peer = self.peer.report()
+        with self._lock:
+            end = self.stopped_at if self.stopped_at is not None else time.monotonic()
+            received = {name: {"frame_id": r["frame_id"], "cycle_ms": r["cycle_ms"], "received": r["received"],
+                               "accepted": r["accepted"], "rejected": r["rejected"],
+                               "mean_interval_ms": r["mean_interval_ms"], "max_interval_ms": r["max_interval_ms"]}
+                        for name, r in peer["received"].items()}
+            sent = {name: {"frame_id": s["frame_id"], "cycle_ms": codec.message(name).cycle_time,
+                           "frames": s["frames"], "errors": s["errors"]}
+                    for name, s in peer["sent"].items()}
+            return {
+                "node": "TCU",
+                "interface": self.interface,
+                "channel": self.channel,
+                "time_scale": self.time_scale,
+                "period_s": PERIOD_S,
+                "period_wall_s": self.period_wall_s,
+                "wall_time_s": (end - self.started_at) if self.started_at is not None else 0.0,
+                "tcu_time_s": self.t_s,
+                "ticks": self.ticks,
+                "skipped_ticks": self.skipped_ticks,
+                "tick_exec_us": self._exec_us.summary(),
+                "tick_wake_late_us": self._late_us.summary(),
+                "socket_rcvbuf_bytes": self.rcvbuf_bytes,
+                "phase": self.logic.phase,
+                "gear": self.logic.gear,
+                "target_gear": self.logic.target_gear,
+                "shifts": [{"t_s": round(t, 6), "from_gear": a, "to_gear": b} for t, a, b in self.logic.events],
+                "stale": {
+                    "now": self.stale,
+                    "ticks": self.stale_ticks,
+                    "episode_count": self.stale_episode_count,
+                    "episodes": [dict(ep, causes=dict(ep["causes"])) for ep in self.stale_episodes],
+                    "timeout_ms": {n: round(t * 1000.0, 3) for n, t in self._timeout_s.items()},
+                },
+                "sim_time_s": self.sim_time_s,
+                "received": received,
+                "unknown_frames": peer["unknown_frames"],
+                "error_frames": peer["error_frames"],
+                "sent": sent,
+                "send_errors": sum(s["errors"] for s in sent.values()),
+                "last_send_error": peer["last_send_error"],
+                "last_commands": dict(self.commands),
+                "final_safe_frames": self.final_safe_frames,
+                "error": self.error,
+            }
+
+    def write_report(self, path):
+        """Writes ``report()`` as JSON to ``path`` (its folder is created); returns the report."""
+        rep = self.report()
+        folder = os.path.dirname(os.path.abspath(path))
+        os.makedirs(folder, exist_ok=True)
+        with open(path, "w", encoding="utf-8") as f:
+            json.dump(rep, f, indent=2)
+            f.write("\n")
+        return rep
+
+
+# ---------------------------------------------------------------------------
+# Command line: dct-hil tcu / python -m tcu_stub.can_tcu
+# ---------------------------------------------------------------------------
+
+def _time_scale_arg(text):
+    try:
+        return check_time_scale(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).replace("time scale ", "", 1)) from None
+
+
+def _duration_arg(text):
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0, got {text}")
+    return x
+
+
+def _bitrate_arg(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 1_000 <= n <= 8_000_000:
+        raise argparse.ArgumentTypeError(f"must be 1000..8000000 bit/s, got {text}")
+    return n
+
+
+def add_arguments(parser):
+    """The options of ``dct-hil tcu`` on an argparse parser (or subparser)."""
+    parser.add_argument("--channel", default="vcan0", metavar="NAME",
+                        help="CAN channel: a network interface for socketcan (vcan0, can0), the "
+                             "python-can channel otherwise (default vcan0)")
+    parser.add_argument("--interface", default="socketcan", metavar="NAME",
+                        help="python-can interface: socketcan, virtual, udp_multicast, pcan, ... "
+                             "(default socketcan)")
+    parser.add_argument("--bitrate", type=_bitrate_arg, metavar="BIT/S",
+                        help="bit rate, for interfaces that set it")
+    parser.add_argument("--duration", type=_duration_arg, metavar="S",
+                        help="stop after S seconds of wall time (default: run until Ctrl-C or SIGTERM)")
+    parser.add_argument("--time-scale", type=_time_scale_arg, default=1.0, metavar="S",
+                        help="run slower than real time by this factor, 0 < S <= 1 (the server must "
+                             "use the same); the task period is 2 ms / S (default 1)")
+    parser.add_argument("--report", metavar="FILE.json", help="write the JSON report here at the end")
+    parser.add_argument("--quiet", action="store_true", help="no live status and no summary")
+    return parser
+
+
+def _check_report_path(path):
+    full = os.path.abspath(path)
+    if os.path.isdir(full):
+        return f"--report {path}: is a directory"
+    folder = os.path.dirname(full)
+    probe = folder
+    while not os.path.isdir(probe):          # the folder is created at the end; check its nearest parent
+        parent = os.path.dirname(probe)
+        if parent == probe:
+            break
+        probe = parent
+    if not os.access(probe, os.W_OK | os.X_OK) or (os.path.exists(full) and not os.access(full, os.W_OK)):
+        return f"--report {path}: not writable"
+    return None
+
+
+def summary_lines(rep):
+    """The exit summary of a run, from ``report()``."""
+    lines = [f"TCU on {rep['interface']}:{rep['channel']}: {rep['tcu_time_s']:.2f} s of TCU time "
+             f"(time scale {rep['time_scale']:g}), {rep['ticks']} ticks, {rep['skipped_ticks']} skipped; "
+             f"tick cost p99 {rep['tick_exec_us']['p99']} us"]
+    for name, r in rep["received"].items():
+        rej = ", ".join(f"{k} {v}" for k, v in r["rejected"].items() if v)
+        lines.append(f"  rx {name:<17} {r['accepted']:>8} accepted of {r['received']:>8}"
+                     + (f"  rejected: {rej}" if rej else ""))
+    for name, s in rep["sent"].items():
+        lines.append(f"  tx {name:<17} {s['frames']:>8} sent" + (f"  errors {s['errors']}" if s["errors"] else ""))
+    shifts = " ".join(f"{s['from_gear']}>{s['to_gear']}@{s['t_s']:.2f}" for s in rep["shifts"][:20])
+    more = f" (+{len(rep['shifts']) - 20})" if len(rep["shifts"]) > 20 else ""
+    lines.append(f"  shifts: {len(rep['shifts'])} {shifts}{more}".rstrip())
+    lines.append(f"  stale episodes: {rep['stale']['episode_count']}"
+                 + (", stale now" if rep["stale"]["now"] else ""))
+    if rep["unknown_frames"]:
+        lines.append(f"  unknown ids: {rep['unknown_frames']}")
+    return lines
+
+
+def run(args, out=None, err=None, prog="dct-hil tcu"):
+    """``dct-hil tcu``: runs the node until ``--duration``, Ctrl-C or SIGTERM;
+    returns the exit status (0 stopped cleanly by --duration or SIGTERM, 130
+    after Ctrl-C (also clean), 1 the bus cannot be opened or the task failed,
+    2 bad options)."""
+    out = out or sys.stdout
+    err = err or sys.stderr
+
+    def fail(code, message):
+        print(f"{prog}: error: {_one_line(message)}", file=err)
+        return code
+
+    try:
+        time_scale = check_time_scale(getattr(args, "time_scale", 1.0))
+    except ValueError as e:
+        return fail(2, f"--time-scale: {e}")
+    duration = getattr(args, "duration", None)
+    if duration is not None and not (isinstance(duration, (int, float)) and math.isfinite(duration)
+                                     and duration > 0):
+        return fail(2, f"--duration: must be a number of seconds above 0, got {duration}")
+    if args.report:
+        problem = _check_report_path(args.report)
+        if problem:
+            return fail(2, problem)
+    try:
+        tcu = CanTcu.open(args.interface, args.channel, bitrate=args.bitrate, time_scale=time_scale)
+    except ConnectionError as e:
+        return fail(1, e)
+
+    done = threading.Event()
+    received = []
+    in_main = threading.current_thread() is threading.main_thread()
+    old = {}
+
+    def on_signal(signum, _frame):
+        received.append(signum)
+        done.set()
+
+    if in_main:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, on_signal)
+    tty = hasattr(out, "isatty") and out.isatty()
+    try:
+        if not args.quiet:
+            rcv = (f", receive buffer {tcu.rcvbuf_bytes} bytes (about {tcu.rcvbuf_bytes // SKB_BYTES_PER_FRAME} "
+                   "frames)" if tcu.rcvbuf_bytes else "")
+            print(f"{prog} on {args.interface}:{args.channel}, period {PERIOD_S * 1000:g} ms of TCU time "
+                  f"({tcu.period_wall_s * 1000:g} ms wall at time scale {time_scale:g}){rcv}; "
+                  "Ctrl-C or SIGTERM stops", file=out, flush=True)
+        end = None if duration is None else time.monotonic() + duration
+        while not done.is_set() and tcu.running:
+            left = 1.0 if end is None else min(1.0, end - time.monotonic())
+            if left <= 0:
+                break
+            done.wait(left)
+            if not args.quiet and not done.is_set():
+                line = tcu.status_line()
+                print(("\r\x1b[K" + line) if tty else line, end="" if tty else "\n", file=out, flush=True)
+    finally:
+        tcu.close()
+        if in_main:
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
+    if tty and not args.quiet:
+        print(file=out)
+    rep = tcu.report()
+    if args.report:
+        try:
+            tcu.write_report(args.report)
+        except OSError as e:
+            return fail(1, f"--report {args.report}: {e.strerror or e}")
+    if not args.quiet:
+        print("\n".join(summary_lines(rep)), file=out)
+        if args.report:
+            print(f"report: {args.report}", file=out)
+    if rep["last_send_error"]:
+        print(f"{prog}: send errors: {rep['send_errors']}, last: {_one_line(rep['last_send_error'])}", file=err)
+    if tcu.error:
+        return fail(1, tcu.error)
+    if received and received[0] == signal.SIGINT:
+        return 130                       # Ctrl-C, as everywhere in dct-hil
+    return 0
+
+
+class _Parser(argparse.ArgumentParser):
+    """Bad options: one line naming the option, exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {_one_line(message)}\n")
+
+
+def main(argv=None):
+    parser = _Parser(prog="python -m tcu_stub.can_tcu",
+                     description="The reference TCU (tcu_stub.logic) as a CAN node against the plant "
+                                 "server: 2 ms task, E2E-protected frames, safe frames on exit.")
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    return run(args, prog=parser.prog)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
