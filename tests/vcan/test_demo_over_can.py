@@ -1,0 +1,94 @@
+"""The paper cycle over real SocketCAN against the same cycle offline.
+
+``dct-hil demo`` on vcan0: the plant server in the demo's process, the TCU
+stub as a second process, each reading and writing only the frames of the
+DBC. The same TCU logic in-process (``tcu_stub.offline``, every message
+through the codec at its DBC cycle time) gives the reference. The plant-side
+shifts (``plant.maneuvers.gear_shifts`` on the recorded gear) must come in
+the same sequence, each within 20 ms of its offline time.
+
+The test kernel is emulated (no KVM): far too slow for real time, so the
+whole HiL runs in slow motion (``--time-scale``, default 0.1 here; set
+DCT_VCAN_TIME_SCALE to change it). Plant and TCU then keep the same
+relation of their clocks as in real time; the loop's own figures mean
+nothing here.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from plant.maneuvers import compare_shifts, gear_shifts, get_maneuver
+
+pytestmark = pytest.mark.vcan
+
+REPO = Path(__file__).resolve().parents[2]
+TIME_SCALE = float(os.environ.get("DCT_VCAN_TIME_SCALE", "0.1"))
+SHIFT_TOLERANCE_S = 0.020
+
+
+@pytest.fixture(scope="module")
+def demo(vcan0, tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    m = get_maneuver("paper-cycle")
+    timeout = m.duration_s / TIME_SCALE * 2 + 300
+    proc = subprocess.run(
+        [sys.executable, "-m", "dct_hil.cli", "demo", "--out", str(out), "--time-scale",
+         repr(TIME_SCALE), "--priority", "0", "--quiet"],
+        capture_output=True, text=True, timeout=timeout, cwd=REPO)
+    summary_path = out / "summary.json"
+    assert summary_path.exists(), f"no summary; demo said:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    return proc, json.loads(summary_path.read_text()), out
+
+
+@pytest.fixture(scope="module")
+def offline():
+    from plant.model import Plant
+    from tcu_stub.offline import run_offline
+
+    m = get_maneuver("paper-cycle")
+    plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
+    plant.reset(**m.reset_kwargs)
+    rec = run_offline(plant, m.driver, m.duration_s, record_every_s=0.002)
+    return gear_shifts(rec["time_s"], rec["gear"])
+
+
+def test_demo_runs_the_cycle_on_socketcan_with_the_tcu_as_a_second_process(demo):
+    proc, summary, _ = demo
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "SocketCAN, the TCU stub as a second process" in proc.stdout
+    assert summary["transport"]["interface"] == "socketcan"
+    assert summary["transport"]["tcu"] == "second process"
+    assert summary["completed"] and summary["maneuver_time_s"] >= 65.0 - 0.002
+    assert summary["tcu_exit"] == 0
+    assert summary["rx"]["bad_crc"] == summary["rx"]["bad_length"] == 0
+    assert summary["gear_clashes"] == 0
+    tcu = summary["tcu"]
+    assert tcu is not None and tcu["error"] is None
+
+
+def test_the_same_shifts_as_offline_each_within_20_ms(demo, offline):
+    _, summary, _ = demo
+    over_can = [(s["time_s"], s["from"], s["to"]) for s in summary["shifts"]]
+    assert len(offline) >= 12                      # up through the gears and down, twice
+    same, diffs = compare_shifts(offline, over_can)
+    assert same, f"offline {offline}\nover CAN {over_can}"
+    worst = max(abs(d) for d in diffs)
+    assert worst <= SHIFT_TOLERANCE_S, (
+        f"largest shift time difference {worst * 1000:.1f} ms; differences (ms): "
+        f"{[round(d * 1000, 1) for d in diffs]}; skipped ticks {summary['skipped_ticks']}")
+
+
+def test_the_demo_leaves_plots_recording_can_log_and_reports(demo):
+    _, summary, out = demo
+    files = summary["files"]
+    for key in ("recording", "can_log", "stats", "tcu_report", "summary"):
+        assert Path(files[key]).stat().st_size > 0, key
+    assert files["plots"] and all(Path(p).stat().st_size > 10_000 for p in files["plots"])
+    log = Path(files["can_log"]).read_text().splitlines()
+    ids = {line.split()[2].split("#")[0] for line in log if line.startswith("(")}
+    assert {"080", "090", "091"} <= ids and {"100", "101", "102", "1F0"} <= ids   # both ways
