@@ -196,6 +196,8 @@ def build_parser():
                       help="slow motion for machines too slow for real time (0 < X <= 1)")
     demo.add_argument("--priority", type=_serve_priority, default=None, metavar="0..99",
                       help="SCHED_FIFO priority of the loop (default 80 as root, else 0)")
+    demo.add_argument("--duration", type=_serve_duration, metavar="S",
+                      help="play only the first S seconds of the maneuver")
     demo.add_argument("--quiet", action="store_true", help="no live status")
     demo.set_defaults(func=cmd_demo)
     return parser
@@ -742,7 +744,8 @@ def cmd_demo(args):
     _check_writable(os.path.join(args.out, "summary.json"), "--out")
     try:
         return run_demo(args.maneuver, args.out, channel=args.channel, interface=args.interface,
-                        time_scale=args.time_scale, priority=args.priority, quiet=args.quiet)
+                        time_scale=args.time_scale, priority=args.priority, quiet=args.quiet,
+                        duration_s=args.duration)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 

@@ -172,8 +172,10 @@ def _status_line(snap: dict, tcu_line: str) -> str:
 def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/demo",
              channel: str | None = None, interface: str | None = None,
              time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
-             out=None, err=None) -> int:
-    """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C)."""
+             duration_s: float | None = None, out=None, err=None) -> int:
+    """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C).
+
+    ``duration_s`` plays only the first seconds of the maneuver."""
     from plant import maneuvers as mv  # noqa: PLC0415
     from plant.plots import write_plots  # noqa: PLC0415
     from rt_loop.recorder import read_recording  # noqa: PLC0415
@@ -182,6 +184,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
     m = _driver_for(maneuver)
+    end_s = m.duration_s if duration_s is None else min(float(duration_s), m.duration_s)
     iface, chan, why, two = choose_transport(channel, interface)
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
@@ -194,10 +197,10 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     if priority is None:
         priority = 80 if os.geteuid() == 0 else 0
     server = Server(chan, interface=iface, priority=priority, driver=m.driver,
-                    maneuver_start="tcu", maneuver_end_s=m.duration_s,
+                    maneuver_start="tcu", maneuver_end_s=end_s,
                     record_path=paths["recording"], record_every_s=RECORD_EVERY_S,
                     log_path=paths["can_log"], time_scale=time_scale)
-    print(f"dct-hil demo      {maneuver}: {m.description} ({m.duration_s:g} s"
+    print(f"dct-hil demo      {maneuver}: {m.description} ({end_s:g} s"
           + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
           file=out)
     print(f"transport         {iface} on {chan}: {why}", file=out)
@@ -297,7 +300,11 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     print(f"loop              turnaround p99.9 {_us(ta.get('p99_9_us'))}, max {_us(ta.get('max_us'))}; "
           f"overruns {summary['overruns']}; rx rejected {summary['rx']['rejected']}, lost "
           f"{summary['rx']['overflow']}", file=out)
-    if not summary["completed"]:
+    if received:
+        mt = run["maneuver_time_s"]
+        print(f"dct-hil demo: stopped by {signal.Signals(received[0]).name} at maneuver time "
+              + ("(not started)" if mt is None else f"{mt:.2f} s"), file=err)
+    elif not summary["completed"]:
         print(f"dct-hil demo: the maneuver did not complete (state {run['maneuver']})", file=err)
         return_code = return_code or 1
     print("written:", file=out)

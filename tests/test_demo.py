@@ -1,0 +1,114 @@
+"""dct-hil demo on the host: the embedded transport (no CAN in this kernel).
+
+The run over SocketCAN, with the TCU as a second process, is in
+tests/vcan/test_demo_over_can.py.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dct_hil import demo
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_cli(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "dct_hil.cli", "demo", *args],
+                          capture_output=True, text=True, timeout=timeout, cwd=REPO)
+
+
+def test_without_vcan0_the_demo_takes_the_embedded_transport_and_says_why():
+    if demo.can_netdev_up("vcan0"):
+        pytest.skip("this kernel has vcan0 up: the demo takes SocketCAN here")
+    iface, chan, why, two = demo.choose_transport(None, None)
+    assert (iface, two) == ("virtual", False)
+    assert "no vcan0" in why and "embedded" in why
+
+
+def test_a_channel_that_is_no_can_interface_is_a_one_line_error():
+    assert not demo.can_netdev_up("lo")
+    with pytest.raises(demo.DemoError) as e:
+        demo.choose_transport("lo", None)
+    assert "not a CAN network interface" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_an_explicit_interface_is_taken_as_given():
+    assert demo.choose_transport(None, "virtual")[:2] == ("virtual", demo.EMBEDDED_CHANNEL)
+    iface, chan, _, two = demo.choose_transport("PCAN_USBBUS1", "pcan")
+    assert (iface, chan, two) == ("pcan", "PCAN_USBBUS1", True)
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    proc = run_cli("--duration", "6", "--out", str(out), "--priority", "0", "--quiet")
+    return proc, out
+
+
+def test_a_short_demo_launches_shifts_and_writes_everything(short_run):
+    proc, out = short_run
+    assert proc.returncode == 0, proc.stderr
+    assert "embedded transport" in proc.stdout or "SocketCAN" in proc.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and summary["maneuver_time_s"] == pytest.approx(6.0, abs=0.01)
+    assert [(s["from"], s["to"]) for s in summary["shifts"]][:1] == [(1, 2)]
+    assert 3.5 < summary["shifts"][0]["time_s"] < 5.0
+    assert summary["gear_clashes"] == 0 and summary["rx"]["rejected"] == 0
+    for key in ("recording", "can_log", "stats", "tcu_report", "summary"):
+        path = Path(summary["files"][key])
+        assert path.stat().st_size > 0 and str(path) in proc.stdout, key
+    assert summary["files"]["plots"] and all(Path(p).exists() for p in summary["files"]["plots"])
+    tcu = json.loads((out / "tcu-report.json").read_text())
+    assert tcu["error"] is None and tcu["ticks"] > 1000
+    stats = json.loads((out / "serve-stats.json").read_text())
+    assert stats["run"]["maneuver"] == "done" and stats["record"]["dropped"] == 0
+
+
+def test_the_recording_starts_before_the_tcu_and_plays_the_pedals_from_its_first_frame(short_run):
+    from rt_loop.recorder import read_recording
+
+    _, out = short_run
+    rec = read_recording(out / "plant.csv")
+    started = rec["maneuver_time_s"] >= 0
+    assert started[-1] and rec["maneuver_time_s"][-1] == pytest.approx(6.0, abs=0.003)
+    mt = rec["maneuver_time_s"][started]
+    accel = rec["accel_pedal_pct"][started]
+    assert (accel[mt < 0.99] == 0).all() and (accel[mt > 1.01] == 100).all()   # paper-cycle
+    assert rec["vehicle_speed_kmh"][-1] > 40
+
+
+def test_ctrl_c_stops_the_demo_with_everything_written(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-m", "dct_hil.cli", "demo", "--out", str(tmp_path),
+                             "--priority", "0", "--quiet"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "plant.csv").exists() or (tmp_path / "plant.csv").stat().st_size < 10_000:
+        assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert not summary["completed"]
+    assert (tmp_path / "serve-stats.json").exists() and (tmp_path / "tcu-report.json").exists()
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--maneuver", "wltc"], "invalid choice"),
+    (["--time-scale", "0"], "--time-scale"),
+    (["--duration", "-1"], "--duration"),
+    (["--channel", "lo"], "not a CAN network interface"),
+])
+def test_bad_options_are_one_line_errors(tmp_path, args, words):
+    proc = run_cli(*args, "--out", str(tmp_path), "--priority", "0", timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0], proc.stderr
