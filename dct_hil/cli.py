@@ -77,7 +77,7 @@ def build_parser():
 
     sim = sub.add_parser("simulate", help="run a scenario offline, as fast as possible")
     sim.add_argument("--scenario", required=True, metavar="NAME_OR_FILE",
-                     help="a maneuver (paper-cycle, wltc, 0-100), a shipped scenario name "
+                     help="a maneuver (paper-cycle, wltc, nedc, 0-100), a shipped scenario name "
                           "(plant/scenarios) or a CSV file")
     sim.add_argument("--duration", type=_duration, metavar="S",
                      help="simulated seconds (default: the scenario's length; the last row holds)")
@@ -204,7 +204,7 @@ def build_parser():
 
 
 # --------------------------------------------------------------------- simulate
-MANEUVER_NAMES = ("paper-cycle", "wltc", "0-100")
+MANEUVER_NAMES = ("paper-cycle", "wltc", "nedc", "0-100")
 SCRIPTED_MANEUVERS = ("paper-cycle", "0-100")      # pedal tables the loop plays itself
 RECORD_EVERY_S = 0.01
 

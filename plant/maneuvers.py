@@ -3,6 +3,7 @@
 - ``paper-cycle``: the reference paper's TCU test (section 5): launch from standstill at
   wide-open throttle, brake to zero, launch at half load, brake to zero (65 s).
 - ``wltc``: WLTC class 3b followed by the PI speed-tracking driver (1800 s); fuel in l/100 km.
+- ``nedc``: the NEDC, the cycle of the car's published fuel figures (1180 s); fuel in l/100 km.
 - ``0-100``: full throttle from standstill through 100 km/h and on to top speed (100 s).
 
 ``report(maneuver, recorded)`` computes the figures from a recorded run: a mapping of
@@ -19,6 +20,7 @@ import numpy as np
 from plant.driver import ScriptedDriver, SpeedTrackingDriver
 
 WLTC_PATH = Path(__file__).parent / "data" / "wltc_class3b.csv"
+NEDC_PATH = Path(__file__).parent / "data" / "nedc.csv"
 DRIVER_PERIOD_S = 0.01
 
 # paper-cycle: (t_s, accel_pedal_pct, brake_pedal_pct), held until the next row
@@ -45,11 +47,21 @@ class Maneuver:
 
 def load_wltc(path=None):
     """WLTC class 3b trace: (time_s, speed_kmh) arrays, 1 Hz, 1801 samples."""
-    p = Path(path) if path is not None else WLTC_PATH
+    return load_trace(WLTC_PATH if path is None else path)
+
+
+def load_nedc(path=None):
+    """NEDC trace: (time_s, speed_kmh) arrays, 1 Hz, 1180 samples."""
+    return load_trace(NEDC_PATH if path is None else path)
+
+
+def load_trace(path):
+    """A drive-cycle speed trace file (``time_s,speed_kmh``, '#' comments)."""
+    p = Path(path)
     try:
         lines = p.read_text().splitlines()
     except OSError as exc:
-        raise ValueError(f"cannot read the WLTC trace {p}: {exc.strerror}") from None
+        raise ValueError(f"cannot read the speed trace {p}: {exc.strerror}") from None
     rows = [ln.split(",") for ln in lines if ln.strip() and not ln.startswith("#")]
     if not rows or rows[0][:2] != ["time_s", "speed_kmh"]:
         raise ValueError(f"{p}: expected a 'time_s,speed_kmh' header")
@@ -74,13 +86,21 @@ def _wltc():
                     description="WLTC class 3b, PI speed-tracking driver")
 
 
+def _nedc():
+    t, v = load_nedc()
+    return Maneuver("nedc", SpeedTrackingDriver(t, v), float(t[-1]),
+                    ("rms_speed_error_kmh", "fuel_l_per_100km", "distance_km", "top_speed_kmh"),
+                    description="NEDC (the cycle of the car's published fuel figures), PI "
+                                "speed-tracking driver")
+
+
 def _zero_to_100():
     return Maneuver("0-100", ScriptedDriver(FULL_THROTTLE), 100.0,
                     ("zero_to_100_s", "top_speed_kmh"),
                     description="full throttle from standstill to top speed")
 
 
-MANEUVERS = {"paper-cycle": _paper_cycle, "wltc": _wltc, "0-100": _zero_to_100}
+MANEUVERS = {"paper-cycle": _paper_cycle, "wltc": _wltc, "nedc": _nedc, "0-100": _zero_to_100}
 
 
 def get_maneuver(name):
