@@ -196,6 +196,10 @@ def build_parser():
                       help="slow motion for machines too slow for real time (0 < X <= 1)")
     demo.add_argument("--priority", type=_serve_priority, default=None, metavar="0..99",
                       help="SCHED_FIFO priority of the loop (default 80 as root, else 0)")
+    demo.add_argument("--tcu-clock", choices=("wall", "bus"), default=None,
+                      help="the TCU stub's task clock: wall (2 ms of wall time, the default in "
+                           "real time) or bus (a tick per 2 ms plant frame, the default with "
+                           "--time-scale below 1)")
     demo.add_argument("--duration", type=_serve_duration, metavar="S",
                       help="play only the first S seconds of the maneuver")
     demo.add_argument("--quiet", action="store_true", help="no live status")
@@ -745,7 +749,7 @@ def cmd_demo(args):
     try:
         return run_demo(args.maneuver, args.out, channel=args.channel, interface=args.interface,
                         time_scale=args.time_scale, priority=args.priority, quiet=args.quiet,
-                        duration_s=args.duration)
+                        duration_s=args.duration, tcu_clock=args.tcu_clock)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 

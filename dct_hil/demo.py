@@ -95,11 +95,11 @@ class _TcuProcess:
     """The TCU stub as a second process on the same CAN channel."""
 
     def __init__(self, interface: str, channel: str, time_scale: float, report: Path,
-                 log: Path) -> None:
+                 log: Path, clock: str) -> None:
         self.report_path = report
         self.log_path = log
         cmd = [sys.executable, "-m", "tcu_stub.can_tcu", "--channel", channel,
-               "--interface", interface, "--time-scale", repr(time_scale),
+               "--interface", interface, "--time-scale", repr(time_scale), "--clock", clock,
                "--report", str(report), "--quiet"]
         self._log = open(log, "w", encoding="utf-8")  # noqa: SIM115
         self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT,
@@ -132,11 +132,11 @@ class _TcuProcess:
 class _TcuThread:
     """The TCU stub in a thread of this process, on the in-process bus."""
 
-    def __init__(self, channel: str, time_scale: float, report: Path) -> None:
+    def __init__(self, channel: str, time_scale: float, report: Path, clock: str) -> None:
         from tcu_stub.can_tcu import CanTcu  # noqa: PLC0415
 
         self.report_path = report
-        self.tcu = CanTcu.open("virtual", channel, time_scale=time_scale)
+        self.tcu = CanTcu.open("virtual", channel, time_scale=time_scale, clock=clock)
         self.tcu.start()
 
     def alive(self) -> bool:
@@ -172,10 +172,14 @@ def _status_line(snap: dict, tcu_line: str) -> str:
 def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/demo",
              channel: str | None = None, interface: str | None = None,
              time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
-             duration_s: float | None = None, out=None, err=None) -> int:
+             duration_s: float | None = None, tcu_clock: str | None = None,
+             out=None, err=None) -> int:
     """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C).
 
-    ``duration_s`` plays only the first seconds of the maneuver."""
+    ``duration_s`` plays only the first seconds of the maneuver. ``tcu_clock``
+    (``tcu_stub.can_tcu.CLOCKS``): the TCU's task clock; default "wall" in real
+    time and "bus" in slow motion (a TCU tick per 2 ms of plant time, so plant
+    and TCU stay in step even when the machine cannot keep the slowed pace)."""
     from plant import maneuvers as mv  # noqa: PLC0415
     from plant.plots import write_plots  # noqa: PLC0415
     from rt_loop.recorder import read_recording  # noqa: PLC0415
@@ -184,6 +188,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
     m = _driver_for(maneuver)
+    if tcu_clock is None:
+        tcu_clock = "wall" if time_scale >= 1.0 else "bus"
     end_s = m.duration_s if duration_s is None else min(float(duration_s), m.duration_s)
     iface, chan, why, two = choose_transport(channel, interface)
     folder = Path(out_dir)
@@ -204,6 +210,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
           + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
           file=out)
     print(f"transport         {iface} on {chan}: {why}", file=out)
+    if tcu_clock == "bus":
+        print("TCU clock         bus: a TCU tick per DCT_ShaftSpeeds frame (follows plant time)",
+              file=out)
 
     stop = threading.Event()
     received: list[int] = []
@@ -224,9 +233,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
             print(f"dct-hil: warning: {w}", file=err)
         if two:
             tcu = _TcuProcess(iface, chan, time_scale, paths["tcu_report"],
-                              folder / "tcu.out")
+                              folder / "tcu.out", tcu_clock)
         else:
-            tcu = _TcuThread(chan, time_scale, paths["tcu_report"])
+            tcu = _TcuThread(chan, time_scale, paths["tcu_report"], tcu_clock)
         started = time.monotonic()
         last = 0.0
         while not stop.is_set() and server.running:
@@ -278,6 +287,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         "transport": {"interface": iface, "channel": chan, "why": why,
                       "tcu": "second process" if two else "thread"},
         "time_scale": time_scale,
+        "tcu_clock": tcu_clock,
         "figures": figures,
         "shifts": [{"time_s": t, "from": a, "to": b} for t, a, b in shifts],
         "gear_clashes": float(rec["gear_clashes"][-1]) if len(rec["time_s"]) else None,

@@ -148,6 +148,9 @@ def raise_rcvbuf(sock, want_bytes=RCVBUF_BYTES):
     return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
 
 
+CLOCKS = ("wall", "bus")
+
+
 class _Histogram:
     """Microsecond values in 10 us bins: count, mean, max, percentiles."""
 
@@ -193,9 +196,19 @@ class CanTcu:
     logic       a TcuLogic (default: a new one)
     start       start reception and the task now (else call ``start()``)
     rcvbuf_bytes  receive buffer asked for when the bus is a SocketCAN socket
+    clock       "wall": a task tick every PERIOD_S / time_scale of wall time, as a
+                production TCU; "bus": a task tick per accepted DCT_ShaftSpeeds
+                frame (one per 2 ms of plant time), so the TCU follows the plant's
+                time exactly, however slowly the plant runs (a slow-motion run on a
+                machine that cannot keep even the slowed schedule). Without that
+                frame for its timeout the bus clock ticks anyway, stale.
     """
 
-    def __init__(self, bus, time_scale=1.0, logic=None, start=True, rcvbuf_bytes=RCVBUF_BYTES):
+    def __init__(self, bus, time_scale=1.0, logic=None, start=True, rcvbuf_bytes=RCVBUF_BYTES,
+                 clock="wall"):
+        if clock not in CLOCKS:
+            raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
+        self.clock = clock
         self.time_scale = check_time_scale(time_scale)
         self.period_wall_s = PERIOD_S / self.time_scale
         self.logic = logic if logic is not None else TcuLogic()
@@ -247,7 +260,7 @@ class CanTcu:
 
     @classmethod
     def open(cls, interface="socketcan", channel="vcan0", bitrate=None, time_scale=1.0, logic=None,
-             start=True, rcvbuf_bytes=RCVBUF_BYTES, **bus_kwargs):
+             start=True, rcvbuf_bytes=RCVBUF_BYTES, clock="wall", **bus_kwargs):
         """A CanTcu on a new python-can Bus (shut down again by ``close()``).
         A bus that cannot be opened raises ConnectionError, one line naming the
         interface and the channel."""
@@ -263,7 +276,8 @@ class CanTcu:
             msg = _one_line(e) or type(e).__name__
             raise ConnectionError(f"cannot open {interface} bus on channel {channel}: {msg}") from None
         try:
-            tcu = cls(bus, time_scale=time_scale, logic=logic, start=False, rcvbuf_bytes=rcvbuf_bytes)
+            tcu = cls(bus, time_scale=time_scale, logic=logic, start=False, rcvbuf_bytes=rcvbuf_bytes,
+                      clock=clock)
         except Exception:
             bus.shutdown()
             raise
@@ -339,6 +353,8 @@ class CanTcu:
 
     # ------------------------------------------------------------ the task
     def _task(self):
+        if self.clock == "bus":
+            return self._task_bus()
         period = self.period_wall_s
         t0 = time.monotonic()
         k = 0
@@ -365,6 +381,35 @@ class CanTcu:
         except Exception as e:  # noqa: BLE001 (the task stops; stop() sends the safe frames)
             self.error = f"TCU task stopped at {k * PERIOD_S:.3f} s: {type(e).__name__}: {_one_line(e)}"
             self._send_safe()                           # the last commands on the bus are safe
+        finally:
+            self._ended.set()
+
+    def _task_bus(self):
+        """One tick per accepted DCT_ShaftSpeeds frame (2 ms of plant time each);
+        frames missed in between advance the TCU time and count as skipped."""
+        name = "DCT_ShaftSpeeds"
+        seen = self.peer.counts(name)["accepted"]
+        wait_s = self._timeout_s[name]
+        k = 0
+        try:
+            while not self._stop.is_set():
+                self.peer.wait_for(lambda p: self._stop.is_set()
+                                   or p.counts(name)["accepted"] > seen, timeout=wait_s)
+                if self._stop.is_set():
+                    return
+                now = time.monotonic()
+                accepted = self.peer.counts(name)["accepted"]
+                if accepted > seen + 1 and k > 0:       # frames this task did not get to
+                    with self._lock:
+                        self.skipped_ticks += accepted - seen - 1
+                    k += accepted - seen - 1
+                seen = max(seen, accepted)
+                self._tick(k, now)
+                self._exec_us.add((time.monotonic() - now) * 1e6)
+                k += 1
+        except Exception as e:  # noqa: BLE001 (the task stops; stop() sends the safe frames)
+            self.error = f"TCU task stopped at {k * PERIOD_S:.3f} s: {type(e).__name__}: {_one_line(e)}"
+            self._send_safe()
         finally:
             self._ended.set()
 
@@ -465,6 +510,7 @@ class CanTcu:
                 "interface": self.interface,
                 "channel": self.channel,
                 "time_scale": self.time_scale,
+                "clock": self.clock,
                 "period_s": PERIOD_S,
                 "period_wall_s": self.period_wall_s,
                 "wall_time_s": (end - self.started_at) if self.started_at is not None else 0.0,
@@ -554,6 +600,10 @@ def add_arguments(parser):
     parser.add_argument("--time-scale", type=_time_scale_arg, default=1.0, metavar="S",
                         help="run slower than real time by this factor, 0 < S <= 1 (the server must "
                              "use the same); the task period is 2 ms / S (default 1)")
+    parser.add_argument("--clock", choices=CLOCKS, default="wall",
+                        help="wall: a task tick every 2 ms (/ time scale) of wall time, as a TCU "
+                             "(default); bus: a tick per DCT_ShaftSpeeds frame, following the "
+                             "plant's time exactly (slow-motion runs on slow machines)")
     parser.add_argument("--report", metavar="FILE.json", help="write the JSON report here at the end")
     parser.add_argument("--quiet", action="store_true", help="no live status and no summary")
     return parser
@@ -621,7 +671,8 @@ def run(args, out=None, err=None, prog="dct-hil tcu"):
         if problem:
             return fail(2, problem)
     try:
-        tcu = CanTcu.open(args.interface, args.channel, bitrate=args.bitrate, time_scale=time_scale)
+        tcu = CanTcu.open(args.interface, args.channel, bitrate=args.bitrate, time_scale=time_scale,
+                          clock=getattr(args, "clock", "wall"))
     except ConnectionError as e:
         return fail(1, e)
 

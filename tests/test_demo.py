@@ -112,3 +112,27 @@ def test_bad_options_are_one_line_errors(tmp_path, args, words):
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and words in lines[0], proc.stderr
+
+
+def test_slow_motion_with_the_bus_clock_gives_the_offline_shifts_within_20_ms(tmp_path):
+    """Half speed, the TCU ticking on the plant's 2 ms frames: the first shifts of
+    paper-cycle land where the in-process run puts them."""
+    from plant.maneuvers import compare_shifts, gear_shifts, get_maneuver
+    from plant.model import Plant
+    from tcu_stub.offline import run_offline
+
+    proc = run_cli("--duration", "8", "--time-scale", "0.5", "--out", str(tmp_path),
+                   "--priority", "0", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "TCU clock         bus" in proc.stdout
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["tcu_clock"] == "bus" and summary["tcu"]["clock"] == "bus"
+    over_can = [(s["time_s"], s["from"], s["to"]) for s in summary["shifts"]]
+    m = get_maneuver("paper-cycle")
+    plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
+    plant.reset(**m.reset_kwargs)
+    rec = run_offline(plant, m.driver, 8.0, record_every_s=0.002)
+    offline = gear_shifts(rec["time_s"], rec["gear"])
+    same, diffs = compare_shifts(offline, over_can)
+    assert same and len(offline) == 2, (offline, over_can)
+    assert max(abs(d) for d in diffs) <= 0.020, diffs

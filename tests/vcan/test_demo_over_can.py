@@ -8,10 +8,11 @@ shifts (``plant.maneuvers.gear_shifts`` on the recorded gear) must come in
 the same sequence, each within 20 ms of its offline time.
 
 The test kernel is emulated (no KVM): far too slow for real time, so the
-whole HiL runs in slow motion (``--time-scale``, default 0.1 here; set
-DCT_VCAN_TIME_SCALE to change it). Plant and TCU then keep the same
-relation of their clocks as in real time; the loop's own figures mean
-nothing here.
+whole HiL runs in slow motion (``--time-scale``, default 0.2 here; set
+DCT_VCAN_TIME_SCALE to change it), and the TCU ticks on the plant's 2 ms
+frames (the demo's bus clock in slow motion), so plant and TCU stay in step
+even where the emulated machine cannot keep the slowed pace and the loop
+skips deadlines. The loop's own timing figures mean nothing here.
 """
 
 import json
@@ -27,7 +28,7 @@ from plant.maneuvers import compare_shifts, gear_shifts, get_maneuver
 pytestmark = pytest.mark.vcan
 
 REPO = Path(__file__).resolve().parents[2]
-TIME_SCALE = float(os.environ.get("DCT_VCAN_TIME_SCALE", "0.1"))
+TIME_SCALE = float(os.environ.get("DCT_VCAN_TIME_SCALE", "0.2"))
 SHIFT_TOLERANCE_S = 0.020
 
 
@@ -65,6 +66,7 @@ def test_demo_runs_the_cycle_on_socketcan_with_the_tcu_as_a_second_process(demo)
     assert summary["transport"]["tcu"] == "second process"
     assert summary["completed"] and summary["maneuver_time_s"] >= 65.0 - 0.002
     assert summary["tcu_exit"] == 0
+    assert summary["tcu_clock"] == "bus"
     assert summary["rx"]["bad_crc"] == summary["rx"]["bad_length"] == 0
     assert summary["gear_clashes"] == 0
     tcu = summary["tcu"]
