@@ -16,7 +16,7 @@ import platform
 import subprocess
 import sys
 
-from dct_hil import __version__
+from dct_hil import __version__, argtypes
 
 TARGET_MEDIAN_US = 2.0   # step-cost target of the real-time loop (0.5 ms step)
 MAX_BENCH_STEPS = 100_000_000
@@ -129,8 +129,8 @@ def build_parser():
     serve.add_argument("--priority", type=_serve_priority, default=80, metavar="1..99",
                        help="SCHED_FIFO priority of the loop, with mlockall (default 80); "
                             "0: normal scheduling, no privileges needed, not real time")
-    serve.add_argument("--cpu", type=_serve_cpu, metavar="N", help="pin the loop to CPU N")
-    serve.add_argument("--duration", type=_serve_duration, metavar="S",
+    serve.add_argument("--cpu", type=argtypes.cpu, metavar="N", help="pin the loop to CPU N")
+    serve.add_argument("--duration", type=argtypes.seconds, metavar="S",
                        help="stop after S seconds (default: run until Ctrl-C or SIGTERM)")
     serve.add_argument("--stats", default="out/serve-stats.json", metavar="FILE.json",
                        help="statistics written on exit (default out/serve-stats.json)")
@@ -145,9 +145,9 @@ def build_parser():
                        help="wake this long before each deadline and busy-wait to it, so the "
                             "OS's wake-up latency stays out of the tick; costs that share of a CPU "
                             "(default 300 us, at most 60 %% of the period, with SCHED_FIFO; 0 without)")
-    serve.add_argument("--bitrate", type=_serve_bitrate, metavar="BPS",
+    serve.add_argument("--bitrate", type=argtypes.bitrate, metavar="BPS",
                        help="bit rate passed to the python-can bus (bridged interfaces only)")
-    serve.add_argument("--time-scale", type=_time_scale, default=1.0, metavar="X",
+    serve.add_argument("--time-scale", type=argtypes.time_scale, default=1.0, metavar="X",
                        help="run slower than real time: the same 1/rate plant step every "
                             "1/(rate x X) s of wall time; bus cycles and timeouts stretch by 1/X "
                             "(0 < X <= 1, default 1: real time). For machines too slow for real "
@@ -159,7 +159,7 @@ def build_parser():
     serve.add_argument("--record", metavar="FILE.csv",
                        help="record every plant output (the columns of dct-hil simulate) to "
                             "this CSV, in plant time")
-    serve.add_argument("--record-every", type=_record_every, default=0.002, metavar="S",
+    serve.add_argument("--record-every", type=argtypes.record_interval, default=0.002, metavar="S",
                        help="recording interval in plant time (default 0.002)")
     serve.add_argument("--quiet", action="store_true",
                        help="no live status (the banner, warnings and summary stay)")
@@ -192,7 +192,7 @@ def build_parser():
     demo.add_argument("--interface", metavar="NAME",
                       help="python-can interface (default: socketcan on a CAN network "
                            "interface, else virtual)")
-    demo.add_argument("--time-scale", type=_time_scale, default=1.0, metavar="X",
+    demo.add_argument("--time-scale", type=argtypes.time_scale, default=1.0, metavar="X",
                       help="slow motion for machines too slow for real time (0 < X <= 1)")
     demo.add_argument("--priority", type=_serve_priority, default=None, metavar="0..99",
                       help="SCHED_FIFO priority of the loop (default 80 as root, else 0)")
@@ -200,7 +200,7 @@ def build_parser():
                       help="the TCU stub's task clock: wall (2 ms of wall time, the default in "
                            "real time) or bus (a tick per 2 ms plant frame, the default with "
                            "--time-scale below 1)")
-    demo.add_argument("--duration", type=_serve_duration, metavar="S",
+    demo.add_argument("--duration", type=argtypes.seconds, metavar="S",
                       help="play only the first S seconds of the maneuver")
     demo.add_argument("--quiet", action="store_true", help="no live status")
     demo.set_defaults(func=cmd_demo)
@@ -651,55 +651,9 @@ def _serve_priority(text):
     return n
 
 
-def _serve_cpu(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a CPU number") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"must be a CPU number >= 0, got {text}")
-    return n
 
 
-def _serve_duration(text):
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0, got {text}")
-    return x
 
-
-def _time_scale(text):
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(x) and 0 < x <= 1):
-        raise argparse.ArgumentTypeError(f"must be above 0 and at most 1 (1: real time), got {text}")
-    return x
-
-
-def _record_every(text):
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(x) and 0 < x <= 10):
-        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0 and at most 10, "
-                                         f"got {text}")
-    return x
-
-
-def _serve_bitrate(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 1_000 <= n <= 8_000_000:
-        raise argparse.ArgumentTypeError(f"must be 1000..8000000 bit/s, got {text}")
-    return n
 
 
 def cmd_serve(args):

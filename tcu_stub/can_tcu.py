@@ -97,6 +97,7 @@ import threading
 import time
 
 from can_dbc import codec
+from dct_hil import argtypes
 from can_dbc.peer import CanPeer
 from tcu_stub.logic import PERIOD_S, TcuLogic
 
@@ -565,24 +566,6 @@ def _time_scale_arg(text):
         raise argparse.ArgumentTypeError(str(e).replace("time scale ", "", 1)) from None
 
 
-def _duration_arg(text):
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0, got {text}")
-    return x
-
-
-def _bitrate_arg(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 1_000 <= n <= 8_000_000:
-        raise argparse.ArgumentTypeError(f"must be 1000..8000000 bit/s, got {text}")
-    return n
 
 
 def add_arguments(parser):
@@ -593,9 +576,9 @@ def add_arguments(parser):
     parser.add_argument("--interface", default="socketcan", metavar="NAME",
                         help="python-can interface: socketcan, virtual, udp_multicast, pcan, ... "
                              "(default socketcan)")
-    parser.add_argument("--bitrate", type=_bitrate_arg, metavar="BIT/S",
+    parser.add_argument("--bitrate", type=argtypes.bitrate, metavar="BIT/S",
                         help="bit rate, for interfaces that set it")
-    parser.add_argument("--duration", type=_duration_arg, metavar="S",
+    parser.add_argument("--duration", type=argtypes.seconds, metavar="S",
                         help="stop after S seconds of wall time (default: run until Ctrl-C or SIGTERM)")
     parser.add_argument("--time-scale", type=_time_scale_arg, default=1.0, metavar="S",
                         help="run slower than real time by this factor, 0 < S <= 1 (the server must "

@@ -1,0 +1,61 @@
+"""Option types shared by the dct-hil commands: each turns the text of an
+option into a value or raises ``argparse.ArgumentTypeError`` with the reason,
+which argparse prints as one line naming the option."""
+
+import argparse
+import math
+
+
+def _float(text):
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+
+
+def _int(text, what="a whole number"):
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+
+
+def seconds(text):
+    """A duration: a finite number of seconds above 0."""
+    x = _float(text)
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0, got {text}")
+    return x
+
+
+def record_interval(text):
+    """A recording interval: above 0, at most 10 s."""
+    x = _float(text)
+    if not (math.isfinite(x) and 0 < x <= 10):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds above 0 and at most 10, "
+                                         f"got {text}")
+    return x
+
+
+def time_scale(text):
+    """Slow motion: above 0, at most 1 (1 is real time)."""
+    x = _float(text)
+    if not (math.isfinite(x) and 0 < x <= 1):
+        raise argparse.ArgumentTypeError(f"must be above 0 and at most 1 (1: real time), got {text}")
+    return x
+
+
+def bitrate(text):
+    """A CAN bit rate, 1 kbit/s to 8 Mbit/s."""
+    n = _int(text)
+    if not 1_000 <= n <= 8_000_000:
+        raise argparse.ArgumentTypeError(f"must be 1000..8000000 bit/s, got {text}")
+    return n
+
+
+def cpu(text):
+    """A CPU number."""
+    n = _int(text, "a CPU number")
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be a CPU number >= 0, got {text}")
+    return n
