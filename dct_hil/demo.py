@@ -29,10 +29,8 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -183,7 +181,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     from plant import maneuvers as mv  # noqa: PLC0415
     from plant.plots import write_plots  # noqa: PLC0415
     from rt_loop.recorder import read_recording  # noqa: PLC0415
-    from rt_loop.server import Server  # noqa: PLC0415
+    from rt_loop.server import Server, StopSignals  # noqa: PLC0415
 
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
@@ -214,20 +212,12 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         print("TCU clock         bus: a TCU tick per DCT_ShaftSpeeds frame (follows plant time)",
               file=out)
 
-    stop = threading.Event()
-    received: list[int] = []
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        received.append(signum)
-        stop.set()
-
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, on_signal)
+    signals = StopSignals()
+    stop, received = signals.event, signals.received
     tcu = None
     tcu_rc = None
     try:
+        signals.__enter__()
         server.start()
         for w in server.warnings:
             print(f"dct-hil: warning: {w}", file=err)
@@ -257,11 +247,12 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     else:
         return_code = 0
     finally:
-        if tcu is not None:
-            tcu_rc = tcu.stop()
-        server.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        try:
+            if tcu is not None:
+                tcu_rc = tcu.stop()
+            server.stop()
+        finally:
+            signals.__exit__()
 
     report = server.write_report(paths["stats"])
     run = report["run"]
@@ -322,7 +313,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
             (k, str(v)) for k, v in paths.items()]:
         print(f"  {name:<15} {p}", file=out)
     out.flush()
-    if received and received[0] == signal.SIGINT:
+    if signals.interrupted:
         return 130
     return return_code
 

@@ -735,6 +735,36 @@ def _check_duration(duration_s: Any) -> float | None:
 # dct-hil serve
 # --------------------------------------------------------------------------
 
+class StopSignals:
+    """SIGINT and SIGTERM turned into an event while the block runs (main
+    thread only; elsewhere the handlers stay as they are). ``received`` lists
+    the signals in order; ``interrupted`` is True after a Ctrl-C."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.received: list[int] = []
+        self._previous: dict = {}
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        self.received.append(signum)
+        self.event.set()
+
+    def __enter__(self) -> StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._on_signal)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+
+    @property
+    def interrupted(self) -> bool:
+        return bool(self.received) and self.received[0] == signal.SIGINT
+
+
 def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = False,
                 out: TextIO | None = None, err: TextIO | None = None) -> int:
     """Runs ``server`` with a live status until it ends or SIGINT/SIGTERM arrives.
@@ -750,19 +780,11 @@ def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = Fal
     """
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
-    stop = threading.Event()
-    received: list[int] = []
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        received.append(signum)
-        stop.set()
-
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, on_signal)
+    signals = StopSignals()
+    stop = signals.event
     view = None
     try:
+        signals.__enter__()
         server.start()
         for line in _status.banner_lines(server, stats_path):
             print(line, file=out, flush=True)
@@ -776,8 +798,7 @@ def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = Fal
         try:
             server.stop()
         finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+            signals.__exit__()
     if view is not None:
         view.close()
     report = server.write_report(stats_path)
@@ -798,7 +819,7 @@ def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = Fal
     if log and log["error"]:
         print(f"dct-hil: error: the traffic log is incomplete: {log['error']}", file=err)
         return 1
-    if received and received[0] == signal.SIGINT:
+    if signals.interrupted:
         return 130
     return 0
 

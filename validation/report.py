@@ -87,6 +87,17 @@ def _rel(path: Path, doc_dir: Path) -> str:
     return os.path.relpath(path, doc_dir)
 
 
+def _save(fig, axes, sec: Section, plots: Path, doc_dir: Path, name: str) -> None:
+    """Grid on every axis, the PNG written, linked from the section."""
+    for ax in np.atleast_1d(axes):
+        ax.grid(True, alpha=0.3)
+    path = plots / f"{name}.png"
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    sec.plots.append(path)
+    sec.lines += ["", f"![{name}]({_rel(path, doc_dir)})"]
+
+
 # --------------------------------------------------------------------------
 # 1. fixed step against a reference solution
 # --------------------------------------------------------------------------
@@ -183,13 +194,7 @@ def fixed_step(quick: bool, plots: Path, doc_dir: Path) -> Section:
     axes[1].plot([], [])
     axes[1].set_ylabel("acceleration [m/s2]")
     axes[1].set_xlabel("time [s]")
-    for ax in axes:
-        ax.grid(True, alpha=0.3)
-    p = plots / "fixed_step_acceleration.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    sec.plots.append(p)
-    sec.lines += ["", f"![acceleration]({_rel(p, doc_dir)})"]
+    _save(fig, axes, sec, plots, doc_dir, "fixed_step_acceleration")
     return sec
 
 
@@ -253,11 +258,7 @@ def _sync_generic(sd, sec: Section, quick: bool, plots: Path, doc_dir: Path) -> 
             ax.grid(True, alpha=0.3)
         axes[0].legend()
         axes[-1].set_xlabel("time [s]")
-        p = plots / "synchronizer.png"
-        fig.savefig(p, dpi=90)
-        plt.close(fig)
-        sec.plots.append(p)
-        sec.lines += ["", f"![synchronizer]({_rel(p, doc_dir)})"]
+        _save(fig, axes, sec, plots, doc_dir, "synchronizer")
     return sec
 
 
@@ -308,13 +309,7 @@ def valve(quick: bool, plots: Path, doc_dir: Path) -> Section:
     axes[1].set_ylabel("clutch pressure [bar]")
     axes[1].legend()
     axes[1].set_title("current steps")
-    for ax in axes:
-        ax.grid(True, alpha=0.3)
-    p = plots / "valve.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    sec.plots.append(p)
-    sec.lines += ["", f"![valve]({_rel(p, doc_dir)})"]
+    _save(fig, axes, sec, plots, doc_dir, "valve")
     return sec
 
 
@@ -407,13 +402,7 @@ def vehicle(quick: bool, plots: Path, doc_dir: Path) -> Section:
     axes[1].set_ylabel("speed [km/h]")
     axes[1].set_title("coastdown in neutral")
     axes[1].legend()
-    for ax in axes:
-        ax.grid(True, alpha=0.3)
-    path = plots / "vehicle.png"
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    sec.plots.append(path)
-    sec.lines += ["", f"![vehicle]({_rel(path, doc_dir)})"]
+    _save(fig, axes, sec, plots, doc_dir, "vehicle")
     return sec
 
 
