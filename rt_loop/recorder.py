@@ -5,7 +5,7 @@ and the commands it applied into a ring of ``rt_sample`` (no allocation, no
 lock); this thread drains the ring about 20 times per second and appends the
 rows to a CSV file. The columns are those of ``dct-hil simulate`` (every
 plant output, ``time_s`` first, in plant time), then ``maneuver_time_s``
-(plant time since the scripted maneuver started, empty before), ``tick``
+(plant time since the scripted maneuver started, ``nan`` before), ``tick``
 (the executed tick), and the commands the loop applied that the outputs do
 not already hold, as ``cmd_<name>``. Samples the loop could not put in the
 ring because this thread fell behind are counted (``dropped``), never lost
@@ -60,6 +60,10 @@ class Recorder:
         self._out_idx = np.arange(base_o, base_o + len(outputs))
         self._mt_idx = fields["maneuver_time_s"].offset // 8
         self._cmd_idx = np.array([base_c + k for k, _ in cmd_extra], dtype=int)
+        # one printf-style format per row: the columns in file order
+        self._cols = np.concatenate([self._out_idx, [self._mt_idx], self._cmd_idx]).astype(int)
+        n_out = len(self._out_idx)
+        self._fmt = ",".join(["%.9g"] * n_out + ["%.9g", "%d"] + ["%.9g"] * len(self._cmd_idx))
         self._file.write(",".join(self.columns) + "\n")
         self._buf = ffi.new("rt_sample[]", _BATCH)
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
@@ -85,16 +89,15 @@ class Recorder:
             return n
         raw = np.frombuffer(self._ffi.buffer(self._buf, n * self._n_doubles * 8), dtype=np.float64)
         raw = raw.reshape(n, self._n_doubles)
-        ticks = raw[:, 0].view(np.uint64)
+        ticks = raw[:, 0].view(np.uint64).tolist()
+        values = raw[:, self._cols]
+        mt_col = len(self._out_idx)
+        values[values[:, mt_col] < 0, mt_col] = np.nan     # before the maneuver started
+        fmt = self._fmt
+        n_head = mt_col + 1
         lines = []
-        for i in range(n):
-            row = raw[i]
-            mt = row[self._mt_idx]
-            parts = [f"{v:.9g}" for v in row[self._out_idx]]
-            parts.append(f"{mt:.9g}" if mt >= 0 else "")
-            parts.append(str(int(ticks[i])))
-            parts.extend(f"{v:.9g}" for v in row[self._cmd_idx])
-            lines.append(",".join(parts))
+        for row, tick in zip(values.tolist(), ticks):
+            lines.append(fmt % (*row[:n_head], tick, *row[n_head:]))
         try:
             self._file.write("\n".join(lines) + "\n")
             self.written += n
@@ -132,7 +135,7 @@ def _flat_doubles(ffi: Any, cname: str) -> list[tuple[str, int]]:
 
 
 def read_recording(path: str | os.PathLike) -> dict:
-    """A recording as {column: float array}; empty maneuver times are NaN."""
+    """A recording as {column: float array}; maneuver times before the start are NaN."""
     path = os.fspath(path)
     with open(path, encoding="ascii") as f:
         header = f.readline().strip().split(",")

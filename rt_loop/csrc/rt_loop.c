@@ -222,19 +222,26 @@ int rt_ring_push_many(rt_ring *r, const dct_can_frame *f, int n)
     return (int)k;
 }
 
-int rt_ring_pop_many(rt_ring *r, dct_can_frame *f, int n)
-{
-    if (n <= 0)
-        return 0;
-    uint32_t tail = atomic_load_explicit(A32(&r->tail), RELAXED);
-    uint32_t head = atomic_load_explicit(A32(&r->head), ACQUIRE);
-    uint32_t avail = head - tail;
-    uint32_t k = (uint32_t)n < avail ? (uint32_t)n : avail;
-    for (uint32_t i = 0; i < k; i++)
-        f[i] = r->frames[(tail + i) & (RT_RING_SIZE - 1u)];
-    atomic_store_explicit(A32(&r->tail), tail + k, RELEASE);
-    return (int)k;
-}
+/* The consumer's side of each single-producer single-consumer ring: copies
+ * up to n entries out, then frees their slots; returns how many. */
+#define RT_DEFINE_POP_MANY(fn, ring_t, entry_t, items, size)                      \
+    int fn(ring_t *r, entry_t *out, int n)                                      \
+    {                                                                           \
+        if (n <= 0)                                                             \
+            return 0;                                                           \
+        uint32_t tail = atomic_load_explicit(A32(&r->tail), RELAXED);           \
+        uint32_t head = atomic_load_explicit(A32(&r->head), ACQUIRE);           \
+        uint32_t avail = head - tail;                                           \
+        uint32_t k = (uint32_t)n < avail ? (uint32_t)n : avail;                 \
+        for (uint32_t i = 0; i < k; i++)                                        \
+            out[i] = r->items[(tail + i) & ((size) - 1u)];                      \
+        atomic_store_explicit(A32(&r->tail), tail + k, RELEASE);                \
+        return (int)k;                                                          \
+    }
+
+RT_DEFINE_POP_MANY(rt_ring_pop_many, rt_ring, dct_can_frame, frames, RT_RING_SIZE)
+RT_DEFINE_POP_MANY(rt_log_pop_many, rt_log_ring, rt_log_entry, entries, RT_LOG_SIZE)
+RT_DEFINE_POP_MANY(rt_rec_pop_many, rt_rec_ring, rt_sample, samples, RT_REC_SIZE)
 
 int rt_ring_push(rt_ring *r, const dct_can_frame *f)
 {
@@ -264,20 +271,6 @@ static inline void log_push(rt_log_ring *g, double time_s, uint32_t dir, const d
     atomic_store_explicit(A32(&g->head), head + 1, RELEASE);
 }
 
-int rt_log_pop_many(rt_log_ring *r, rt_log_entry *e, int n)
-{
-    if (n <= 0)
-        return 0;
-    uint32_t tail = atomic_load_explicit(A32(&r->tail), RELAXED);
-    uint32_t head = atomic_load_explicit(A32(&r->head), ACQUIRE);
-    uint32_t avail = head - tail;
-    uint32_t k = (uint32_t)n < avail ? (uint32_t)n : avail;
-    for (uint32_t i = 0; i < k; i++)
-        e[i] = r->entries[(tail + i) & (RT_LOG_SIZE - 1u)];
-    atomic_store_explicit(A32(&r->tail), tail + k, RELEASE);
-    return (int)k;
-}
-
 int rt_log_pop(rt_log_ring *r, rt_log_entry *e)
 {
     return rt_log_pop_many(r, e, 1) == 1 ? 0 : -1;
@@ -301,19 +294,6 @@ static inline void rec_push(rt_rec_ring *g, uint64_t tick, double time_s, double
     atomic_store_explicit(A32(&g->head), head + 1, RELEASE);
 }
 
-int rt_rec_pop_many(rt_rec_ring *r, rt_sample *s, int n)
-{
-    if (n <= 0)
-        return 0;
-    uint32_t tail = atomic_load_explicit(A32(&r->tail), RELAXED);
-    uint32_t head = atomic_load_explicit(A32(&r->head), ACQUIRE);
-    uint32_t avail = head - tail;
-    uint32_t k = (uint32_t)n < avail ? (uint32_t)n : avail;
-    for (uint32_t i = 0; i < k; i++)
-        s[i] = r->samples[(tail + i) & (RT_REC_SIZE - 1u)];
-    atomic_store_explicit(A32(&r->tail), tail + k, RELEASE);
-    return (int)k;
-}
 
 /* ------------------------------------------------------------------ */
 /* Statistics: sequence counter                                        */
