@@ -242,7 +242,7 @@ def _sync_generic(sd, sec: Section, quick: bool, plots: Path, doc_dir: Path) -> 
     sec.lines += ["", "Compute time for 0.8 s simulated (the paper: 0.036 s hybrid, 4.018 s "
                   "detailed):", "", "| model | compute time |", "|---|---|"]
     for k, v in ct.items():
-        if isinstance(v, (int, float)):
+        if isinstance(v, (int, float)) and k != "sim_s":
             sec.lines.append(f"| {k} | {v:.4g} s |")
     if first is not None and "series" in first:
         s = first["series"]

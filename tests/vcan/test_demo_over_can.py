@@ -8,7 +8,7 @@ shifts (``plant.maneuvers.gear_shifts`` on the recorded gear) must come in
 the same sequence, each within 20 ms of its offline time.
 
 The test kernel is emulated (no KVM): far too slow for real time, so the
-whole HiL runs in slow motion (``--time-scale``, default 0.2 here; set
+whole HiL runs in slow motion (``--time-scale``, default 0.1 here; set
 DCT_VCAN_TIME_SCALE to change it), and the TCU ticks on the plant's 2 ms
 frames (the demo's bus clock in slow motion), so plant and TCU stay in step
 even where the emulated machine cannot keep the slowed pace and the loop
@@ -28,7 +28,7 @@ from plant.maneuvers import compare_shifts, gear_shifts, get_maneuver
 pytestmark = pytest.mark.vcan
 
 REPO = Path(__file__).resolve().parents[2]
-TIME_SCALE = float(os.environ.get("DCT_VCAN_TIME_SCALE", "0.2"))
+TIME_SCALE = float(os.environ.get("DCT_VCAN_TIME_SCALE", "0.1"))
 SHIFT_TOLERANCE_S = 0.020
 
 
