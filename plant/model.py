@@ -212,8 +212,82 @@ class Plant:
             self._check(lib.dct_bench_steps(self._p, n, ffi.from_buffer("double[]", out)))
         return out[:n]
 
+    def bench_components(self, n=20000):
+        """Each component's share of one step, ns per 0.5 ms step (C clock).
+
+        ``{name: ns}`` in ``COMPONENT_NAMES`` order: the component's output and
+        advance functions timed in C on the present state and applied inputs
+        (about ``n`` calls each, median over batches, on copies: the plant is
+        not changed), times the sub-steps per step. The assembly's own work
+        (input limits, state check, outputs) is in no component.
+        """
+        n = _count(n, "n")
+        if n < 1:
+            raise ValueError("n must be at least 1")
+        out = ffi.new("double[]", lib.DCT_BENCH_N_COMPONENTS)
+        self._check(lib.dct_bench_components(self._p, n, out))
+        substeps = int(self._p.params.solver.substeps)
+        return {name: float(out[i]) * substeps for i, name in enumerate(COMPONENT_NAMES)}
+
+    def state_counts(self, kind=None):
+        """State variables per component; see ``state_counts``."""
+        return state_counts(kind)
+
     def __repr__(self):
         return f"<Plant t={self.time_s:.4f} s, step {self.step_s * 1e3:g} ms>"
+
+
+#: the components of ``Plant.bench_components``, in the assembly's order
+COMPONENT_NAMES = [ffi.string(lib.dct_bench_component_name(i)).decode()
+                   for i in range(lib.DCT_BENCH_N_COMPONENTS)]
+
+# state struct (first part of a state name) -> component
+_STATE_COMPONENT = {
+    "time_s": "time", "engine": "engine", "clutch": "clutches", "hydraulics": "hydraulics",
+    "gearbox": "gearbox", "driveline": "driveline", "wheel": "wheels", "tyre": "tyres",
+    "vehicle": "vehicle",
+}
+# states that are not continuous states of the dynamics
+_DISCRETE = ("engine.running", ".phase", ".side")            # switch the equations
+_BOOKKEEPING = ("time_s", "engine.fuel_g", ".clashes", "vehicle.position_m")  # read, never fed back
+
+
+def state_kind(name):
+    """'continuous', 'discrete' (phase, side, running) or 'bookkeeping'
+    (time, fuel burnt, clash count, distance: integrated for the outputs,
+    never fed back into the dynamics) for a name of ``STATE_NAMES``."""
+    if name not in STATE_NAMES:
+        raise ValueError(f"no state named {name!r}")
+    if any(name == k or (k.startswith(".") and name.endswith(k)) for k in _BOOKKEEPING):
+        return "bookkeeping"
+    if any(name == k or (k.startswith(".") and name.endswith(k)) for k in _DISCRETE):
+        return "discrete"
+    return "continuous"
+
+
+def state_component(name):
+    """The component (a ``COMPONENT_NAMES`` entry, or 'time') a state belongs to."""
+    if name not in STATE_NAMES:
+        raise ValueError(f"no state named {name!r}")
+    return _STATE_COMPONENT[name.split(".")[0].split("[")[0]]
+
+
+def state_counts(kind=None):
+    """Number of state doubles per component, from the layout of ``dct_state``.
+
+    ``{component: count}``: 'time', then ``COMPONENT_NAMES`` order (the
+    gearbox includes its four synchronizers). ``kind`` ('continuous',
+    'discrete', 'bookkeeping') counts only that kind; None counts all, and
+    the counts then sum to ``len(STATE_NAMES)``.
+    """
+    kinds = ("continuous", "discrete", "bookkeeping")
+    if kind is not None and kind not in kinds:
+        raise ValueError(f"kind must be one of {', '.join(kinds)} or None, got {kind!r}")
+    counts = {name: 0 for name in ["time", *COMPONENT_NAMES]}
+    for name in STATE_NAMES:
+        if kind is None or state_kind(name) == kind:
+            counts[state_component(name)] += 1
+    return counts
 
 
 def build_info():

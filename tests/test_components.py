@@ -563,6 +563,26 @@ def test_gearbox_mesh_loss_never_negative(car):
                 assert given == pytest.approx(-loss, abs=1e-9)
 
 
+def test_gearbox_passes_the_gear_side_inertia_to_the_synchronizers(car):
+    # what a sleeve turns back through its ring at each of its gears: the
+    # gear's input shaft (with fixed and meshing loose gears) reflected
+    # through the gear's ratio; nothing on the 6-N sleeve's neutral side
+    box = Gearbox(car, 0, carrier_speed=20.0)
+    out = box.eval(0.0)
+    for k in range(4):
+        si = out.sync_in[k]
+        for side, j in ((1, si.gear_inertia_pos_kgm2), (-1, si.gear_inertia_neg_kgm2)):
+            g = lib.dct_sleeve_gear(k, side)
+            if g < 0:
+                assert j == 0.0
+                continue
+            shaft = lib.dct_gear_input_shaft(g)
+            expected = box.d.input_inertia_kgm2[shaft] * box.p.ratio[g] ** 2
+            assert j == pytest.approx(expected, rel=EXACT), (k, side)
+    # 2nd gear: 0.07 kg m^2, the detailed synchronizer model's gear side
+    assert out.sync_in[1].gear_inertia_pos_kgm2 == pytest.approx(0.0696, rel=0.01)
+
+
 # ---------------------------------------------------------------------------
 # synchronizer
 # ---------------------------------------------------------------------------

@@ -223,7 +223,13 @@ typedef struct {
     double blocker_force_max_n;       /* fork force that overpowers the blocker */
     double clash_speed_rad_s;         /* engaging above this slip counts as a clash */
     double dog_friction_mu;           /* dog-tooth friction: holds an engaged gear under load */
-    double dog_radius_m;
+    double dog_radius_m;              /* r_b: pitch radius of the sleeve, blocker-ring and dog teeth */
+    /* ring turn-back: once the blocker releases, the sleeve's chamfers turn the
+     * ring, and through its still stuck cone the gear side, back out of the
+     * way; until the sleeve has passed the ring its mass includes the gear
+     * side's inertia felt through the chamfers, J tan^2(beta) / r_b^2 */
+    double ring_chamfer_angle_deg;    /* beta: chamfer face of sleeve and ring teeth from the axis */
+    double ring_pass_travel_mm;       /* sleeve travel beyond cone_travel_mm until its chamfers clear the ring's */
 } dct_sync_params;
 
 typedef struct {
@@ -240,6 +246,9 @@ typedef struct {
     double slip_pos_rad_s;            /* first gear speed - shaft speed */
     double slip_neg_rad_s;            /* second gear speed - shaft speed */
     double has_neg;                   /* 0 for the 6-N sleeve */
+    double gear_inertia_pos_kgm2;     /* gear side of the first gear, at the gear: what the cone turns
+                                       * (loose gear, its input shaft and the gears that mesh with it) */
+    double gear_inertia_neg_kgm2;     /* gear side of the second gear (0 for the 6-N sleeve) */
 } dct_sync_input;
 
 typedef struct {

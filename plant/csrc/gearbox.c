@@ -56,6 +56,15 @@ void dct_gearbox_prepare(const dct_gearbox_params *p, dct_gearbox_derived *d)
         d->carrier_inertia_kgm2 += p->output_shaft_inertia_kgm2[o] * dct_sq(p->final_drive[o]);
 }
 
+/* the gear side a synchronizer turns, at gear g: the input shaft that drives
+ * g (shaft, clutch hub, fixed gears and the loose gears meshing with them;
+ * its clutch open) reflected through g's ratio. It includes the loose gear
+ * g itself. */
+static double gear_side_inertia(const dct_gearbox_params *p, const dct_gearbox_derived *d, int g)
+{
+    return d->input_inertia_kgm2[GEAR_INPUT[g]] * dct_sq(p->ratio[g]);
+}
+
 static double efficiency_factor(double eta, double power_w, double scale_w)
 {
     double t = dct_smooth_sign(power_w, scale_w);
@@ -89,6 +98,8 @@ void dct_gearbox_output_eval(const dct_gearbox_params *p, const dct_gearbox_deri
         si->slip_pos_rad_s = w_gear[SLEEVE_POS[k]] - wo;
         si->has_neg = SLEEVE_NEG[k] >= 0 ? 1.0 : 0.0;
         si->slip_neg_rad_s = SLEEVE_NEG[k] >= 0 ? w_gear[SLEEVE_NEG[k]] - wo : 0.0;
+        si->gear_inertia_pos_kgm2 = gear_side_inertia(p, d, SLEEVE_POS[k]);
+        si->gear_inertia_neg_kgm2 = SLEEVE_NEG[k] >= 0 ? gear_side_inertia(p, d, SLEEVE_NEG[k]) : 0.0;
         dct_sync_output_eval(&p->sync[k], &s->sync[k], si, &out->sync[k]);
         int g = dct_sleeve_gear(k, (int)out->sync[k].side);
         if (g >= 0)

@@ -358,7 +358,9 @@ static int check_params(const dct_params *p)
         const dct_sync_params *sp = &p->gearbox.sync[k];
         if (!(sp->stiffness_nm_per_rad > 0.0) || !(sp->sleeve_mass_kg > 0.0) ||
             !(sp->tanh_speed_rad_s > 0.0) || !(sp->dog_radius_m > 0.0) ||
-            !(sp->engaged_travel_mm > sp->cone_travel_mm) || !(sp->cone_travel_mm > 0.0))
+            !(sp->engaged_travel_mm > sp->cone_travel_mm) || !(sp->cone_travel_mm > 0.0) ||
+            !(sp->ring_chamfer_angle_deg >= 0.0 && sp->ring_chamfer_angle_deg < 90.0) ||
+            !(sp->ring_pass_travel_mm >= 0.0))
             return DCT_ERR_PARAM;
     }
     const dct_hydraulics_params *hy = &p->hydraulics;

@@ -13,7 +13,16 @@
  *                  the shaft and gear stiffness, T = k theta_r + b w_r (eq. 4),
  *                  theta_r carried over from the synchronizing phase; the
  *                  sleeve travels on to full engagement; dog-tooth friction
- *                  (mu_d |T| / r_d) holds a loaded gear in
+ *                  (mu_d |T| / r_d) holds a loaded gear in; until the
+ *                  sleeve has passed the blocker ring (ring_pass_travel_mm
+ *                  beyond the cone travel) it turns the ring back out of its
+ *                  way, and with it, through the still stuck cone, the gear
+ *                  side: an axial travel dx turns them by dx tan(beta) / r_b,
+ *                  so the sleeve, pushing in, also moves the gear side's
+ *                  inertia J as a mass J tan^2(beta) / r_b^2 (J from the
+ *                  assembly: dct_sync_input.gear_inertia_*_kgm2); after a
+ *                  clash too, where the slipping cone would pass on less
+ *                  (a simplification: clashes are rare and counted)
  *
  * A fork force above the blocker's strength pushes the sleeve through before
  * the speeds match: an engagement with a slip above the clash speed is
@@ -70,9 +79,9 @@ void dct_sync_output_eval(const dct_sync_params *p, const dct_sync_state *s,
 /* velocity after a step under force f, damping, and a Coulomb friction
  * force of magnitude fc applied as an impulse that can stop but not reverse
  * the motion */
-static double sleeve_velocity(const dct_sync_params *p, double v, double f, double fc, double h)
+static double sleeve_velocity(const dct_sync_params *p, double m, double v, double f, double fc,
+                              double h)
 {
-    double m = p->sleeve_mass_kg;
     double v1 = v + h * (f - p->sleeve_damping_ns_per_m * v) / m;
     double dv = h * fc / m;
     if (fabs(v1) <= dv)
@@ -117,7 +126,16 @@ void dct_sync_advance(const dct_sync_params *p, dct_sync_state *s,
         /* eq. 4: the deformation integrates the slip */
         s->twist_rad += h * out->slip_rad_s;
         double fdog = p->dog_friction_mu * fabs(out->torque_nm) / p->dog_radius_m;
-        double v1 = sleeve_velocity(p, v, f, fdog, h);
+        double m = p->sleeve_mass_kg;
+        /* ring turn-back: while the sleeve pushes in (moving in, or at rest
+         * with the fork pushing it in) and has not yet passed the ring */
+        if (x * side < cone + p->ring_pass_travel_mm * 1e-3 &&
+            (v * side > 0.0 || (v == 0.0 && f * side > 0.0))) {
+            double j = side > 0.0 ? in->gear_inertia_pos_kgm2 : in->gear_inertia_neg_kgm2;
+            double tb = tan(p->ring_chamfer_angle_deg * (DCT_PI / 180.0)) / p->dog_radius_m;
+            m += j * tb * tb;
+        }
+        double v1 = sleeve_velocity(p, m, v, f, fdog, h);
         double x1 = x + h * v;
         if (x1 * side >= full) {
             x1 = side * full;
@@ -137,7 +155,7 @@ void dct_sync_advance(const dct_sync_params *p, dct_sync_state *s,
 
     /* disengaged: free sleeve with the neutral detent */
     double detent = -dct_clamp(x / DETENT_TRAVEL_M, -1.0, 1.0) * p->detent_force_n;
-    double v1 = sleeve_velocity(p, v, f + detent, 0.0, h);
+    double v1 = sleeve_velocity(p, p->sleeve_mass_kg, v, f + detent, 0.0, h);
     double x1 = x + h * v;
     if (!(in->has_neg > 0.5) && x1 < 0.0) {
         /* 6-N sleeve: nothing on the negative side, neutral is its end stop */

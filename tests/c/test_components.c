@@ -53,7 +53,7 @@ static dct_sync_params sync_params(void)
     p.sleeve_mass_kg = 1.5; p.sleeve_damping_ns_per_m = 200; p.cone_travel_mm = 3;
     p.engaged_travel_mm = 8.5; p.detent_force_n = 60; p.lock_speed_rad_s = 0.5;
     p.blocker_force_max_n = 1300; p.clash_speed_rad_s = 10.5; p.dog_friction_mu = 0.15;
-    p.dog_radius_m = 0.045;
+    p.dog_radius_m = 0.045; p.ring_chamfer_angle_deg = 60.0; p.ring_pass_travel_mm = 0.8616;
     return p;
 }
 
@@ -64,9 +64,10 @@ static void test_sync_phases(void)
     dct_sync_params p = sync_params();
     dct_sync_state s;
     dct_sync_init(&p, &s, 0);
-    dct_sync_input in = {400.0, 50.0, 0.0, 1.0};
+    double j = 0.05;
+    dct_sync_input in = {400.0, 50.0, 0.0, 1.0, j, j};
     dct_sync_output o;
-    double j = 0.05, h = 1.25e-4, t = 0.0, t_sync = -1.0, t_eng = -1.0;
+    double h = 1.25e-4, t = 0.0, t_sync = -1.0, t_eng = -1.0;
     int last_phase = 0, order_ok = 1;
     for (int i = 0; i < 40000; i++) {
         dct_sync_output_eval(&p, &s, &in, &o);
@@ -94,7 +95,7 @@ static void test_sync_clash(void)
     dct_sync_params p = sync_params();
     dct_sync_state s;
     dct_sync_init(&p, &s, 0);
-    dct_sync_input in = {1500.0, 100.0, 0.0, 1.0}; /* above the blocker's strength */
+    dct_sync_input in = {1500.0, 100.0, 0.0, 1.0, 0.05, 0.05}; /* above the blocker's strength */
     dct_sync_output o;
     for (int i = 0; i < 2000 && s.phase != DCT_SYNC_ENGAGED; i++) {
         dct_sync_output_eval(&p, &s, &in, &o);
@@ -110,7 +111,7 @@ static void test_sync_released_from_the_cone(void)
     dct_sync_params p = sync_params();
     dct_sync_state s;
     dct_sync_init(&p, &s, 0);
-    dct_sync_input in = {400.0, 200.0, 0.0, 1.0};
+    dct_sync_input in = {400.0, 200.0, 0.0, 1.0, 0.05, 0.05};
     dct_sync_output o;
     for (int i = 0; i < 4000 && s.phase != DCT_SYNC_SYNCHRONIZING; i++) {
         dct_sync_output_eval(&p, &s, &in, &o);
@@ -123,6 +124,79 @@ static void test_sync_released_from_the_cone(void)
         dct_sync_advance(&p, &s, &in, &o, 1.25e-4);
     }
     CHECK(s.position_m < 0.0 && s.side <= 0.0, "pulled back across neutral: %g mm", s.position_m * 1e3);
+}
+
+/* time for an engaged sleeve, from rest at the cone, under a constant fork
+ * force to travel dx_mm further: the gear is held at the shaft speed */
+static double sleeve_travel_time(const dct_sync_params *p, double force_n, double j, double dx_mm,
+                                 double h)
+{
+    dct_sync_state s;
+    dct_sync_init(p, &s, 0);
+    s.phase = DCT_SYNC_ENGAGED;
+    s.side = 1.0;
+    s.position_m = p->cone_travel_mm * 1e-3;
+    dct_sync_input in = {force_n, 0.0, 0.0, 1.0, j, 0.0};
+    dct_sync_output o;
+    double end = (p->cone_travel_mm + dx_mm) * 1e-3;
+    for (int i = 1; i < 100000; i++) {
+        dct_sync_output_eval(p, &s, &in, &o);
+        dct_sync_advance(p, &s, &in, &o, h);
+        if (s.position_m >= end)
+            return i * h;
+    }
+    return -1.0;
+}
+
+/* ring turn-back: until the sleeve has passed the ring it moves the gear
+ * side's inertia J as a mass J tan^2(beta) / r_b^2; beyond, its own mass */
+static void test_sync_ring_turn_back(void)
+{
+    dct_sync_params p = sync_params();
+    double h = 1.25e-4, f = 600.0, j = 0.07, pass = p.ring_pass_travel_mm;
+    double tb = tan(p.ring_chamfer_angle_deg * (3.14159265358979323846 / 180.0)) / p.dog_radius_m;
+    double m = p.sleeve_mass_kg + j * tb * tb; /* 105 kg */
+    /* x = (F/c) (t - tau (1 - exp(-t/tau))), tau = m / c: solved for t by bisection */
+    double c = p.sleeve_damping_ns_per_m, tau = m / c, lo = 0.0, hi = 1.0;
+    for (int i = 0; i < 100; i++) {
+        double t = 0.5 * (lo + hi);
+        if (f / c * (t - tau * (1.0 - exp(-t / tau))) < pass * 1e-3)
+            lo = t;
+        else
+            hi = t;
+    }
+    double t_pass = sleeve_travel_time(&p, f, j, pass, h);
+    CHECK(fabs(t_pass - lo) < 0.02 * lo, "ring pass %g s expected %g s", t_pass, lo);
+    /* no gear inertia, or no chamfer angle: the sleeve's own mass, far quicker */
+    double t_free = sleeve_travel_time(&p, f, 0.0, pass, h);
+    dct_sync_params flat = p;
+    flat.ring_chamfer_angle_deg = 0.0;
+    CHECK(t_free < 0.2 * t_pass && sleeve_travel_time(&flat, f, j, pass, h) == t_free,
+          "no turn-back without inertia or chamfer (%g, %g)", t_free, t_pass);
+    /* past the ring the sleeve is light again: the next 0.5 mm take the free time */
+    double t_more = sleeve_travel_time(&p, f, j, pass + 0.5, h) - t_pass;
+    CHECK(t_more < 0.5 * t_pass, "light past the ring (%g s)", t_more);
+    /* pulled back out of an engaged gear, the sleeve leaves the ring: no turn-back */
+    dct_sync_state s;
+    dct_sync_init(&p, &s, 1);
+    dct_sync_input in = {-f, 0.0, 0.0, 1.0, j, j};
+    dct_sync_output o;
+    double t_out = -1.0, t_out_free = -1.0;
+    for (int i = 1; i < 100000 && t_out < 0.0; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, h);
+        if (s.phase == DCT_SYNC_DISENGAGED)
+            t_out = i * h;
+    }
+    dct_sync_init(&p, &s, 1);
+    in.gear_inertia_pos_kgm2 = 0.0;
+    for (int i = 1; i < 100000 && t_out_free < 0.0; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, h);
+        if (s.phase == DCT_SYNC_DISENGAGED)
+            t_out_free = i * h;
+    }
+    CHECK(t_out > 0.0 && t_out == t_out_free, "pull-out unaffected (%g, %g)", t_out, t_out_free);
 }
 
 static void test_magic_formula(void)
@@ -163,6 +237,7 @@ int main(void)
     test_sync_phases();
     test_sync_clash();
     test_sync_released_from_the_cone();
+    test_sync_ring_turn_back();
     test_magic_formula();
     test_differential();
     printf("%d passed, %d failed\n", checks - failures, failures);

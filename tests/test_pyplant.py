@@ -1,0 +1,158 @@
+"""The Python plant (validation/pyplant.py) against the C core, side by side.
+
+Both start from the same state and get the same inputs: the launch-1st
+scenario (valve currents through the hydraulics), then a power-on shift to
+2nd (fork force on the 2-4 sleeve, K1 handed over to K2) and a stop on the
+brakes: 7 s, 14000 steps. Every state and every output is compared after
+every step.
+
+Tolerance: 1e-9 of the largest magnitude the variable takes in the run
+(per state or output; a variable that crosses zero has no useful relative
+error of its own). The two implementations do the same IEEE double operations
+in the same order and call the same libm, so on this machine they agree to
+the last bit; the tolerance leaves room for a compiler that reorders or
+contracts (fused multiply-add) the C arithmetic, which moves results by a few
+ulps per operation. It is not loosened anywhere: the run's discrete events
+(stick/slip, synchronizer phase, valve end stops) are decided by comparisons
+on states that agree to the bit, so they happen on the same step in both.
+"""
+
+import numpy as np
+import pytest
+
+from plant.model import INPUT_NAMES, OUTPUT_NAMES, STATE_NAMES, Plant
+from plant.scenario import load_scenario
+from validation import pyplant
+from validation.pyplant import PyPlant, PyPlantError
+
+REL_TOL = 1e-9
+HYDRAULICS = {"hydraulics": {"pressure_commanded": 0}}
+
+# after launch-1st (4.5 s): time_s -> inputs set from then on
+SHIFT_AND_BRAKE = [
+    (4.5, {"fork_force2_n": 900.0}),                       # pre-select 2nd on the 2-4 sleeve
+    (5.3, {"solenoid_current2_a": 0.35, "solenoid_current1_a": 0.6}),
+    (5.4, {"solenoid_current2_a": 0.6, "solenoid_current1_a": 0.3}),
+    (5.5, {"solenoid_current2_a": 1.0, "solenoid_current1_a": 0.0}),  # K1 -> K2 handed over
+    (5.7, {"fork_force2_n": 0.0}),
+    (6.0, {"accel_pedal_pct": 0.0, "brake_pedal_pct": 80.0,
+           "solenoid_current2_a": 0.0}),                   # lift off, open K2, brake
+    (7.0, {}),                                             # end
+]
+
+
+def _script():
+    """(step index, {input: value}) changes of the whole run, and its steps."""
+    scen = load_scenario("launch-1st")
+    step_s = 0.0005
+    changes = {}
+    for row, k in zip(scen.values, scen.row_steps(step_s)):
+        changes.setdefault(int(k), {}).update(dict(zip(scen.columns, map(float, row))))
+    for t, values in SHIFT_AND_BRAKE:
+        changes.setdefault(int(round(t / step_s)), {}).update(values)
+    return scen, changes, int(round(SHIFT_AND_BRAKE[-1][0] / step_s))
+
+
+@pytest.fixture(scope="module")
+def runs():
+    scen, changes, n_steps = _script()
+    c = Plant(overrides=HYDRAULICS)
+    c.reset(**scen.reset_kwargs())
+    py = PyPlant(c.params)
+    py.init_from(c)
+    cs, ps = np.empty((n_steps, len(STATE_NAMES))), np.empty((n_steps, len(STATE_NAMES)))
+    co, po = np.empty((n_steps, len(OUTPUT_NAMES))), np.empty((n_steps, len(OUTPUT_NAMES)))
+    for k in range(n_steps):
+        for name, value in changes.get(k, {}).items():
+            c.inputs[name] = value
+            py.inputs[name] = value
+        c.step(1)
+        py.step(1)
+        cs[k], ps[k] = c.state, py.state
+        co[k], po[k] = c.output_values, py.output_values
+    return cs, ps, co, po
+
+
+def _worst(c, p, names):
+    scale = np.max(np.abs(c), axis=0)
+    err = np.abs(c - p) / np.where(scale > 0.0, scale, 1.0)
+    j = int(np.argmax(np.max(err, axis=0)))
+    k = int(np.argmax(err[:, j]))
+    return float(err[k, j]), f"{names[j]} at step {k}: C {c[k, j]!r}, Python {p[k, j]!r}"
+
+
+def test_layout_matches_the_c_structs():
+    assert pyplant.STATE_NAMES == STATE_NAMES
+    assert list(pyplant.INPUT_NAMES) == INPUT_NAMES
+    assert list(pyplant.OUTPUT_NAMES) == OUTPUT_NAMES
+
+
+def test_every_state_agrees_after_every_step(runs):
+    cs, ps, _, _ = runs
+    err, where = _worst(cs, ps, STATE_NAMES)
+    assert err <= REL_TOL, where
+
+
+def test_every_output_agrees_after_every_step(runs):
+    _, _, co, po = runs
+    err, where = _worst(co, po, OUTPUT_NAMES)
+    assert err <= REL_TOL, where
+
+
+def test_the_run_exercises_every_component(runs):
+    _, _, co, _ = runs
+    col = {name: co[:, i] for i, name in enumerate(OUTPUT_NAMES)}
+    assert col["vehicle_speed_kmh"].max() > 30.0                     # engine, driveline, vehicle
+    assert col["clutch1_clamp_force_n"].max() > 1000.0               # K1 valve, chamber, piston
+    assert col["clutch2_clamp_force_n"].max() > 1000.0               # K2
+    assert abs(col["clutch1_slip_rpm"]).max() > 500.0                # K1 slipping, then locked
+    assert np.any(col["sync2_state"] == 1.0)                         # 2nd synchronizing
+    assert col["sync2_gear"][-1] == 2.0 and col["sync1_gear"][-1] == 1.0
+    assert np.any(col["gear"] == 1.0) and np.any(col["gear"] == 2.0)  # drive handed over
+    assert col["brake_torque_nm"].max() > 1000.0                     # brakes
+    assert col["front_tyre_slip"].max() > 0.02                      # tyres in transient slip
+    assert np.ptp(col["pitch_deg"]) > 0.1                             # body pitch
+
+
+def test_pressure_commanded_mode_agrees():
+    c = Plant(overrides={"hydraulics": {"pressure_commanded": 1}})
+    c.reset(vehicle_speed_kmh=30.0, sleeves=(0, 1, 0, 0), clutch_locked=(0, 1))
+    c.inputs["accel_pedal_pct"] = 40.0
+    c.inputs["clutch2_pressure_bar"] = 8.0
+    py = PyPlant(c.params)
+    py.init_from(c)
+    for _ in range(200):
+        c.step(1)
+        py.step(1)
+    np.testing.assert_allclose(py.state, c.state, rtol=REL_TOL, atol=1e-12)
+    np.testing.assert_allclose(py.output_values, c.output_values, rtol=REL_TOL, atol=1e-12)
+
+
+def test_reset_matches_the_c_reset():
+    c = Plant(overrides=HYDRAULICS)
+    py = PyPlant(c.params)
+    for kw in ({}, {"vehicle_speed_kmh": 80.0, "sleeves": (0, -1, 0, 0), "clutch_locked": (0, 1)},
+               {"vehicle_speed_kmh": 10.0, "sleeves": (0, 0, -1, 0), "engine_on": 0}):
+        c.reset(**kw)
+        py.reset(**kw)
+        np.testing.assert_array_equal(py.state, c.state)
+        np.testing.assert_allclose(py.output_values, c.output_values, rtol=REL_TOL, atol=1e-12)
+
+
+def test_bad_input_is_one_line_error():
+    py = PyPlant(Plant().params)
+    py.inputs["accel_pedal_pct"] = float("nan")
+    with pytest.raises(PyPlantError, match="accel_pedal_pct") as e:
+        py.step(1)
+    assert "\n" not in str(e.value)
+
+
+def test_state_setter_rejects_wrong_length():
+    py = PyPlant(Plant().params)
+    with pytest.raises(ValueError, match="67"):
+        py.state = [0.0] * 3
+
+
+def test_bench_step_returns_a_positive_duration():
+    s = pyplant.bench_step(5)
+    assert isinstance(s, float) and s > 0.0

@@ -1,0 +1,1 @@
+"""Validation and benchmark code: the comparisons behind docs/VALIDATION.md."""
