@@ -78,6 +78,13 @@ def test_the_same_shifts_as_offline_each_within_20_ms(demo, offline):
     over_can = [(s["time_s"], s["from"], s["to"]) for s in summary["shifts"]]
     assert len(offline) >= 12                      # up through the gears and down, twice
     same, diffs = compare_shifts(offline, over_can)
+    # the figures, for whoever reads the run afterwards (the guest writes into the repo)
+    report = REPO / "out" / "vcan-vm" / "demo-over-can.json"
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(json.dumps({
+        "time_scale": TIME_SCALE, "offline": offline, "over_can": over_can,
+        "same_sequence": same, "differences_ms": [round(d * 1000, 2) for d in diffs],
+        "skipped_ticks": summary["skipped_ticks"]}, indent=1) + "\n")
     assert same, f"offline {offline}\nover CAN {over_can}"
     worst = max(abs(d) for d in diffs)
     assert worst <= SHIFT_TOLERANCE_S, (
