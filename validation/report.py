@@ -571,11 +571,18 @@ SECTIONS = (fixed_step, synchronizer, valve, vehicle, speed, model_size)
 
 
 def _git_commit() -> str:
+    """The commit the figures come from; says so when the tree had changes of its own."""
+    def git(*args):
+        return subprocess.run(["git", *args], capture_output=True, text=True, cwd=REPO,
+                              timeout=10).stdout.strip()
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, cwd=REPO, timeout=10).stdout.strip() or "unknown"
-    except OSError:
+        commit = git("rev-parse", "--short", "HEAD") or "unknown"
+        # the document itself and its plots are what this run writes: not a change
+        changed = git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                      ":(exclude)docs", ":(exclude)out")
+    except (OSError, subprocess.SubprocessError):
         return "unknown"
+    return f"{commit} with uncommitted changes" if changed else commit
 
 
 def _cpu() -> str:
