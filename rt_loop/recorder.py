@@ -15,36 +15,33 @@ silently.
 from __future__ import annotations
 
 import os
-import threading
 from typing import Any
 
 import numpy as np
+
+from rt_loop.drain import RingDrain
 
 __all__ = ["Recorder"]
 
 _BATCH = 1024
 
 
-class Recorder:
+class Recorder(RingDrain):
     """Drains the loop's ``rec`` ring into ``path`` (CSV) in a thread of its own."""
 
+    ring, pop, entry, batch, poll_s, thread_name = (
+        "rec", "rt_rec_pop_many", "rt_sample", _BATCH, 0.05, "recorder")
+
     def __init__(self, path: str | os.PathLike) -> None:
-        self.path = os.fspath(path)
+        super().__init__(path)
         folder = os.path.dirname(os.path.abspath(self.path))
         try:
             os.makedirs(folder, exist_ok=True)
             self._file = open(self.path, "w", encoding="ascii", newline="\n")  # noqa: SIM115
         except OSError as e:
             raise OSError(f"recording {self.path}: {e.strerror}") from None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._loop: Any = None
-        self.written = 0
-        self.error: str | None = None
 
     def start(self, ffi: Any, lib: Any, loop: Any) -> None:
-        self._ffi, self._lib, self._loop = ffi, lib, loop
-        self._ring = ffi.addressof(loop[0], "rec")
         outputs = [name for name, _ in ffi.typeof("dct_outputs").fields]
         commands = _flat_doubles(ffi, "dct_tcu_commands")
         sample = ffi.typeof("rt_sample")
@@ -65,29 +62,10 @@ class Recorder:
         n_out = len(self._out_idx)
         self._fmt = ",".join(["%.9g"] * n_out + ["%.9g", "%d"] + ["%.9g"] * len(self._cmd_idx))
         self._file.write(",".join(self.columns) + "\n")
-        self._buf = ffi.new("rt_sample[]", _BATCH)
-        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
-        self._thread.start()
+        self._start(ffi, lib, loop)
 
-    @property
-    def dropped(self) -> int:
-        """Samples the loop could not put in the ring."""
-        return int(self._loop.rec.dropped) if self._loop is not None else 0
-
-    def _run(self) -> None:
-        while True:
-            stopping = self._stop.is_set()
-            n = self._drain()
-            if stopping and n == 0:
-                break
-            if n < _BATCH:
-                self._stop.wait(0.05)
-
-    def _drain(self) -> int:
-        n = self._lib.rt_rec_pop_many(self._ring, self._buf, _BATCH)
-        if n == 0 or self.error is not None:
-            return n
-        raw = np.frombuffer(self._ffi.buffer(self._buf, n * self._n_doubles * 8), dtype=np.float64)
+    def _write(self, buf: Any, n: int) -> None:
+        raw = np.frombuffer(self._ffi.buffer(buf, n * self._n_doubles * 8), dtype=np.float64)
         raw = raw.reshape(n, self._n_doubles)
         ticks = raw[:, 0].view(np.uint64).tolist()
         values = raw[:, self._cols]
@@ -95,30 +73,12 @@ class Recorder:
         values[values[:, mt_col] < 0, mt_col] = np.nan     # before the maneuver started
         fmt = self._fmt
         n_head = mt_col + 1
-        lines = []
-        for row, tick in zip(values.tolist(), ticks):
-            lines.append(fmt % (*row[:n_head], tick, *row[n_head:]))
-        try:
-            self._file.write("\n".join(lines) + "\n")
-            self.written += n
-        except OSError as e:  # disk full: reported, not fatal to the loop
-            self.error = f"{self.path}: {e.strerror}"
-        return n
+        lines = [fmt % (*row[:n_head], tick, *row[n_head:])
+                 for row, tick in zip(values.tolist(), ticks)]
+        self._file.write("\n".join(lines) + "\n")
 
-    def stop(self) -> None:
-        """Writes what is left in the ring, then closes the file."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
-        try:
-            self._file.close()
-        except OSError as e:
-            self.error = self.error or f"{self.path}: closing: {e.strerror}"
-
-    def counters(self) -> dict:
-        return {"path": self.path, "written": self.written, "dropped": self.dropped,
-                "error": self.error}
-
+    def _close(self) -> None:
+        self._file.close()
 
 def _flat_doubles(ffi: Any, cname: str) -> list[tuple[str, int]]:
     """(name, index in doubles) of every double of a struct; an array field

@@ -33,6 +33,8 @@ import weakref
 from typing import Any, TextIO
 
 from rt_loop import status as _status
+from rt_loop.drain import RingDrain
+from rt_loop.drain import one_line as _one_line
 from rt_loop.recorder import Recorder
 from rt_loop.stats import StatsReader, machine_info
 from rt_loop.transport import Transport, TransportError, open_transport
@@ -103,15 +105,13 @@ def _extension() -> tuple[Any, Any]:
     return ffi, lib
 
 
-def _one_line(text: Any) -> str:
-    return " ".join(str(text).split())
 
 
 # --------------------------------------------------------------------------
 # traffic log
 # --------------------------------------------------------------------------
 
-class TrafficLogger:
+class TrafficLogger(RingDrain):
     """Drains the loop's log ring into a python-can writer, in a thread of its own.
 
     ``can.Logger(path)`` picks the format from the suffix (``LOG_FORMATS``).
@@ -122,10 +122,13 @@ class TrafficLogger:
     counted by the loop (``dropped``), never lost silently.
     """
 
+    ring, pop, entry, batch, poll_s, thread_name = (
+        "log", "rt_log_pop_many", "rt_log_entry", _LOG_BATCH, 0.02, "can-log")
+
     def __init__(self, path: str | os.PathLike, channel: str) -> None:
         import can  # noqa: PLC0415
 
-        self.path = os.fspath(path)
+        super().__init__(path)
         self.channel = channel
         suffix = os.path.splitext(self.path)[1].lower()
         self.format = LOG_FORMATS.get(suffix, suffix)
@@ -138,75 +141,35 @@ class TrafficLogger:
                               ) from None
         self._can = can
         self._msg_channel = _log_channel(channel, suffix)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._loop: Any = None
-        self.written = 0
-        self.error: str | None = None
 
     def start(self, ffi: Any, lib: Any, loop: Any, wall0: float) -> None:
-        self._ffi, self._lib, self._loop = ffi, lib, loop
-        self._ring = ffi.addressof(loop[0], "log")
         self._wall0 = wall0
-        self._thread = threading.Thread(target=self._run, name="can-log", daemon=True)
-        self._thread.start()
+        self._rx = lib.RT_DIR_RX
+        self._start(ffi, lib, loop)
 
-    @property
-    def dropped(self) -> int:
-        """Entries the loop could not put in the log ring."""
-        return int(self._loop.log.dropped) if self._loop is not None else 0
+    def _write(self, buf: Any, n: int) -> None:
+        ffi, can, rx = self._ffi, self._can, self._rx
+        for i in range(n):
+            e = buf[i]
+            f = e.frame
+            ident = int(f.id)
+            length = min(int(f.len), 8)
+            self.writer.on_message_received(can.Message(
+                timestamp=self._wall0 + e.time_s,
+                arbitration_id=ident & 0x1FFFFFFF,
+                is_extended_id=bool(ident & 0x80000000),
+                is_remote_frame=bool(ident & 0x40000000),
+                dlc=length,
+                data=ffi.unpack(ffi.cast("char *", f.data), length),
+                is_rx=e.dir == rx,
+                channel=self._msg_channel,
+            ))
 
-    def _run(self) -> None:
-        buf = self._ffi.new("rt_log_entry[]", _LOG_BATCH)
-        while True:
-            stopping = self._stop.is_set()
-            n = self._drain(buf)
-            if stopping and n == 0:
-                break
-            if n < _LOG_BATCH:
-                self._stop.wait(0.02)
-
-    def _drain(self, buf: Any) -> int:
-        ffi, lib, can = self._ffi, self._lib, self._can
-        n = lib.rt_log_pop_many(self._ring, buf, _LOG_BATCH)
-        if self.error is not None:
-            return n  # the writer failed: keep the ring moving, the error is reported
-        rx = lib.RT_DIR_RX
-        try:
-            for i in range(n):
-                e = buf[i]
-                f = e.frame
-                ident = int(f.id)
-                length = min(int(f.len), 8)
-                msg = can.Message(
-                    timestamp=self._wall0 + e.time_s,
-                    arbitration_id=ident & 0x1FFFFFFF,
-                    is_extended_id=bool(ident & 0x80000000),
-                    is_remote_frame=bool(ident & 0x40000000),
-                    dlc=length,
-                    data=ffi.unpack(ffi.cast("char *", f.data), length),
-                    is_rx=e.dir == rx,
-                    channel=self._msg_channel,
-                )
-                self.writer.on_message_received(msg)
-                self.written += 1
-        except Exception as e:  # disk full, a writer limit: reported, not fatal to the loop
-            self.error = f"{self.path}: {type(e).__name__}: {_one_line(e)}"
-        return n
-
-    def stop(self) -> None:
-        """Writes what is left in the ring, then closes the file."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
-        try:
-            self.writer.stop()
-        except Exception as e:  # noqa: BLE001 (reported)
-            self.error = self.error or f"{self.path}: closing: {_one_line(e)}"
+    def _close(self) -> None:
+        self.writer.stop()
 
     def counters(self) -> dict:
-        return {"path": self.path, "format": self.format, "written": self.written,
-                "dropped": self.dropped, "error": self.error}
+        return {**super().counters(), "format": self.format}
 
 
 def _log_channel(channel: str, suffix: str) -> str | int | None:

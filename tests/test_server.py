@@ -579,3 +579,30 @@ def test_the_driver_table_waits_for_the_tcu_and_the_recording_holds_the_run(chan
     assert np.all(pedal[mt < 0.2 - 1e-9] == 0.0) and np.all(pedal[mt > 0.2 + 0.001] == 20.0)
     assert 0.5 - 0.002 < mt[-1] <= 0.5 + 1e-9                       # the last 2 ms sample
     assert "cmd_fork_force1_n" in rec and "cmd_torque_request_active" in rec
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+def test_a_failing_recording_or_traffic_log_is_reported_and_the_loop_goes_on(
+        channel, tmp_path, monkeypatch):
+    # the recording goes to /dev/full (every write fails with ENOSPC); the
+    # traffic log's writer fails on its first frame. Each reports once, keeps
+    # its ring moving (nothing counted as dropped) and the loop runs on.
+    def full(self, msg):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(can.CanutilsLogWriter, "on_message_received", full)
+    srv = Server(channel, interface="virtual", priority=0, duration_s=0.6,
+                 record_path="/dev/full", record_every_s=0.0005,
+                 log_path=tmp_path / "traffic.log")
+    peer = CanPeer.open(side="tcu", interface="virtual", channel=channel)
+    try:
+        srv.start()
+        assert srv.wait(WAIT_S)
+    finally:
+        srv.stop()
+        peer.close()
+    report = srv.report()
+    assert report["run"]["state"] == "stopped" and report["counts"]["ticks"] >= 500
+    for key in ("record", "log"):
+        assert "No space left on device" in report[key]["error"], key
+        assert report[key]["dropped"] == 0, key
