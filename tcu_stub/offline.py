@@ -112,12 +112,16 @@ RECORDED = ("vehicle_speed_kmh", "vehicle_accel_mps2", "engine_speed_rpm", "inpu
             "brake_pedal_pct", "gear_clashes", "fuel_l", "distance_m", "gear")
 
 
-def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, stale_fn=None):
+def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, stale_fn=None,
+                on_period=None):
     """Run plant + stub TCU for ``duration_s``.
 
     ``driver_fn(t_s, plant_outputs) -> (accel_pedal_pct, brake_pedal_pct)`` is
     called every 10 ms. ``stale_fn(t_s) -> bool`` (optional) marks the plant
-    messages as missing. Returns a dict of arrays (``time_s``, the names in
+    messages as missing. ``on_period(k, plant)`` (optional) is called every
+    TCU period ``k`` once the pedals and commands are applied, before the
+    plant steps (a copy of ``plant.inputs`` there replays the run). Returns a
+    dict of arrays (``time_s``, the names in
     ``RECORDED``, ``tcu_target_gear``, ``tcu_gear``, ``tcu_phase``) and
     ``shifts``: a list of (time_s, from_gear, to_gear)."""
     if duration_s <= 0:
@@ -143,6 +147,8 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
             sensors["stale"] = True
         cmd = tcu.step(t, sensors)
         link.apply(plant, cmd, k)
+        if on_period is not None:
+            on_period(k, plant)
         if k % tcu_per_record == 0:
             rec["time_s"].append(t)
             for name in RECORDED:
