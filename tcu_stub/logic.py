@@ -116,7 +116,9 @@ TORQUE_MARGIN = 1.15                # sum of capacities >= margin x engine torqu
 TORQUE_MARGIN_NM = 15.0
 INERTIA_PHASE_S = 0.25              # engine speed pulled to the new shaft in this time
 SYNC_DONE_RPM = 60.0                # slip below which the on-coming clutch locks
-COAST_PULL_NM = 35.0                # on-coming torque pulling the engine up in a coast downshift
+COAST_PULL_NM = 35.0                # on-coming torque that holds the engine once a coast downshift is through
+BLIP_KP_NM_PER_RPM = 0.3            # coast downshift: engine torque request per rpm below the new shaft
+BLIP_MAX_NM = 150.0                 # ... at most (the engine's lag makes it a 0.07 s speed loop)
 DOWN_OFFGOING_SHARE = 0.6           # off-going capacity share of engine torque in a power downshift
 SHIFT_TIMEOUT_S = 1.5
 PRESELECT_MAX_RPM = 5000.0          # a lower gear is pre-selected only if its shaft stays below this
@@ -434,22 +436,28 @@ class TcuLogic:
             self._finish_shift()
 
     def _downshift_inertia(self):
-        """Let the engine rise to the lower gear's shaft: off-going slips (power) or opens (coast)."""
+        """Let the engine rise to the lower gear's shaft. Power downshift: the off-going
+        clutch slips and the engine's own torque lifts it. Coast downshift: both clutches
+        open (on-coming filled to its kiss point) and an engine torque request blips the
+        engine up, so the car's momentum does not have to (no deceleration jerk)."""
         off, on = self._shift_shafts()
         self._want_gears(self.shift_from, self.target_gear)
         t_e = max(self.t_engine, 0.0)
         bars = [0.0, 0.0]
-        if t_e > 2 * COAST_PULL_NM:
+        if self.torque_request_nm is None and t_e > 2 * COAST_PULL_NM:
             bars[off] = torque_to_bar(off, DOWN_OFFGOING_SHARE * t_e)
             bars[on] = torque_to_bar(on, 0.0)
         else:
-            bars[on] = torque_to_bar(on, COAST_PULL_NM)
+            bars[on] = torque_to_bar(on, 0.0)
+            below = self.n_shaft[on] - self.n_engine
+            self.torque_request_nm = min(max(BLIP_KP_NM_PER_RPM * below, 0.0), BLIP_MAX_NM)
         self.pressure_bar = bars
         if self.n_engine > self.n_shaft[on] - SYNC_DONE_RPM or self.t_s - self.shift_t0 > SHIFT_TIMEOUT_S:
             self.phase = "downshift_torque"
             self.gear = self.target_gear
             self.shift_t0 = self.t_s
             self.latched_torque_nm = bars[off]
+            self.torque_request_nm = None
 
     def _downshift_torque(self):
         off, on = self._shift_shafts()

@@ -58,6 +58,29 @@ def test_brake_to_standstill_downshifts_to_first_and_opens_clutches():
     assert r["gear_clashes"][-1] == 0
 
 
+def test_braking_downshifts_blip_the_engine_without_a_deceleration_jerk():
+    # a coast downshift opens both clutches and raises the engine to the lower
+    # gear's shaft with a torque request; pulling it up with the on-coming
+    # clutch instead costs the car its momentum (a jerk of 2.5 m/s2 into 1st)
+    def driver(t_s, outputs):
+        if t_s < 6.0:
+            return _full_throttle(t_s, outputs)
+        return 0.0, 40.0
+
+    r = run_offline(Plant(), driver, 12.0, record_every_s=0.002)
+    t, v, a = r["time_s"], r["vehicle_speed_kmh"], r["vehicle_accel_mps2"]
+    phase = np.array(r["tcu_phase"])
+    braking = (t > 7.0) & (v > 8.0)
+    shifting = braking & np.char.startswith(phase.astype(str), "downshift")
+    assert shifting.any()
+    baseline = float(np.median(a[braking]))
+    assert baseline < -3.0
+    assert a[shifting].min() > baseline - 1.0, (a[shifting].min(), baseline)
+    blip = braking & (phase == "downshift_inertia")
+    assert r["engine_torque_nm"][blip].max() > 30.0          # the engine pushed itself up
+    assert r["gear_clashes"][-1] == 0
+
+
 def test_stale_plant_messages_open_both_clutches_then_drive_on():
     tcu = TcuLogic()
     r = run_offline(Plant(), _full_throttle, 8.0, tcu=tcu, stale_fn=lambda t: 5.0 < t < 5.5)
