@@ -135,6 +135,19 @@ def test_bench_check_passes_below_the_target(capsys, tiny, tmp_path, monkeypatch
     assert "passed" in out
 
 
+def test_bench_repeat_keeps_every_run_and_reports_the_lowest_median(capsys, tiny, tmp_path):
+    report_path = tmp_path / "b.json"
+    code, out, err = run_cli(capsys, "bench", "--steps", 500, "--scenario", tiny,
+                             "--json", report_path, "--repeat", 3)
+    assert code == 0, err
+    report = json.loads(report_path.read_text())
+    medians = [r["median_us"] for r in report["runs"]]
+    assert report["repeat"] == 3 and len(medians) == 3
+    assert report["median_us"] == min(medians) == medians[report["best_run"] - 1]
+    assert report["runs"][report["best_run"] - 1]["max_us"] == report["max_us"]
+    assert "medians" in out
+
+
 # -------------------------------------------------------------- user errors
 def bad_scenario(tmp_path):
     path = tmp_path / "bad.csv"
@@ -169,6 +182,8 @@ USER_ERRORS = {
     "param out of range": (lambda t, s: ["simulate", "--scenario", s, "--params", out_of_range_toml(t)], ["inertia_kgm2"]),
     "zero steps": (lambda t, s: ["bench", "--steps", "0"], ["--steps"]),
     "negative steps": (lambda t, s: ["bench", "--steps", "-5"], ["--steps"]),
+    "zero repeats": (lambda t, s: ["bench", "--repeat", "0"], ["--repeat"]),
+    "too many repeats": (lambda t, s: ["bench", "--repeat", "50"], ["--repeat"]),
     "fractional steps": (lambda t, s: ["bench", "--steps", "1.5"], ["--steps"]),
     "json folder is a file": (lambda t, s: ["bench", "--steps", "10", "--json", str(t / "tiny.csv" / "b.json")], ["cannot create folder"]),
     "bench unknown scenario": (lambda t, s: ["bench", "--steps", "10", "--scenario", "nope",
