@@ -59,3 +59,13 @@ def cpu(text):
     if n < 0:
         raise argparse.ArgumentTypeError(f"must be a CPU number >= 0, got {text}")
     return n
+
+
+def whole_number(lo, hi):
+    """A whole number from ``lo`` to ``hi`` (an option type)."""
+    def parse(text):
+        n = _int(text)
+        if not lo <= n <= hi:
+            raise argparse.ArgumentTypeError(f"must be between {lo} and {hi}, got {text}")
+        return n
+    return parse

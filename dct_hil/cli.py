@@ -41,24 +41,8 @@ def _duration(text):
     return x
 
 
-def _steps(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 1 <= n <= MAX_BENCH_STEPS:
-        raise argparse.ArgumentTypeError(f"must be between 1 and {MAX_BENCH_STEPS}, got {text}")
-    return n
-
-
-def _repeats(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 1 <= n <= 20:
-        raise argparse.ArgumentTypeError(f"must be between 1 and 20, got {text}")
-    return n
+_steps = argtypes.whole_number(1, MAX_BENCH_STEPS)
+_repeats = argtypes.whole_number(1, 20)
 
 
 def _check_writable(path, option):
