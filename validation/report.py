@@ -644,9 +644,9 @@ def _git_commit() -> str:
                               timeout=10).stdout.strip()
     try:
         commit = git("rev-parse", "--short", "HEAD") or "unknown"
-        # the document itself and its plots are what this run writes: not a change
+        # the document, its plots and prose elsewhere do not change a figure
         changed = git("status", "--porcelain", "--untracked-files=no", "--", ".",
-                      ":(exclude)docs", ":(exclude)out")
+                      ":(exclude)docs", ":(exclude)out", ":(exclude,glob)**/*.md")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return f"{commit} with uncommitted changes" if changed else commit
