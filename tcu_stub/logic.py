@@ -14,7 +14,9 @@ Control structure, from the top:
    speed that rises with the pedal, then locks), ``drive`` (a clutch locked
    in ``gear``), ``upshift_torque`` / ``upshift_inertia`` (clutch-to-clutch
    power upshift), ``downshift_inertia`` / ``downshift_torque``
-   (clutch-to-clutch downshift, coasting or kick-down), ``stale``
+   (clutch-to-clutch downshift under power, e.g. kick-down; coasting, both
+   clutches open while a torque request blips the engine up to the lower
+   gear's shaft, then the on-coming clutch closes), ``stale``
    (plant messages missing: both clutches open, 0 A; when they return the
    TCU picks the gear for the speed and closes its clutch by slip control).
 2. Shift schedule: up and down engine-speed lines over the pedal, turned
@@ -24,7 +26,8 @@ Control structure, from the top:
 3. Pre-selection: the gear next to ``gear`` (up when driving, down when
    slowing) is synchronised on the idle input shaft by fork force; the
    sleeve that carries another gear of that shaft is pushed to neutral
-   first (a PD position loop, so it does not overshoot onto the other cone);
+   first (a position loop designed for the 10 ms fork messages, so it does
+   not overshoot onto the other cone);
    a sleeve that is synchronising is never released before it engages; a
    shift starts only when ForkPosition and SyncState say the new gear is
    engaged.
@@ -33,11 +36,10 @@ Control structure, from the top:
    (feed-forward) plus PI feedback on the measured ClutchPressure; a fill
    pulse strokes an empty piston before the first torque.
 5. Engine interventions through EngineTorqueRequest (it replaces the
-   pedal demand, so it is sent only below the driver's demand estimated from
-   the pedal and the full-load curve): the torque cut of the inertia phase of
-   an upshift, and a traction limit (feed-forward from the tyre force the
-   front axle carries, trimmed on the driven-wheel slip seen as output-shaft
-   speed against VehicleSpeed) while launching and driving.
+   pedal demand): the torque cut of the inertia phase of an upshift, the
+   blip of a coast downshift, and a traction limit (feed-forward from the
+   tyre force the front axle carries, trimmed on the driven-wheel slip seen
+   as output-shaft speed against VehicleSpeed) while launching and driving.
 
 The schedule and the slip estimate use the output shaft speed (wheel speed
 as the gearbox sees it), not VehicleSpeed, so a spinning wheel cannot keep
@@ -269,7 +271,7 @@ class TcuLogic:
         self.sleeve_side = sides
 
     def _neutral_force(self, k, pos):
-        """PD loop that brings sleeve ``k`` to neutral without overshooting onto the other cone."""
+        """Position loop that brings sleeve ``k`` to neutral without overshooting onto the other cone."""
         vel = (pos - self.fork_pos_prev[k]) / PERIOD_S
         if abs(pos) <= FORK_NEUTRAL_MM and abs(vel) < 20.0:
             return 0.0
