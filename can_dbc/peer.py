@@ -37,7 +37,7 @@ SIDES = {"tcu": ("TCU", "PLANT"), "plant": ("PLANT", "TCU")}
 
 class _RxStats:
     __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last", "last_t_any",
-                 "last_ok")
+                 "rejects_in_row")
 
     def __init__(self):
         self.received = 0
@@ -48,7 +48,7 @@ class _RxStats:
         self.max_interval_s = 0.0
         self.last = None              # decoded values of the last accepted frame
         self.last_t_any = None
-        self.last_ok = False          # the last frame received was accepted
+        self.rejects_in_row = 0       # frames rejected since the last accepted one
 
 
 class CanPeer:
@@ -222,12 +222,11 @@ class CanPeer:
 
     def rx_snapshot(self):
         """{message: (decoded values of the last accepted frame or None,
-        monotonic time it was received or None, whether the last frame
-        received was accepted)} for every received message, in one consistent
-        copy. The value dicts are the peer's own (never changed after they
+        monotonic time it was received or None, frames rejected since then)}
+        for every received message, in one consistent copy. The value dicts are the peer's own (never changed after they
         were stored): read them, do not modify them."""
         with self._lock:
-            return {name: (st.last, st.last_t, st.last_ok) for name, st in self._rx_stats.items()}
+            return {name: (st.last, st.last_t, st.rejects_in_row) for name, st in self._rx_stats.items()}
 
     def last(self, message):
         """Decoded values of the last accepted frame of a received message (None before the first)."""
@@ -368,8 +367,8 @@ class CanPeer:
                     st = self._rx_stats[name]
                     st.received += 1
                     st.last_t_any = t
-                    st.last_ok = status == codec.OK
                     if status == codec.OK:
+                        st.rejects_in_row = 0
                         st.accepted += 1
                         if st.last_t is not None:
                             st.max_interval_s = max(st.max_interval_s, t - st.last_t)
@@ -378,6 +377,7 @@ class CanPeer:
                         st.last_t = t
                         st.last = values
                     else:
+                        st.rejects_in_row += 1
                         st.rejected[status] += 1
                 self._changed.notify_all()
 

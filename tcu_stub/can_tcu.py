@@ -27,9 +27,12 @@ bus, and this task's period, stretches by 1 / s. Each tick:
 1. builds the sensors dict from the last accepted plant frames (the DBC
    signal names, as ``tcu_stub.offline.sensors_from_plant`` gives them) and
    sets ``stale`` when any plant message the logic needs (all plant messages
-   but ``SIM_Status``) was never received, was rejected last (length, CRC,
-   AliveCounter), or has not been accepted for 10 of its DBC cycle times
-   (``GenMsgCycleTime``, scaled by 1 / time_scale);
+   but ``SIM_Status``) was never received, had its last ``REJECTS_TO_STALE``
+   (3) frames rejected in a row (length, CRC, AliveCounter), or has not been
+   accepted for 10 of its DBC cycle times (``GenMsgCycleTime``, scaled by
+   1 / time_scale). Until then the last accepted values stand in, as a
+   production TCU debounces E2E errors: a single corrupted frame is counted,
+   not answered by opening both clutches;
 2. calls ``logic.step(t_s, sensors)`` with ``t_s = k * PERIOD_S``: TCU time
    from the tick index, never a wall-clock difference;
 3. sends right away the messages due this tick, each with its own
@@ -114,6 +117,8 @@ _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 _HIST_BIN_US = 10.0
 _HIST_BINS = 5000                      # 10 us bins up to 50 ms; later goes in the last one
 _MAX_EPISODES = 1000                   # stale episodes kept in the report (all are counted)
+#: frames of one plant message rejected in a row that make the TCU stale
+REJECTS_TO_STALE = 3
 
 PLANT_NEEDED = tuple(m.name for m in codec.messages("PLANT")
                      if any(src.startswith("o.") for src in codec.PLANT_SIGNAL_SOURCES.get(m.name, {}).values()))
@@ -420,11 +425,11 @@ class CanTcu:
         sensors = {}
         causes = {}
         for name in PLANT_NEEDED:
-            values, t_ok, last_ok = snap[name]
+            values, t_ok, rejects_in_row = snap[name]
             if values is None:
                 causes[name] = "missing"
                 continue
-            if not last_ok:
+            if rejects_in_row >= REJECTS_TO_STALE:
                 causes[name] = "rejected"
             elif now - t_ok > self._timeout_s[name]:
                 causes[name] = "timeout"

@@ -19,7 +19,7 @@ import pytest
 from can_dbc import codec
 from can_dbc.peer import CanPeer
 from tcu_stub import can_tcu
-from tcu_stub.can_tcu import CanTcu
+from tcu_stub.can_tcu import REJECTS_TO_STALE, CanTcu
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TCU_MESSAGES = ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd")
@@ -150,26 +150,37 @@ def test_a_silent_plant_makes_it_stale_and_safe_and_its_return_ends_the_episode(
 
 
 def test_bad_plant_frames_are_rejected_counted_and_make_it_stale(channel, plant):
-    # slow motion (time scale 0.1): 1 s timeouts, so the rejected frame is the cause seen first
+    # slow motion (time scale 0.1): 1 s timeouts, so the rejected frames are the cause seen first
     with CanTcu.open("virtual", channel, time_scale=0.1) as tcu:
         assert tcu.wait_for(fresh, timeout=WAIT_S)
+        episodes = tcu.report()["stale"]["episode_count"]
+        # two bad frames as the newest DCT_ShaftSpeeds for three TCU ticks (its
+        # timeout is ten): counted, the last good values stand in, not stale
         shaft = codec.message("DCT_ShaftSpeeds").frame_id
+        plant.enable("DCT_ShaftSpeeds", False)
         good = codec.encode("DCT_ShaftSpeeds", {"EngineSpeed": 750}, 3)
         plant.inject(shaft, bytes([good[0] ^ 0x5A]) + good[1:])           # wrong CRC
         plant.inject(shaft, good[:6])                                      # wrong length
         plant.inject(0x7AB, bytes(8))                                      # not a plant message
         assert tcu.wait_for(lambda t: t.counts("DCT_ShaftSpeeds")["bad_crc"] >= 1
                             and t.counts("DCT_ShaftSpeeds")["bad_length"] >= 1, timeout=WAIT_S)
+        t_bad = tcu.t_s
+        assert tcu.wait_for(lambda t: t.t_s >= t_bad + 3 * tcu.logic.PERIOD_S, timeout=WAIT_S)
+        quiet = tcu.report()["stale"]["episode_count"] == episodes and not tcu.stale
+        plant.enable("DCT_ShaftSpeeds", True)
+        assert quiet
         assert tcu.wait_for(lambda t: t.report()["unknown_frames"] >= 1)
+        # REJECTS_TO_STALE bad frames in a row: stale, with the rejections named as the cause
         shift = codec.message("DCT_Shift").frame_id
         plant.enable("DCT_Shift", False)
-        good = codec.encode("DCT_Shift", {}, 0)
-        plant.inject(shift, bytes([good[0] ^ 0x01]) + good[1:])           # the last DCT_Shift is bad
+        for k in range(REJECTS_TO_STALE):
+            good = codec.encode("DCT_Shift", {}, k)
+            plant.inject(shift, bytes([good[0] ^ 0x01]) + good[1:])
         assert tcu.wait_for(lambda t: t.stale, timeout=WAIT_S)
         rep = tcu.report()
     assert rep["received"]["DCT_ShaftSpeeds"]["rejected"]["bad_crc"] >= 1
     assert rep["received"]["DCT_ShaftSpeeds"]["rejected"]["bad_length"] >= 1
-    assert rep["received"]["DCT_Shift"]["rejected"]["bad_crc"] == 1
+    assert rep["received"]["DCT_Shift"]["rejected"]["bad_crc"] == REJECTS_TO_STALE
     assert rep["stale"]["episodes"][-1]["causes"]["DCT_Shift"] == "rejected"
     assert rep["time_scale"] == 0.1
     assert rep["stale"]["timeout_ms"]["DCT_Shift"] == pytest.approx(1000.0)      # 10 cycles of 10 ms / 0.1
