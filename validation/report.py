@@ -219,8 +219,7 @@ def fixed_step(quick: bool, plots: Path, doc_dir: Path) -> Section:
         f"| RMS error at h, same inputs | {open_rms[1]:.3f} % of the peak (largest "
         f"{open_max[1]:.2f} %) |",
         f"| largest error at h, closed loop | {max_pct:.1f} % of the peak (at a shift: the "
-        "torque handover "
-        "lands a step earlier or later) |",
+        "torque handover lands a step earlier or later) |",
         f"| shifts | {len(shifts[1])} at h, {len(shifts[ref_div])} in the reference, "
         f"{'same sequence' if same else 'DIFFERENT sequences'} |",
     ]
