@@ -26,6 +26,7 @@ _HEADERS = (
     os.path.join(_PLANT_CSRC, "dct_plant.h"),
     os.path.join(_CAN_CSRC, "dct_can.h"),
     os.path.join(_RT_CSRC, "rt_loop.h"),
+    os.path.join(_RT_CSRC, "rt_floor.h"),
 )
 _COMPILE_ARGS = ["-O2", "-std=c11", "-fno-math-errno", "-Wall", "-Wextra"]
 
@@ -64,7 +65,7 @@ def make_builder():
     ffi.cdef("\n".join(_cdef_text(h) for h in _HEADERS))
     ffi.set_source(
         "rt_loop._rt_loop",
-        '#include "rt_loop.h"',
+        '#include "rt_loop.h"\n#include "rt_floor.h"',
         sources=_sources(),
         include_dirs=[_rel(d) for d in (_RT_CSRC, _CAN_CSRC, _CAN_GENERATED, _PLANT_CSRC)],
         extra_compile_args=_COMPILE_ARGS,

@@ -889,12 +889,20 @@ typedef struct {
     cpu_set_t old_cpus;
 } rt_thread_saved;
 
+static void publish_phase(rt_loop *l, int phase)
+{
+    stats_write_begin(&l->stats);
+    l->stats.startup_phase = phase;
+    stats_write_end(&l->stats);
+}
+
 static void thread_setup(rt_loop *l, rt_thread_saved *sv, int *policy_ok, int *affinity_ok,
                          int *memory_locked)
 {
     pthread_t self = pthread_self();
     memset(sv, 0, sizeof *sv);
     *policy_ok = *affinity_ok = *memory_locked = 0;
+    publish_phase(l, RT_START_SCHEDULING);
     if (l->cfg.priority > 0 && pthread_getschedparam(self, &sv->old_policy, &sv->old_param) == 0) {
         struct sched_param sp;
         memset(&sp, 0, sizeof sp);
@@ -902,6 +910,7 @@ static void thread_setup(rt_loop *l, rt_thread_saved *sv, int *policy_ok, int *a
         if (pthread_setschedparam(self, SCHED_FIFO, &sp) == 0)
             *policy_ok = sv->policy_set = 1;
     }
+    publish_phase(l, RT_START_PINNING);
     if (l->cfg.cpu >= 0 && pthread_getaffinity_np(self, sizeof sv->old_cpus, &sv->old_cpus) == 0) {
         cpu_set_t set;
         CPU_ZERO(&set);
@@ -909,8 +918,10 @@ static void thread_setup(rt_loop *l, rt_thread_saved *sv, int *policy_ok, int *a
         if (pthread_setaffinity_np(self, sizeof set, &set) == 0)
             *affinity_ok = sv->affinity_set = 1;
     }
+    publish_phase(l, RT_START_LOCKING_MEMORY);
     if (l->cfg.lock_memory && mlockall(MCL_CURRENT | MCL_FUTURE) == 0)
         *memory_locked = 1;
+    publish_phase(l, RT_START_PREFAULTING);
     prefault_stack();
 }
 
@@ -958,6 +969,7 @@ int rt_loop_run(rt_loop *l)
     l->stats.affinity_ok = affinity_ok;
     l->stats.memory_locked = memory_locked;
     l->stats.state = RT_STATE_RUNNING;
+    l->stats.startup_phase = RT_START_READY;
     stats_write_end(&l->stats);
 
     int state = RT_STATE_STOPPED, error = 0;

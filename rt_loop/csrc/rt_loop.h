@@ -45,6 +45,15 @@
 #define RT_STATE_OVERRUN_STOP 3       /* stopped by the overrun policy */
 #define RT_STATE_ERROR 4              /* transport error (errno in stats.error) */
 
+/* what the loop thread is doing before its first tick (rt_stats.startup_phase):
+ * Python waits for RT_STATE_RUNNING and names the phase while it waits */
+#define RT_START_NOT_STARTED 0        /* rt_loop_run not entered yet */
+#define RT_START_SCHEDULING 1         /* pthread_setschedparam SCHED_FIFO */
+#define RT_START_PINNING 2            /* pthread_setaffinity_np */
+#define RT_START_LOCKING_MEMORY 3     /* mlockall: slow for a large process on a slow machine */
+#define RT_START_PREFAULTING 4        /* touching the stack */
+#define RT_START_READY 5              /* the first deadline is set: ticking */
+
 #define RT_MANEUVER_NONE 0            /* no pedal table: the pedals stay as Python writes them */
 #define RT_MANEUVER_WAITING 1         /* table loaded, waiting for the first TCU frame */
 #define RT_MANEUVER_RUNNING 2
@@ -131,6 +140,7 @@ typedef struct {
     int rt_policy_ok;                 /* SCHED_FIFO was granted */
     int memory_locked;                /* mlockall succeeded */
     int affinity_ok;
+    int startup_phase;                /* RT_START_* */
     uint64_t ticks;                   /* ticks executed (plant steps) */
     uint64_t overruns;                /* ticks that ended after the next deadline */
     uint64_t skipped_ticks;           /* deadlines skipped to catch up after overruns */
