@@ -37,6 +37,14 @@ def record_interval(text):
     return x
 
 
+def pm_qos_us(text):
+    """A PM QoS CPU wake-up latency: a whole number of microseconds, 0..1000000."""
+    n = _int(text)
+    if not 0 <= n <= 1_000_000:
+        raise argparse.ArgumentTypeError(f"must be 0..1000000 us, got {text}")
+    return n
+
+
 def time_scale(text):
     """Slow motion: above 0, at most 1 (1 is real time)."""
     x = _float(text)

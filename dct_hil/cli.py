@@ -161,6 +161,7 @@ def build_parser():
                        help="recording interval in plant time (default 0.002)")
     serve.add_argument("--quiet", action="store_true",
                        help="no live status (the banner, warnings and summary stay)")
+    _add_pm_qos_options(serve)
     serve.set_defaults(func=cmd_serve)
 
     from tcu_stub import can_tcu
@@ -201,8 +202,18 @@ def build_parser():
     demo.add_argument("--duration", type=argtypes.seconds, metavar="S",
                       help="play only the first S seconds of the maneuver")
     demo.add_argument("--quiet", action="store_true", help="no live status")
+    _add_pm_qos_options(demo)
     demo.set_defaults(func=cmd_demo)
     return parser
+
+
+def _add_pm_qos_options(parser):
+    qos = parser.add_mutually_exclusive_group()
+    qos.add_argument("--pm-qos-us", type=argtypes.pm_qos_us, default=0, metavar="US",
+                     help="hold /dev/cpu_dma_latency at US for the run (PM QoS: idle CPUs stay "
+                          "in states that wake up within US; default 0, as cyclictest does)")
+    qos.add_argument("--no-pm-qos", dest="pm_qos_us", action="store_const", const=None,
+                     help="make no PM QoS request (idle CPUs may wake up late)")
 
 
 # --------------------------------------------------------------------- simulate
@@ -689,6 +700,7 @@ def cmd_serve(args):
             bus_kwargs={"bitrate": args.bitrate} if args.bitrate else None,
             spin_us=args.spin_us, time_scale=args.time_scale, driver=driver,
             maneuver_end_s=end, record_path=args.record, record_every_s=args.record_every,
+            pm_qos_us=args.pm_qos_us,
         )
         return run_console(server, args.stats, quiet=args.quiet)
     except (ServerError, TransportError) as e:
@@ -711,7 +723,8 @@ def cmd_demo(args):
     try:
         return run_demo(args.maneuver, args.out, channel=args.channel, interface=args.interface,
                         time_scale=args.time_scale, priority=args.priority, quiet=args.quiet,
-                        duration_s=args.duration, tcu_clock=args.tcu_clock)
+                        duration_s=args.duration, tcu_clock=args.tcu_clock,
+                        pm_qos_us=args.pm_qos_us)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 

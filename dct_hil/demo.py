@@ -171,7 +171,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
              channel: str | None = None, interface: str | None = None,
              time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
              duration_s: float | None = None, tcu_clock: str | None = None,
-             out=None, err=None) -> int:
+             pm_qos_us: int | None = 0, out=None, err=None) -> int:
     """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C).
 
     ``duration_s`` plays only the first seconds of the maneuver. ``tcu_clock``
@@ -203,7 +203,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     server = Server(chan, interface=iface, priority=priority, driver=m.driver,
                     maneuver_start="tcu", maneuver_end_s=end_s,
                     record_path=paths["recording"], record_every_s=RECORD_EVERY_S,
-                    log_path=paths["can_log"], time_scale=time_scale)
+                    log_path=paths["can_log"], time_scale=time_scale, pm_qos_us=pm_qos_us)
     print(f"dct-hil demo      {maneuver}: {m.description} ({end_s:g} s"
           + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
           file=out)
@@ -218,7 +218,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     tcu_rc = None
     try:
         signals.__enter__()
-        server.start()
+        server.start(progress=lambda line: print(f"dct-hil: {line}", file=err, flush=True),
+                     cancel=stop)
         for w in server.warnings:
             print(f"dct-hil: warning: {w}", file=err)
         if two:

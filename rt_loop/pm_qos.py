@@ -53,7 +53,8 @@ class PmQos:
                              f"got {latency_us!r}")
         self.latency_us = latency_us
         self.path = path
-        self.held = False
+        self.held = False            # the request is in force now
+        self.acquired = False        # it was in force at some time (for the run's report)
         self.error: str | None = None
         self._fd: int | None = None
 
@@ -76,7 +77,7 @@ class PmQos:
             self.error = f"cannot write {self.path}: {e.strerror}"
             return False
         self._fd = fd
-        self.held = True
+        self.held = self.acquired = True
         self.error = None
         return True
 
@@ -88,14 +89,14 @@ class PmQos:
             os.close(fd)
 
     def describe(self) -> str:
-        if self.held:
+        if self.held or self.acquired:
             return f"{self.path} held at {self.latency_us} us (CPUs kept out of deeper idle states)"
         if self.error:
             return f"not held: {self.error}"
         return "off"
 
     def report(self) -> dict[str, Any]:
-        return {"requested_us": self.latency_us, "path": self.path, "held": self.held,
+        return {"requested_us": self.latency_us, "path": self.path, "held": self.acquired,
                 "error": self.error}
 
     def __enter__(self) -> PmQos:

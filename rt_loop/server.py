@@ -30,11 +30,13 @@ import sys
 import threading
 import time
 import weakref
-from typing import Any, TextIO
+from typing import Any, Callable, TextIO
 
 from rt_loop import status as _status
 from rt_loop.drain import RingDrain
 from rt_loop.drain import one_line as _one_line
+from rt_loop.pm_qos import DEFAULT_LATENCY_US as DEFAULT_PM_QOS_US
+from rt_loop.pm_qos import PmQos
 from rt_loop.recorder import Recorder
 from rt_loop.stats import StatsReader, machine_info
 from rt_loop.transport import Transport, TransportError, open_transport
@@ -74,7 +76,12 @@ MANEUVER_STATES = {0: "none", 1: "waiting for the TCU", 2: "running", 3: "done"}
 #: below this many frames of receive buffer a SocketCAN run warns
 SOCKET_FRAMES_WANTED = 10_000
 
-_START_TIMEOUT_S = 5.0
+#: the loop thread sets itself up (SCHED_FIFO, CPU, mlockall) before its first
+#: tick; the server waits for it as long as that takes, up to this bound
+#: (locking a Python process's memory takes seconds on a slow or emulated
+#: machine), and names what it waits for after START_NOTE_S
+START_LIMIT_S = 600.0
+START_NOTE_S = 2.0
 _STOP_TIMEOUT_S = 10.0
 _LOG_BATCH = 4096
 
@@ -211,6 +218,11 @@ class Server:
     its maneuver time reaches ``maneuver_end_s`` (None: never).
     ``record_path``: a CSV recording of every plant output each
     ``record_every_s`` of plant time (``rt_loop.recorder``).
+    ``pm_qos_us``: the CPU wake-up latency (us) requested through PM QoS
+    (``/dev/cpu_dma_latency``, or ``pm_qos_path``) from before the loop
+    starts until it has stopped, so that idle CPUs do not sink into states
+    whose exit costs the tick its deadline; None makes no request. A request
+    the kernel refuses is a warning, not an error (``pm_qos.error``).
 
     Errors in the arguments, the parameters (``ParamError``) or the
     transport (``TransportError``) are raised with one-line messages.
@@ -224,7 +236,9 @@ class Server:
                  spin_us: float | None = None, time_scale: float = 1.0, driver: Any = None,
                  maneuver_start: str = "tcu", maneuver_end_s: float | None = None,
                  record_path: str | os.PathLike | None = None,
-                 record_every_s: float = 0.002) -> None:
+                 record_every_s: float = 0.002,
+                 pm_qos_us: int | None = DEFAULT_PM_QOS_US,
+                 pm_qos_path: str | None = None) -> None:
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
         self.channel = _check_channel(channel)
@@ -271,6 +285,12 @@ class Server:
             raise ServerError(f"spin {spin_us} us: must be at least 0 and under 80 % of the "
                               f"period ({0.8 * self.period_s * 1e6:.0f} us)")
         self.spin_us = float(spin_us)
+        if pm_qos_us is not None and (isinstance(pm_qos_us, bool) or not isinstance(pm_qos_us, int)
+                                      or not 0 <= pm_qos_us <= 1_000_000):
+            raise ServerError(f"PM QoS latency must be a whole number of microseconds 0..1000000, "
+                              f"got {pm_qos_us!r}")
+        self.pm_qos = None if pm_qos_us is None else (
+            PmQos(pm_qos_us) if pm_qos_path is None else PmQos(pm_qos_us, pm_qos_path))
         self.params_path = None if params_path is None else os.fspath(params_path)
         self.log_path = None if log_path is None else os.fspath(log_path)
         self.bus_kwargs = dict(bus_kwargs or {})
@@ -295,11 +315,18 @@ class Server:
         self._t_start = self._t_end = None
 
     # ------------------------------------------------------------ life cycle
-    def start(self) -> None:
+    def start(self, progress: Callable[[str], None] | None = None,
+              cancel: threading.Event | None = None) -> None:
         """Opens the transport and the log, prepares and starts the loop.
 
-        Returns once the loop runs (or has already ended); ``warnings`` then
-        says whether the timing is real time.
+        Returns once the loop runs its first deadline (or has already
+        ended); ``warnings`` then says whether the timing is real time. The
+        loop's thread sets itself up first (SCHED_FIFO, CPU affinity,
+        mlockall); the wait follows its start-up phase, with no fixed bound
+        below ``START_LIMIT_S``: when it takes longer than ``START_NOTE_S``
+        ``progress`` (if given) is called with one line naming the phase.
+        ``cancel`` set while waiting stops the server and raises
+        ``ServerError``.
         """
         if self._started:
             raise ServerError("the server was already started (one run per Server)")
@@ -343,6 +370,9 @@ class Server:
                 raise ServerError(f"the loop refused its set-up: {os.strerror(abs(rc))} "
                                   f"(rt_loop_prepare returned {rc}; rate {self.rate_hz:g} Hz, "
                                   f"priority {self.priority}, cpu {cfg.cpu})")
+            if self.pm_qos is not None and not self.pm_qos.acquire():
+                self.warnings.append(f"PM QoS not held ({self.pm_qos.error}): idle CPUs may "
+                                     "wake up late (tens to hundreds of us)")
             self.transport.start(ffi, lib, loop)
             self._t_start = time.monotonic()
             wall0 = time.time()
@@ -356,7 +386,7 @@ class Server:
         except BaseException:
             self.stop()
             raise
-        self._await_running()
+        self._await_running(progress, cancel)
         self._check_real_time()
 
     def _run(self) -> None:
@@ -368,16 +398,53 @@ class Server:
             self._t_end = time.monotonic()
             self._done.set()
 
-    def _await_running(self) -> None:
-        deadline = time.monotonic() + _START_TIMEOUT_S
-        while time.monotonic() < deadline:
+    def _await_running(self, progress: Callable[[str], None] | None,
+                       cancel: threading.Event | None) -> None:
+        lib = self._lib
+        t0 = time.monotonic()
+        noted: dict[int, float] = {}
+        while True:
             with self._read_lock:
-                state = int(self.stats.read().state)
-            if state != self._lib.RT_STATE_IDLE or self._done.is_set():
+                s = self.stats.read()
+                state, phase = int(s.state), int(s.startup_phase)
+            if state != lib.RT_STATE_IDLE or self._done.is_set():
                 return
-            time.sleep(0.001)
-        self.stop()
-        raise ServerError(f"the loop did not start within {_START_TIMEOUT_S:g} s")
+            waited = time.monotonic() - t0
+            if cancel is not None and cancel.is_set():
+                self._abort_start(f"start-up cancelled while {self.startup_phase_text(phase)}")
+            if waited > START_LIMIT_S:
+                self._abort_start(f"the loop did not start within {START_LIMIT_S:g} s (still "
+                                  f"{self.startup_phase_text(phase)})")
+            if progress is not None and waited >= START_NOTE_S:
+                last = noted.get(phase)
+                if last is None or waited - last >= 10.0:
+                    noted[phase] = waited
+                    progress(f"starting the loop ({waited:.0f} s): "
+                             f"{self.startup_phase_text(phase)}")
+            time.sleep(0.002)
+
+    def _abort_start(self, why: str) -> None:
+        try:
+            self.stop()
+        except ServerError as e:
+            why = f"{why}; {e}"
+        raise ServerError(why)
+
+    def startup_phase_text(self, phase: int) -> str:
+        """What the loop thread is doing in start-up phase ``phase`` (RT_START_*)."""
+        lib = self._lib
+        if phase == lib.RT_START_SCHEDULING:
+            return f"asking for SCHED_FIFO priority {self.priority}"
+        if phase == lib.RT_START_PINNING:
+            return f"pinning the loop to CPU {self.cpu}"
+        if phase == lib.RT_START_LOCKING_MEMORY:
+            return (f"locking the process's memory (mlockall, {_resident_mb():.0f} MB resident; "
+                    "slow on an emulated or loaded machine)")
+        if phase == lib.RT_START_PREFAULTING:
+            return "touching the loop's stack"
+        if phase == lib.RT_START_READY:
+            return "setting the first deadline"
+        return "waiting for the loop thread to enter the C loop"
 
     def _check_real_time(self) -> None:
         with self._read_lock:
@@ -422,15 +489,17 @@ class Server:
             return
         if self._thread is not None:
             self._lib.rt_loop_request_stop(self._l)
-            self._thread.join(_STOP_TIMEOUT_S)
+            # a loop still setting itself up (mlockall) stops after that
+            starting = int(self._l.stats.state) == self._lib.RT_STATE_IDLE
+            self._thread.join(START_LIMIT_S if starting else _STOP_TIMEOUT_S)
             if self._thread.is_alive():
                 # the loop still owns self._l: keep everything alive, do not close
                 raise ServerError(f"the loop did not stop within {_STOP_TIMEOUT_S:g} s")
         self._stopped = True
         _LIVE.discard(self)
         errors: list[Exception] = []
-        for step in (self._stop_transport, self._stop_logger, self._stop_recorder,
-                     self._close_transport):
+        for step in (self._release_pm_qos, self._stop_transport, self._stop_logger,
+                     self._stop_recorder, self._close_transport):
             try:
                 step()
             except Exception as e:  # noqa: BLE001 (every step runs; the first error is raised)
@@ -439,6 +508,10 @@ class Server:
             self.stats.read()
         if errors:
             raise ServerError(f"stopping: {_one_line(errors[0])}")
+
+    def _release_pm_qos(self) -> None:
+        if self.pm_qos is not None:
+            self.pm_qos.release()
 
     def _stop_transport(self) -> None:
         if self.transport is not None:
@@ -526,6 +599,7 @@ class Server:
             "lock_memory": self.lock_memory,
             "overrun_policy": self.overrun_policy,
             "spin_us": self.spin_us,
+            "pm_qos": None if self.pm_qos is None else self.pm_qos.report(),
             "duration_s": self.duration_s,
             "transport": None if t is None else ("socketcan" if t.hard_real_time else "bridge"),
             "real_time": None if t is None else ("hard" if t.hard_real_time else "soft"),
@@ -601,6 +675,15 @@ class Server:
             f.write("\n")
         os.replace(tmp, path)
         return report
+
+
+def _resident_mb() -> float:
+    try:
+        with open("/proc/self/statm", encoding="ascii") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return float("nan")
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
 # --------------------------------------------------------------------------
@@ -746,7 +829,15 @@ def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = Fal
     view = None
     try:
         signals.__enter__()
-        server.start()
+        try:
+            server.start(progress=lambda line: print(f"dct-hil: {line}", file=err, flush=True),
+                         cancel=stop)
+        except ServerError as e:
+            if not signals.received:
+                raise
+            print(f"dct-hil: stopped by {signal.Signals(signals.received[0]).name} before the "
+                  f"loop ran ({e})", file=err, flush=True)
+            return 130 if signals.interrupted else 0
         for line in _status.banner_lines(server, stats_path):
             print(line, file=out, flush=True)
         for warning in server.warnings:
