@@ -4,6 +4,12 @@ and can-utils. The host kernel of the development machines has no CAN, so
 ``scripts/test`` runs the host tests with ``-m "not vcan"`` and then it.
 
 Run by hand where vcan0 is missing, they fail (never skip) and say so.
+
+In the emulated guest these tests take a quarter of an hour, most of it in the
+module fixtures (one server run, one demo in slow motion). ``scripts/vcan-vm``
+runs pytest verbose and unbuffered so each test's name shows when it starts;
+the result word here carries the test's wall time, its setup (where a module
+fixture runs) included, e.g. ``PASSED (812 s)``.
 """
 
 import os
@@ -12,6 +18,30 @@ import shutil
 import pytest
 
 TOOLS = ("candump", "cansend", "cangen")
+
+_setup_s = {}
+_live = [True]
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_report_teststatus(report, config):
+    """Append the test's wall time (setup + call) to its live verbose result word."""
+    status = yield
+    if report.when == "setup":
+        _setup_s[report.nodeid] = report.duration
+    if not status or report.when != "call" or not _live[0]:
+        return status
+    category, letter, word = status
+    total_s = _setup_s.pop(report.nodeid, 0.0) + report.duration
+    if isinstance(word, tuple):
+        return category, letter, (f"{word[0]} ({total_s:.0f} s)", word[1])
+    if word:
+        return category, letter, f"{word} ({total_s:.0f} s)"
+    return status
+
+
+def pytest_sessionfinish(session):
+    _live[0] = False      # the end summary asks again: plain words there
 
 
 @pytest.fixture(scope="session")
