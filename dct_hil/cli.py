@@ -1,7 +1,7 @@
 """dct-hil command line.
 
     dct-hil simulate --scenario launch-1st --out out/launch-1st.csv
-    dct-hil bench --steps 200000 --json bench.json --check
+    dct-hil bench --steps 200000 --check          # figures in out/bench.json
 
 User errors (bad options, parameter files, scenarios, a plant that blows up)
 print one line ``dct-hil: error: <cause>`` and exit 2; Ctrl-C exits 130.
@@ -88,8 +88,8 @@ def build_parser():
     bench = sub.add_parser("bench", help="measure the cost of one plant step")
     bench.add_argument("--steps", type=_steps, default=200_000, metavar="N",
                        help="steps to time (default 200000)")
-    bench.add_argument("--json", default="bench.json", metavar="FILE",
-                       help="write the figures here (default bench.json)")
+    bench.add_argument("--json", default="out/bench.json", metavar="FILE",
+                       help="write the figures here (default out/bench.json; the folder is created)")
     bench.add_argument("--scenario", default="launch-1st", metavar="NAME_OR_FILE",
                        help="inputs to play while timing (default launch-1st)")
     bench.add_argument("--params", metavar="FILE.toml", help="parameter override file")

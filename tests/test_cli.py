@@ -119,6 +119,16 @@ def test_bench_writes_the_json_report(capsys, tiny, tmp_path):
     assert "-O2" in report["machine"]["compiler_flags"]
 
 
+def test_bench_writes_out_bench_json_by_default(capsys, tiny, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run_cli(capsys, "bench", "--steps", 200, "--scenario", tiny)
+    assert code == 0, err
+    report = json.loads((tmp_path / "out" / "bench.json").read_text())
+    assert report["steps"] == 200
+    assert not (tmp_path / "bench.json").exists()
+    assert "out/bench.json" in out
+
+
 def test_bench_check_fails_above_the_target(capsys, tiny, tmp_path, monkeypatch):
     monkeypatch.setattr(cli, "TARGET_MEDIAN_US", 0.0)
     code, _, err = run_cli(capsys, "bench", "--steps", 200, "--scenario", tiny,
