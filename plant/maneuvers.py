@@ -175,13 +175,15 @@ SHIFT_MIN_HOLD_S = 0.1
 def gear_shifts(time_s, gear, min_hold_s=SHIFT_MIN_HOLD_S):
     """The shifts of a recorded run, seen from the plant: (t_s, from_gear, to_gear).
 
-    ``gear`` is the plant's gear carrying the drive torque (0 when no clutch
-    carries torque). Samples with gear 0 are gaps, not a gear: a coasting car
-    whose clutch torque crosses zero keeps its gear. A gear carrying the
-    torque for less than ``min_hold_s`` is a flicker of the torque handover
-    (both clutches near zero torque, or the drag of the open clutch at
-    launch), not a shift, and is dropped. A shift is the first sample of the
-    next gear held that long; the first gear of the run is no shift."""
+    ``gear`` is the plant's engaged gear: the gear engaged on the input shaft
+    whose clutch carries the drive torque or, while neither does, carried it
+    last (``dct_outputs.gear``); 0 before the first launch or while that
+    shaft has no gear engaged. Samples with gear 0 are gaps, not a gear. A
+    gear held for less than ``min_hold_s`` is not a shift and is dropped (the
+    plant's gear does not flicker; a recording of the gear carrying the
+    torque, without the hold, does at each torque handover and zero
+    crossing). A shift is the first sample of the next gear held that long;
+    the first gear of the run is no shift."""
     t = np.asarray(time_s, dtype=float)
     g = np.rint(np.asarray(gear, dtype=float)).astype(int)
     if t.shape != g.shape:

@@ -47,6 +47,42 @@ def test_gear_output_follows_the_torque_carrying_clutch():
     assert float(q.outputs["gear"]) == 0.0
 
 
+def test_gear_output_holds_the_shaft_that_carried_the_torque_last():
+    """Both clutches open (a coast downshift, standstill): the gear of the input
+    shaft whose clutch carried the torque last; an open pack's drag does not count."""
+    p = Plant(overrides={"hydraulics": {"pressure_commanded": 1}})
+    p.inputs[()] = p.default_inputs
+    p.reset(vehicle_speed_kmh=40.0, sleeves=(-1, -1, 0, 0), clutch_locked=(1, 0))  # 3rd on K1, 4th on K2
+    assert float(p.outputs["gear"]) == 3.0
+
+    def phase(n):
+        gears, open_drag_nm = set(), 0.0
+        for _ in range(n):
+            p.step(1)
+            gears.add(float(p.outputs["gear"]))
+            open_drag_nm = max(open_drag_nm, abs(float(p.outputs["clutch1_torque_nm"])))
+        return gears, open_drag_nm
+
+    p.inputs["clutch1_pressure_bar"] = 20.0
+    assert phase(400)[0] == {3.0}
+    p.inputs["clutch1_pressure_bar"] = 0.0                  # both open: 3rd held
+    assert phase(2000)[0] == {3.0}
+    p.inputs["clutch2_pressure_bar"] = 20.0                 # K2 takes the drive: 4th
+    assert phase(2000)[0] == {4.0}
+    p.inputs["clutch2_pressure_bar"] = 0.0                  # both open again: 4th held,
+    gears, k1_drag_nm = phase(2000)                          # though K1's drag exceeds 2 Nm
+    assert gears == {4.0} and k1_drag_nm > 2.0
+    # after a reset that locked no clutch: no gear until a clutch carries torque
+    q = Plant(overrides={"hydraulics": {"pressure_commanded": 1}})
+    q.inputs[()] = q.default_inputs
+    q.reset(vehicle_speed_kmh=0.0, sleeves=(1, 0, 0, 0))
+    q.step(200)
+    assert float(q.outputs["gear"]) == 0.0
+    q.inputs["clutch1_pressure_bar"] = 3.0
+    q.step(400)
+    assert float(q.outputs["gear"]) == 1.0
+
+
 def test_speed_tracking_driver_holds_brake_at_standstill():
     d = SpeedTrackingDriver([0.0, 10.0], [0.0, 0.0], hold_brake_pct=25.0)
     assert d(1.0, {"vehicle_speed_kmh": 0.0, "engine_speed_rpm": 750.0}) == (0.0, 25.0)

@@ -11,7 +11,7 @@
 import numpy as np
 import pytest
 
-from plant.maneuvers import gear_shifts, get_maneuver, report
+from plant.maneuvers import SHIFT_MIN_HOLD_S, gear_shifts, get_maneuver, report
 from plant.model import Plant
 from tcu_stub.offline import run_offline
 
@@ -29,7 +29,15 @@ def run(name, duration_s=None, every_s=0.01):
 
 @pytest.fixture(scope="module")
 def paper():
-    return run("paper-cycle", every_s=0.002)
+    """paper-cycle every 2 ms, with every plant output in ``r["outputs"]``."""
+    m = get_maneuver("paper-cycle")
+    plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
+    plant.reset(**m.reset_kwargs)
+    rows = []
+    r = run_offline(plant, m.driver, m.duration_s, record_every_s=0.002,
+                    on_period=lambda k, p: rows.append(p.output_values.copy()))
+    r["outputs"] = dict(zip(plant.output_names, np.array(rows).T))
+    return m, r
 
 
 def _legs(shifts):
@@ -65,6 +73,56 @@ def test_paper_cycle_stops_twice_and_full_load_upshifts_keep_pulling(paper):
     shifting = np.array([p.startswith("upshift") for p in r["tcu_phase"]])
     assert (full_load & shifting).sum() > 50
     assert r["vehicle_accel_mps2"][full_load & shifting].min() > -1.0
+
+
+def _former_gear(o):
+    """The plant's gear output as it was defined before, from the outputs: the gear
+    engaged on the input shaft of the clutch with the larger torque, 0 while
+    neither clutch carries 2 Nm."""
+    t1, t2 = np.abs(o["clutch1_torque_nm"]), np.abs(o["clutch2_torque_nm"])
+    shaft = (t2 > t1).astype(int)
+    engaged = np.zeros((len(t1), 2))
+    for k in range(1, 5):
+        g, on = o[f"sync{k}_gear"], o[f"sync{k}_state"] == 2
+        odd = (g == -1) | (np.abs(g) % 2 == 1)          # 1, 3, 5, R on K1; 2, 4, 6 on K2
+        for s in (0, 1):
+            pick = on & (g != 0) & (odd if s == 0 else ~odd)
+            engaged[pick, s] = g[pick]
+    gear = engaged[np.arange(len(t1)), shaft]
+    return np.where(np.maximum(t1, t2) >= 2.0, gear, 0.0)
+
+
+def _runs(t, g):
+    """[gear, first time, time after the last sample] of each run of equal values."""
+    edges = np.flatnonzero(np.diff(g)) + 1
+    starts, ends = np.r_[0, edges], np.r_[edges, len(g)]
+    dt = t[1] - t[0]
+    return [(g[a], t[a], t[b - 1] + dt) for a, b in zip(starts, ends)]
+
+
+def test_engaged_gear_holds_while_coasting_and_through_coast_downshifts(paper):
+    _, r = paper
+    t, o = r["time_s"], r["outputs"]
+    np.testing.assert_array_equal(o["gear"], r["gear"])
+    braking = o["brake_pedal_pct"] > 0
+    # the former signal: the gear, then N for a few ms, while braking (both clutches
+    # open in the coast downshifts; the closed clutch's torque crossing zero)
+    old = _former_gear(o)
+    flickers = [(a, b) for g, a, b in _runs(t, old)
+                if g == 0 and braking[np.searchsorted(t, a)] and b - a < 0.05]
+    assert len(flickers) >= 10
+    # the engaged gear: no N from the first launch on, and no gear for less than
+    # a shift's minimum hold: one change per shift
+    new = o["gear"]
+    first = int(np.argmax(new != 0))
+    assert (new[first:] != 0).all()
+    runs = _runs(t[first:], new[first:])
+    assert min(b - a for _, a, b in runs) >= SHIFT_MIN_HOLD_S
+    shifts = gear_shifts(t, new)
+    assert len(shifts) == len(runs) - 1 == 14
+    assert [(a, b) for _, a, b in shifts] == [(int(g0), int(g1)) for (g0, _, _), (g1, _, _)
+                                              in zip(runs, runs[1:])]
+    assert new[-1] == 1                                   # at standstill: 1st, ready to launch
 
 
 def test_0_100_and_top_speed_against_the_published_figures():

@@ -109,6 +109,7 @@ def test_the_run_exercises_every_component(runs):
     assert np.any(col["sync2_state"] == 1.0)                         # 2nd synchronizing
     assert col["sync2_gear"][-1] == 2.0 and col["sync1_gear"][-1] == 1.0
     assert np.any(col["gear"] == 1.0) and np.any(col["gear"] == 2.0)  # drive handed over
+    assert col["gear"][-1] == 2.0 and col["clutch2_capacity_nm"][-1] < 2.0  # K2 open: 2nd held
     assert col["brake_torque_nm"].max() > 1000.0                     # brakes
     assert col["front_tyre_slip"].max() > 0.02                      # tyres in transient slip
     assert np.ptp(col["pitch_deg"]) > 0.1                             # body pitch

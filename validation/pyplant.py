@@ -1129,6 +1129,7 @@ class PyPlant:
         self.outputs = {name: 0.0 for name in OUTPUT_NAMES}
         self.step_count = 0.0
         self.input_clamps = 0.0
+        self.active_shaft = -1.0
         self.reset()
 
     # ------------------------------------------------------------- the state
@@ -1169,6 +1170,7 @@ class PyPlant:
         self.inputs = {name: float(plant.inputs[name]) for name in INPUT_NAMES}
         self.step_count = float(plant._p.step_count)
         self.input_clamps = float(plant._p.input_clamps)
+        self.active_shaft = float(plant._p.active_shaft)
         self.applied = {name: float(getattr(plant._p.applied, name)) for name in INPUT_NAMES}
         self.outputs = {name: float(plant.outputs[name]) for name in OUTPUT_NAMES}
 
@@ -1198,9 +1200,11 @@ class PyPlant:
                 w_in[shaft] = w_car * p.gearbox.final_drive[gear_output_shaft(g)] * d.signed_ratio[g]
                 engaged[shaft] = True
         w_eng = w_idle
+        self.active_shaft = -1.0
         for k in range(2):
             if clutch_locked[k] > 0.5 and engaged[k]:
                 w_eng = w_in[k]
+                self.active_shaft = float(k)
                 break
         for k in range(2):
             self.gearbox.input_speed_rad_s[k] = w_in[k] if engaged[k] else w_eng
@@ -1348,11 +1352,19 @@ class PyPlant:
             return 0.0
         return -1.0 if g == GEAR_R else float(g + 1)
 
-    def _torque_gear(self, c):
-        t0, t1 = abs(c.clutch[0].torque_nm), abs(c.clutch[1].torque_nm)
-        shaft = 1 if t1 > t0 else 0
-        if (t1 if shaft else t0) < GEAR_TORQUE_MIN_NM:
-            return 0.0
+    def _drive_shaft(self, c):
+        shaft = -1
+        best = 0.0
+        for k in range(2):
+            t = abs(c.clutch[k].torque_nm)
+            if c.clutch[k].capacity_nm < GEAR_TORQUE_MIN_NM or t < GEAR_TORQUE_MIN_NM:
+                continue
+            if shaft < 0 or t > best:
+                shaft = k
+                best = t
+        return shaft
+
+    def _shaft_gear(self, shaft):
         for k in range(N_SLEEVES):
             y = self.gearbox.sync[k]
             g = sleeve_gear(k, int(y.side))
@@ -1360,6 +1372,12 @@ class PyPlant:
                 continue
             return -1.0 if g == GEAR_R else float(g + 1)
         return 0.0
+
+    def _engaged_gear(self, c):
+        shaft = self._drive_shaft(c)
+        if shaft < 0:
+            shaft = int(self.active_shaft)
+        return 0.0 if shaft < 0 else self._shaft_gear(shaft)
 
     def _write_outputs(self, c):
         p = self.p
@@ -1422,7 +1440,7 @@ class PyPlant:
         o["accel_pedal_pct"] = a["accel_pedal_pct"]
         o["brake_pedal_pct"] = a["brake_pedal_pct"]
         o["input_clamps"] = self.input_clamps
-        o["gear"] = self._torque_gear(c)
+        o["gear"] = self._engaged_gear(c)
 
     # --------------------------------------------------------------- step
     def _check_state(self):
@@ -1441,6 +1459,9 @@ class PyPlant:
                 c = self._evaluate()
                 self._advance(c, h)
             self.step_count += 1.0
+            shaft = self._drive_shaft(c)
+            if shaft >= 0:
+                self.active_shaft = float(shaft)
             if not all(map(math.isfinite, self._state_list())):
                 self._check_state()
         if n > 0:

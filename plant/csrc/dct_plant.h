@@ -788,8 +788,16 @@ typedef struct {
     double accel_pedal_pct;           /* as applied */
     double brake_pedal_pct;
     double input_clamps;              /* inputs limited to their range so far */
-    double gear;                      /* gear carrying the drive torque: the engaged gear of the
-                                         clutch with the larger torque, -1 R, 0 none */
+    double gear;                      /* engaged gear: 1..6, -1 R, 0 none. The gear engaged (its
+                                         synchronizer engaged) on the active input shaft: the shaft
+                                         whose clutch carries the drive torque (of the clamped
+                                         clutches, capacity >= 2 Nm, the one with the larger torque,
+                                         if >= 2 Nm) or, while none does (both clutches open in a
+                                         coast downshift or at standstill, the torque of the closed
+                                         clutch crossing zero while coasting), the shaft that
+                                         carried it last. 0 before any clutch has carried torque
+                                         since the reset (unless it locked a clutch in gear), or
+                                         when the active shaft has no gear engaged */
 } dct_outputs;
 
 /* Initial conditions for dct_plant_reset(). */
@@ -816,6 +824,9 @@ typedef struct {
     int error_index;                  /* index into inputs or state of the first bad value */
     double step_count;                /* steps since reset */
     double input_clamps;              /* inputs limited to their range since reset */
+    double active_shaft;              /* input shaft (0 K1, 1 K2) whose clutch carried the drive
+                                         torque last, updated after each step (output gear);
+                                         -1: none since the reset */
     dct_inputs applied;               /* the inputs as limited and used by the last step */
 } dct_plant;
 

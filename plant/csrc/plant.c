@@ -157,18 +157,34 @@ static double sync_gear_number(const dct_sync_state *s, int sleeve)
     return g == DCT_GEAR_R ? -1.0 : (double)(g + 1);
 }
 
-/* clutch torque below which a clutch is taken to carry no drive torque */
+/* clutch torque (transmitted, and capacity) below which a clutch is taken to
+ * carry no drive torque */
 #define GEAR_TORQUE_MIN_NM 2.0
 
-/* the engaged gear behind the clutch that transmits the larger torque:
- * 1..6, -1 for R, 0 when neither clutch carries torque or its shaft has no
- * gear engaged */
-static double torque_gear(const dct_state *s, const coupling *c)
+/* the input shaft (0 K1, 1 K2) whose clutch carries the drive torque now: of
+ * the clamped clutches (capacity >= GEAR_TORQUE_MIN_NM; the drag of an open
+ * pack does not count), the one with the larger torque, if that is at least
+ * GEAR_TORQUE_MIN_NM; -1 when none does (both open, or the torque of the
+ * closed one crossing zero while coasting) */
+static int drive_shaft(const coupling *c)
 {
-    double t0 = fabs(c->clutch[0].torque_nm), t1 = fabs(c->clutch[1].torque_nm);
-    int shaft = t1 > t0 ? 1 : 0;
-    if ((shaft ? t1 : t0) < GEAR_TORQUE_MIN_NM)
-        return 0.0;
+    int shaft = -1;
+    double best = 0.0;
+    for (int k = 0; k < 2; k++) {
+        double t = fabs(c->clutch[k].torque_nm);
+        if (c->clutch[k].capacity_nm < GEAR_TORQUE_MIN_NM || t < GEAR_TORQUE_MIN_NM)
+            continue;
+        if (shaft < 0 || t > best) {
+            shaft = k;
+            best = t;
+        }
+    }
+    return shaft;
+}
+
+/* the gear engaged (synchronizer engaged) on an input shaft: 1..6, -1 R, 0 none */
+static double shaft_gear(const dct_state *s, int shaft)
+{
     for (int k = 0; k < DCT_N_SLEEVES; k++) {
         const dct_sync_state *y = &s->gearbox.sync[k];
         int g = dct_sleeve_gear(k, (int)y->side);
@@ -177,6 +193,18 @@ static double torque_gear(const dct_state *s, const coupling *c)
         return g == DCT_GEAR_R ? -1.0 : (double)(g + 1);
     }
     return 0.0;
+}
+
+/* the engaged gear (output "gear"): the gear engaged on the active input
+ * shaft, the one whose clutch carries the drive torque now or, while no clutch
+ * does, carried it last (pl->active_shaft); 0 before any clutch has carried
+ * torque since the reset, or when the active shaft has no gear engaged */
+static double engaged_gear(const dct_plant *pl, const coupling *c)
+{
+    int shaft = drive_shaft(c);
+    if (shaft < 0)
+        shaft = (int)pl->active_shaft;
+    return shaft < 0 ? 0.0 : shaft_gear(&pl->state, shaft);
 }
 
 static void write_outputs(dct_plant *pl, const coupling *c)
@@ -240,7 +268,7 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     o->accel_pedal_pct = pl->applied.accel_pedal_pct;
     o->brake_pedal_pct = pl->applied.brake_pedal_pct;
     o->input_clamps = pl->input_clamps;
-    o->gear = torque_gear(s, c);
+    o->gear = engaged_gear(pl, c);
 }
 
 /* limit one input to [lo, hi], counting the values that had to be limited */
@@ -317,6 +345,9 @@ int dct_plant_step(dct_plant *pl, int n)
             advance(pl, &c, h);
         }
         pl->step_count += 1.0;
+        int shaft = drive_shaft(&c);
+        if (shaft >= 0)
+            pl->active_shaft = shaft;
         st = check_state(pl);
         if (st != DCT_OK)
             return st;
@@ -437,9 +468,11 @@ int dct_plant_reset(dct_plant *pl, const dct_initial *init)
         }
     }
     double w_eng = w_idle;
+    pl->active_shaft = -1.0;
     for (int k = 0; k < 2; k++)
         if (init->clutch_locked[k] > 0.5 && engaged[k]) {
             w_eng = w_in[k];
+            pl->active_shaft = k;
             break;
         }
     for (int k = 0; k < 2; k++)
