@@ -56,7 +56,8 @@ PLANT_SIGNAL_SOURCES = {
     "SIM_Status": {"SimTime": "st.sim_time_s", "OverrunCount": "st.overrun_count",
                    "TurnaroundMax": "st.turnaround_max_us", "SimState": "st.sim_state"},
 }
-# TCU message signal -> field of dct_tcu_commands (and the dct_inputs field it drives)
+# TCU message signal -> field of dct_tcu_commands (and the dct_inputs field it drives;
+# None for a signal the plant does not act on, recorded with the commands only)
 TCU_SIGNAL_TARGETS = {
     "TCU_ClutchCmd": {"SolenoidCurrent1": ("solenoid_current1_a", "solenoid_current1_a"),
                       "SolenoidCurrent2": ("solenoid_current2_a", "solenoid_current2_a"),
@@ -66,13 +67,14 @@ TCU_SIGNAL_TARGETS = {
                      "ForkForce3": ("fork_force_n[2]", "fork_force3_n"),
                      "ForkForce4": ("fork_force_n[3]", "fork_force4_n")},
     "TCU_EngineCmd": {"EngineTorqueRequest": ("engine_torque_request_nm", "engine_torque_request_nm"),
-                      "TorqueRequestActive": ("torque_request_active", "torque_request_active")},
+                      "TorqueRequestActive": ("torque_request_active", "torque_request_active"),
+                      "TargetGear": ("target_gear", None)},
 }
 # safe values while a TCU message is timed out (dct_can_safe_rx)
 TCU_SAFE_VALUES = {
     "TCU_ClutchCmd": {"SolenoidCurrent1": 0.0, "SolenoidCurrent2": 0.0, "LineSolenoidCurrent": 0.0},
     "TCU_ShiftCmd": {"ForkForce1": 0.0, "ForkForce2": 0.0, "ForkForce3": 0.0, "ForkForce4": 0.0},
-    "TCU_EngineCmd": {"EngineTorqueRequest": 0.0, "TorqueRequestActive": 0},
+    "TCU_EngineCmd": {"EngineTorqueRequest": 0.0, "TorqueRequestActive": 0, "TargetGear": 0},
 }
 
 

@@ -1,9 +1,13 @@
 """PNG plots of a recorded run, laid out like the reference paper's Figs. 10 and 11.
 
 One figure, four stacked axes sharing time: vehicle speed and acceleration;
-engine and input-shaft speeds; clutch pressures; engaged gear (the gear carrying
-the drive torque) and the TCU's target gear. ``write_plots`` writes it for the
-whole run and, when the gear changes, once more zoomed on the first upshift.
+engine and input-shaft speeds; clutch pressures; the engaged gear (the plant's
+``gear``: the gear engaged on the input shaft whose clutch carries the drive
+torque or, while neither clutch does, carried it last) and the TCU's target
+gear (``tcu_target_gear`` of an offline run, or ``cmd_target_gear`` of a plant
+server recording: the TargetGear signal of TCU_EngineCmd as the loop received
+it). ``write_plots`` writes it for the whole run and, when the gear changes,
+once more zoomed on the first upshift.
 """
 
 import os
@@ -18,6 +22,8 @@ import numpy as np  # noqa: E402
 from plant.maneuvers import as_arrays  # noqa: E402
 
 REQUIRED = ("time_s", "vehicle_speed_kmh")
+#: columns that hold the TCU's target gear, the first one present is plotted
+TARGET_GEAR_COLUMNS = ("tcu_target_gear", "cmd_target_gear")
 
 
 def _plot(rec, title, window=None):
@@ -59,8 +65,9 @@ def _plot(rec, title, window=None):
     ax = axes[3]
     if has("gear"):
         ax.step(ts, y("gear"), where="post", lw=1.2, label="engaged gear")
-    if has("tcu_target_gear"):
-        ax.step(ts, y("tcu_target_gear"), where="post", lw=1.0, ls="--", label="TCU target gear")
+    target = next((name for name in TARGET_GEAR_COLUMNS if has(name)), None)
+    if target is not None:
+        ax.step(ts, y(target), where="post", lw=1.0, ls="--", label="TCU target gear")
     ax.set_ylabel("gear")
     ax.set_yticks(range(-1, 7))
     ax.set_ylim(-1.5, 6.5)

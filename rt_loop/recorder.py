@@ -7,7 +7,8 @@ rows to a CSV file. The columns are those of ``dct-hil simulate`` (every
 plant output, ``time_s`` first, in plant time), then ``maneuver_time_s``
 (plant time since the scripted maneuver started, ``nan`` before), ``tick``
 (the executed tick), and the commands the loop applied that the outputs do
-not already hold, as ``cmd_<name>``. Samples the loop could not put in the
+not already hold, as ``cmd_<name>`` (among them ``cmd_target_gear``, the
+TCU's TargetGear, which drives no input). Samples the loop could not put in the
 ring because this thread fell behind are counted (``dropped``), never lost
 silently.
 """

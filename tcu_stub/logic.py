@@ -5,7 +5,8 @@ holds the DBC signals of the plant messages (EngineSpeed, InputShaft1Speed,
 ..., SyncState1..4, AccelPedal, BrakePedal, EngineTorque) plus ``stale``
 (True when a plant message is missing or was rejected). The result holds the
 TCU command signals (SolenoidCurrent1/2, LineSolenoidCurrent, ForkForce1..4,
-EngineTorqueRequest, TorqueRequestActive).
+EngineTorqueRequest, TorqueRequestActive) and TargetGear (``target_gear``, for
+the engine and the bench; the plant does not act on it).
 
 Control structure, from the top:
 
@@ -585,4 +586,5 @@ class TcuLogic:
             "ForkForce4": forces[3],
             "EngineTorqueRequest": request if active else 0.0,
             "TorqueRequestActive": 1 if active else 0,
+            "TargetGear": self.target_gear,
         }

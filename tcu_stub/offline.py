@@ -83,7 +83,8 @@ def apply_commands(plant, commands, counter=0, due=None):
         values = {sig: float(commands[sig]) for sig in targets}
         _, decoded = codec.decode(frame_id, codec.encode(name, values, counter))
         for sig, (_, input_name) in targets.items():
-            plant.inputs[input_name] = decoded[sig]
+            if input_name is not None:
+                plant.inputs[input_name] = decoded[sig]
 
 
 class ContractLink:

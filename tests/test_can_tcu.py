@@ -275,7 +275,7 @@ class _FailingLogic:
             raise ZeroDivisionError("float division by zero")
         return {"SolenoidCurrent1": 0.5, "SolenoidCurrent2": 0.0, "LineSolenoidCurrent": 0.0,
                 "ForkForce1": 900.0, "ForkForce2": 0.0, "ForkForce3": 0.0, "ForkForce4": 0.0,
-                "EngineTorqueRequest": 50.0, "TorqueRequestActive": 1}
+                "EngineTorqueRequest": 50.0, "TorqueRequestActive": 1, "TargetGear": 1}
 
 
 def test_an_error_in_the_task_stops_it_with_safe_frames_and_a_one_line_error(channel, listener):

@@ -304,6 +304,7 @@ void dct_can_decode_rx(int msg, const dct_can_frame *f, dct_tcu_commands *cmd)
         }
         cmd->engine_torque_request_nm = DEC(tcu_engine_cmd, engine_torque_request);
         cmd->torque_request_active = DEC(tcu_engine_cmd, torque_request_active);
+        cmd->target_gear = DEC(tcu_engine_cmd, target_gear);
         break;
     }
     default:
@@ -327,6 +328,7 @@ void dct_can_safe_rx(int msg, dct_tcu_commands *cmd)
     case DCT_RX_ENGINE_CMD:
         cmd->engine_torque_request_nm = 0.0;
         cmd->torque_request_active = 0.0;
+        cmd->target_gear = 0.0;
         break;
     default:
         break;
@@ -344,4 +346,5 @@ void dct_can_apply_commands(const dct_tcu_commands *cmd, dct_inputs *in)
     in->fork_force4_n = cmd->fork_force_n[3];
     in->engine_torque_request_nm = cmd->engine_torque_request_nm;
     in->torque_request_active = cmd->torque_request_active;
+    /* target_gear drives no input: the plant does not act on it */
 }

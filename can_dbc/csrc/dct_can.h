@@ -59,6 +59,7 @@ typedef struct {
     double fork_force_n[4];
     double engine_torque_request_nm;
     double torque_request_active;
+    double target_gear;       /* the TCU's target gear (1..6, -1 R, 0 N): recorded, drives no input */
 } dct_tcu_commands;
 
 /* the simulator's own status, sent in SIM_Status */
@@ -97,7 +98,7 @@ void dct_can_encode_tx(int msg, const dct_outputs *o, const dct_sim_status *st,
 /* decodes an accepted frame of rx message msg into the commands */
 void dct_can_decode_rx(int msg, const dct_can_frame *f, dct_tcu_commands *cmd);
 /* the safe values used while a message is timed out:
- * 0 A, no fork force, no torque request */
+ * 0 A, no fork force, no torque request (target gear 0) */
 void dct_can_safe_rx(int msg, dct_tcu_commands *cmd);
 /* writes the commands into the plant inputs they drive */
 void dct_can_apply_commands(const dct_tcu_commands *cmd, dct_inputs *in);

@@ -1754,6 +1754,7 @@ int dct_hil_tcu_engine_cmd_pack(
     size_t size)
 {
     uint16_t engine_torque_request;
+    uint8_t target_gear;
 
     if (size < 8u) {
         return (-EINVAL);
@@ -1767,6 +1768,8 @@ int dct_hil_tcu_engine_cmd_pack(
     dst_p[2] |= pack_left_shift_u16(engine_torque_request, 0u, 0xffu);
     dst_p[3] |= pack_right_shift_u16(engine_torque_request, 8u, 0xffu);
     dst_p[4] |= pack_left_shift_u8(src_p->torque_request_active, 0u, 0x01u);
+    target_gear = (uint8_t)src_p->target_gear;
+    dst_p[5] |= pack_left_shift_u8(target_gear, 0u, 0x0fu);
 
     return (8);
 }
@@ -1777,6 +1780,7 @@ int dct_hil_tcu_engine_cmd_unpack(
     size_t size)
 {
     uint16_t engine_torque_request;
+    uint8_t target_gear;
 
     if (size < 8u) {
         return (-EINVAL);
@@ -1788,6 +1792,13 @@ int dct_hil_tcu_engine_cmd_unpack(
     engine_torque_request |= unpack_left_shift_u16(src_p[3], 8u, 0xffu);
     dst_p->engine_torque_request = (int16_t)engine_torque_request;
     dst_p->torque_request_active = unpack_right_shift_u8(src_p[4], 0u, 0x01u);
+    target_gear = unpack_right_shift_u8(src_p[5], 0u, 0x0fu);
+
+    if ((target_gear & (1u << 3)) != 0u) {
+        target_gear |= 0xf0u;
+    }
+
+    dst_p->target_gear = (int8_t)target_gear;
 
     return (0);
 }
@@ -1881,4 +1892,24 @@ bool dct_hil_tcu_engine_cmd_torque_request_active_is_in_range(uint8_t value)
 bool dct_hil_tcu_engine_cmd_torque_request_active_is_in_phys_range(double value)
 {
     return ((value >= 0.0) && (value <= 1.0));
+}
+
+int8_t dct_hil_tcu_engine_cmd_target_gear_encode(double value)
+{
+    return (int8_t)(round(value));
+}
+
+double dct_hil_tcu_engine_cmd_target_gear_decode(int8_t value)
+{
+    return ((double)value);
+}
+
+bool dct_hil_tcu_engine_cmd_target_gear_is_in_range(int8_t value)
+{
+    return ((value >= -1) && (value <= 6));
+}
+
+bool dct_hil_tcu_engine_cmd_target_gear_is_in_phys_range(double value)
+{
+    return ((value >= -1.0) && (value <= 6.0));
 }

@@ -185,6 +185,7 @@ extern "C" {
 #define DCT_HIL_TCU_ENGINE_CMD_ALIVE_COUNTER_NAME "AliveCounter"
 #define DCT_HIL_TCU_ENGINE_CMD_ENGINE_TORQUE_REQUEST_NAME "EngineTorqueRequest"
 #define DCT_HIL_TCU_ENGINE_CMD_TORQUE_REQUEST_ACTIVE_NAME "TorqueRequestActive"
+#define DCT_HIL_TCU_ENGINE_CMD_TARGET_GEAR_NAME "TargetGear"
 
 /**
  * Signals in message DCT_ShaftSpeeds.
@@ -729,7 +730,7 @@ struct dct_hil_tcu_shift_cmd_t {
 /**
  * Signals in message TCU_EngineCmd.
  *
- * Engine torque intervention.
+ * Engine torque intervention and the TCU's target gear.
  *
  * All signal values are as on the CAN bus.
  */
@@ -769,6 +770,15 @@ struct dct_hil_tcu_engine_cmd_t {
      * Offset: 0
      */
     uint8_t torque_request_active;
+
+    /**
+     * The gear the TCU is shifting to, or holds between shifts: 1 to 6, -1 reverse, 0 neutral. Information for the engine and the bench (the plant server records it); the plant does not act on it. 0 while the message is timed out.
+     *
+     * Range: -1..6 (-1..6 -)
+     * Scale: 1
+     * Offset: 0
+     */
+    int8_t target_gear;
 };
 
 /**
@@ -3340,6 +3350,46 @@ bool dct_hil_tcu_engine_cmd_torque_request_active_is_in_range(uint8_t value);
  * @return true if in range, false otherwise.
  */
 bool dct_hil_tcu_engine_cmd_torque_request_active_is_in_phys_range(double value);
+
+/**
+ * Encode given signal by applying scaling and offset.
+ *
+ * @param[in] value Signal to encode.
+ *
+ * @return Encoded signal.
+ */
+int8_t dct_hil_tcu_engine_cmd_target_gear_encode(double value);
+
+/**
+ * Decode given signal by applying scaling and offset.
+ *
+ * @param[in] value Signal to decode.
+ *
+ * @return Decoded signal.
+ */
+double dct_hil_tcu_engine_cmd_target_gear_decode(int8_t value);
+
+/**
+ * Check that given signal is in allowed range.
+ *
+ * @param[in] value Signal to check.
+ *
+ * @return true if in range, false otherwise.
+ */
+bool dct_hil_tcu_engine_cmd_target_gear_is_in_range(int8_t value);
+
+/**
+ * Check that given physical value is in allowed range before encoding.
+ *
+ * Use this BEFORE calling _encode() to avoid silent integer overflow:
+ *   encode(-1.0) on a [0,100] signal wraps to 255 and passes is_in_range().
+ *   is_in_phys_range(-1.0) correctly returns false.
+ *
+ * @param[in] value Physical signal value to check.
+ *
+ * @return true if in range, false otherwise.
+ */
+bool dct_hil_tcu_engine_cmd_target_gear_is_in_phys_range(double value);
 
 
 #ifdef __cplusplus
