@@ -5,6 +5,8 @@
 
 User errors (bad options, parameter files, scenarios, a plant that blows up)
 print one line ``dct-hil: error: <cause>`` and exit 2; Ctrl-C exits 130.
+``serve`` and ``demo`` with ``--strict`` exit 3 when their timing verdict is
+INVALID (``rt_loop.verdict``).
 """
 
 import argparse
@@ -112,7 +114,11 @@ def build_parser():
         description="Serve the plant to a TCU over CAN: one tick per period in a SCHED_FIFO "
                     "thread (receive, check, step, send). SocketCAN is hard real time; any "
                     "other python-can interface goes through a bridge thread (soft real time). "
-                    "Ctrl-C (exit 130) or SIGTERM (exit 0) stop it with everything written.")
+                    "Ctrl-C (exit 130) or SIGTERM (exit 0) stop it with everything written. It "
+                    "ends with a verdict on its own timing (timing: VALID, or INVALID with the "
+                    "findings: overruns, TCU timeouts, lost frames, no TCU). Exit status: 0 done, "
+                    "1 the loop, transport or traffic log failed, 2 bad options, 3 timing "
+                    "INVALID with --strict, 130 Ctrl-C.")
     serve.add_argument("--channel", default="vcan0", metavar="NAME",
                        help="CAN channel: a network interface for socketcan (can0, vcan0), "
                             "the python-can channel otherwise (default vcan0)")
@@ -161,6 +167,9 @@ def build_parser():
                        help="recording interval in plant time (default 0.002)")
     serve.add_argument("--quiet", action="store_true",
                        help="no live status (the banner, warnings and summary stay)")
+    serve.add_argument("--strict", action="store_true",
+                       help="exit 3 when the run's timing verdict is INVALID (without it the "
+                            "verdict is printed with a warning and the exit status stays)")
     _add_pm_qos_options(serve)
     serve.set_defaults(func=cmd_serve)
 
@@ -180,7 +189,12 @@ def build_parser():
         description="Runs the plant server and the TCU stub as two processes on vcan0 when "
                     "vcan0 is up, otherwise on the embedded transport (python-can's in-process "
                     "virtual bus, the TCU in a thread); plays the maneuver with a live status, "
-                    "then writes the plots, the recording, the CAN log and the statistics.")
+                    "then writes the plots, the recording, the CAN log and the statistics. It "
+                    "ends with a verdict on the run's timing (timing: VALID, or INVALID with the "
+                    "findings: overruns, TCU timeouts and stale episodes, lost frames, shifts "
+                    "unlike the offline run of the same maneuver). Exit status: 0 done, 1 the "
+                    "run failed or the maneuver did not complete, 2 bad options, 3 timing "
+                    "INVALID with --strict, 130 Ctrl-C.")
     demo.add_argument("--maneuver", choices=SCRIPTED_MANEUVERS, default="paper-cycle",
                       metavar="NAME", help="paper-cycle (default) or 0-100")
     demo.add_argument("--out", default="out/demo", metavar="DIR",
@@ -202,6 +216,9 @@ def build_parser():
     demo.add_argument("--duration", type=argtypes.seconds, metavar="S",
                       help="play only the first S seconds of the maneuver")
     demo.add_argument("--quiet", action="store_true", help="no live status")
+    demo.add_argument("--strict", action="store_true",
+                      help="exit 3 when the run's timing verdict is INVALID (without it the "
+                           "verdict is printed with a warning and the exit status stays)")
     _add_pm_qos_options(demo)
     demo.set_defaults(func=cmd_demo)
 
@@ -725,7 +742,7 @@ def cmd_serve(args):
             maneuver_end_s=end, record_path=args.record, record_every_s=args.record_every,
             pm_qos_us=args.pm_qos_us,
         )
-        return run_console(server, args.stats, quiet=args.quiet)
+        return run_console(server, args.stats, quiet=args.quiet, strict=args.strict)
     except (ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 
@@ -747,7 +764,7 @@ def cmd_demo(args):
         return run_demo(args.maneuver, args.out, channel=args.channel, interface=args.interface,
                         time_scale=args.time_scale, priority=args.priority, quiet=args.quiet,
                         duration_s=args.duration, tcu_clock=args.tcu_clock,
-                        pm_qos_us=args.pm_qos_us)
+                        pm_qos_us=args.pm_qos_us, strict=args.strict)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 

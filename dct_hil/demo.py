@@ -20,6 +20,13 @@ with it. Then the demo writes, into ``--out`` (default out/demo):
 overruns, counts), ``tcu-report.json`` (the TCU's own counts and shifts),
 ``summary.json`` (figures and shifts), and the plots (PNG, like the paper's
 Figs. 10 and 11), and prints where they are.
+
+It ends with a verdict on the run's timing (``rt_loop.verdict.demo_verdict``:
+the server's overruns, TCU timeouts and lost frames, the TCU's stale episodes,
+and the plant's shifts against the offline run of the same maneuver and
+duration, ``offline_shifts``), in ``summary.json`` as ``verdict`` and printed
+last: "timing: VALID" or "timing: INVALID - <first finding>". An INVALID run
+warns on stderr; with ``strict`` a run that would exit 0 exits 3.
 """
 
 from __future__ import annotations
@@ -39,6 +46,8 @@ EMBEDDED_CHANNEL = "dct-hil-demo"
 SCRIPTED_MANEUVERS = ("paper-cycle", "0-100")
 RECORD_EVERY_S = 0.002
 _TCU_START_TIMEOUT_S = 60.0
+#: offline shifts by (maneuver, duration), for this process only (never on disk)
+_OFFLINE_SHIFTS: dict = {}
 
 
 class DemoError(RuntimeError):
@@ -87,6 +96,27 @@ def _driver_for(name: str):
                         f"({', '.join(SCRIPTED_MANEUVERS)}); wltc runs offline: "
                         "dct-hil simulate --scenario wltc")
     return get_maneuver(name)
+
+
+def offline_shifts(maneuver: str, duration_s: float) -> list[tuple[float, int, int]]:
+    """The plant's shifts (t_s, from, to) in the offline run of ``maneuver`` over
+    its first ``duration_s``: the same TCU logic in-process, every message through
+    the CAN contract at its cycle time (``tcu_stub.offline.run_offline``), the gear
+    recorded every 2 ms as in the demo and read by ``plant.maneuvers.gear_shifts``.
+    A few seconds of CPU for the whole paper-cycle; kept in memory for the rest of
+    the process."""
+    from plant.maneuvers import gear_shifts, get_maneuver  # noqa: PLC0415
+    from plant.model import Plant  # noqa: PLC0415
+    from tcu_stub.offline import run_offline  # noqa: PLC0415
+
+    key = (maneuver, round(float(duration_s), 6))
+    if key not in _OFFLINE_SHIFTS:
+        m = get_maneuver(maneuver)
+        plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
+        plant.reset(**m.reset_kwargs)
+        rec = run_offline(plant, m.driver, float(duration_s), record_every_s=RECORD_EVERY_S)
+        _OFFLINE_SHIFTS[key] = gear_shifts(rec["time_s"], rec["gear"])
+    return list(_OFFLINE_SHIFTS[key])
 
 
 class _TcuProcess:
@@ -171,8 +201,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
              channel: str | None = None, interface: str | None = None,
              time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
              duration_s: float | None = None, tcu_clock: str | None = None,
-             pm_qos_us: int | None = 0, out=None, err=None) -> int:
-    """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C).
+             pm_qos_us: int | None = 0, strict: bool = False, out=None, err=None) -> int:
+    """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C; with
+    ``strict``, 3 for a run that would exit 0 but whose timing verdict is INVALID).
 
     ``duration_s`` plays only the first seconds of the maneuver. ``tcu_clock``
     (``tcu_stub.can_tcu.CLOCKS``): the TCU's task clock; default "wall" in real
@@ -181,6 +212,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     from plant import maneuvers as mv  # noqa: PLC0415
     from plant.plots import write_plots  # noqa: PLC0415
     from rt_loop.recorder import read_recording  # noqa: PLC0415
+    from rt_loop import verdict as vd  # noqa: PLC0415
     from rt_loop.server import Server, StopSignals  # noqa: PLC0415
 
     out = sys.stdout if out is None else out
@@ -255,7 +287,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         finally:
             signals.__exit__()
 
-    report = server.write_report(paths["stats"])
+    report = server.report()
+    report["verdict"] = vd.serve_verdict(report)
+    server.write_report(paths["stats"], report)
     run = report["run"]
     if run["error"]:
         print(f"dct-hil: error: the loop stopped: {run['error']}", file=err)
@@ -272,6 +306,21 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         shifts = mv.gear_shifts(ran["time_s"], ran["gear"])
         plots = write_plots(ran, folder, title=f"demo {maneuver}")
     tcu_report = tcu.report() if tcu is not None else None
+    offline, not_compared, interrupted = None, None, signals.interrupted
+    if received:
+        not_compared = "the run was stopped"
+    elif run["maneuver"] != "done":
+        not_compared = f"the maneuver did not complete (state {run['maneuver']})"
+    else:
+        print(f"offline run       {maneuver} over {end_s:g} s with the TCU in-process, for the "
+              "shift comparison ...", file=out, flush=True)
+        try:
+            offline = offline_shifts(maneuver, end_s)
+        except KeyboardInterrupt:
+            not_compared, interrupted = "interrupted while computing the offline run", True
+        except Exception as e:  # noqa: BLE001 (the verdict says why; the run's files stand)
+            not_compared = f"the offline run failed: {type(e).__name__}: {' '.join(str(e).split())}"
+    verdict = vd.demo_verdict(report, tcu_report, shifts, offline, not_compared)
     summary = {
         "maneuver": maneuver,
         "completed": run["maneuver"] == "done",
@@ -282,6 +331,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         "tcu_clock": tcu_clock,
         "figures": figures,
         "shifts": [{"time_s": t, "from": a, "to": b} for t, a, b in shifts],
+        "offline_shifts": None if offline is None else [
+            {"time_s": t, "from": a, "to": b} for t, a, b in offline],
+        "verdict": verdict,
         "gear_clashes": float(rec["gear_clashes"][-1]) if len(rec["time_s"]) else None,
         "turnaround": report["turnaround"],
         "overruns": report["counts"]["overruns"],
@@ -313,10 +365,15 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     for name, p in [("plots", ", ".join(plots) or "none")] + [
             (k, str(v)) for k, v in paths.items()]:
         print(f"  {name:<15} {p}", file=out)
+    for line in vd.verdict_lines(verdict):
+        print(line, file=out)
     out.flush()
-    if signals.interrupted:
-        return 130
-    return return_code
+    if interrupted:
+        return_code = 130
+    warning = vd.warning_line(verdict, strict and return_code == 0)
+    if warning:
+        print(warning, file=err)
+    return vd.exit_code(verdict, strict, return_code)
 
 
 def _us(v) -> str:

@@ -33,6 +33,7 @@ import weakref
 from typing import Any, Callable, TextIO
 
 from rt_loop import status as _status
+from rt_loop import verdict as _verdict
 from rt_loop.drain import RingDrain
 from rt_loop.drain import one_line as _one_line
 from rt_loop.pm_qos import DEFAULT_LATENCY_US as DEFAULT_PM_QOS_US
@@ -307,6 +308,8 @@ class Server:
         self.logger: TrafficLogger | None = None
         self.recorder: Recorder | None = None
         self.warnings: list[str] = []
+        # frames seen waiting in the bridge's rings at the status reads (the verdict's figure)
+        self._rings = {"rx_waiting_max": 0, "tx_waiting_max": 0, "samples": 0}
         self._thread: threading.Thread | None = None
         self._done = threading.Event()
         self._final_state: int | None = None
@@ -555,6 +558,7 @@ class Server:
 
     def _snapshot(self) -> dict:
         s = self.stats.read()
+        self._sample_rings()
         return {
             "state": self.stats.state,
             "sim_time_s": float(s.sim_time_s),
@@ -582,6 +586,28 @@ class Server:
         counts["record"] = {"written": 0 if self.recorder is None else self.recorder.written,
                             "dropped": int(self._l.rec.dropped)}
         return counts
+
+    def _sample_rings(self) -> None:
+        """Notes how many frames wait in the bridge's rings now (rx: for the loop, tx:
+        for the bridge thread): a frame waits there while the other side is late."""
+        if not self.running or self.transport is None or self.transport.hard_real_time:
+            return
+        size = self._lib.RT_RING_SIZE
+        for name in ("rx", "tx"):
+            ring = getattr(self._l, name)
+            waiting = (int(ring.head) - int(ring.tail)) & 0xFFFFFFFF
+            if waiting <= size:              # head and tail are read one after the other
+                key = f"{name}_waiting_max"
+                self._rings[key] = max(self._rings[key], waiting)
+        self._rings["samples"] += 1
+
+    def rings_report(self) -> dict | None:
+        """The most frames seen waiting in the bridge's rx and tx rings at a status read
+        (``snapshot``), and how many reads there were; None without a bridge. A sampled
+        figure: frames that waited between two reads are not seen."""
+        if self.transport is None or self.transport.hard_real_time:
+            return None
+        return {**self._rings, "size": int(self._lib.RT_RING_SIZE)}
 
     def transport_counters(self) -> dict:
         return self.transport.counters if self.transport is not None else {}
@@ -657,6 +683,7 @@ class Server:
             "wakeup_latency": timing["wakeup_latency"],
             "histogram_bin_us": 1,
             "counts": self._counts(),
+            "rings": self.rings_report(),
             "transport": {key: value for key, value in self.transport_counters().items()},
             "log": self.logger.counters() if self.logger is not None else None,
             "record": self.recorder.counters() if self.recorder is not None else None,
@@ -664,8 +691,9 @@ class Server:
             "machine": machine,
         }
 
-    def write_report(self, path: str | os.PathLike) -> dict:
-        report = self.report()
+    def write_report(self, path: str | os.PathLike, report: dict | None = None) -> dict:
+        """Writes ``report`` (default: ``report()``) as the JSON stats file; returns it."""
+        report = self.report() if report is None else report
         path = os.fspath(path)
         folder = os.path.dirname(os.path.abspath(path))
         os.makedirs(folder, exist_ok=True)
@@ -810,7 +838,8 @@ class StopSignals:
 
 
 def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = False,
-                out: TextIO | None = None, err: TextIO | None = None) -> int:
+                out: TextIO | None = None, err: TextIO | None = None,
+                strict: bool = False) -> int:
     """Runs ``server`` with a live status until it ends or SIGINT/SIGTERM arrives.
 
     The live status is redrawn in place about 5 times per second when
@@ -821,6 +850,11 @@ def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = Fal
     SIGTERM), 130 after SIGINT (Ctrl-C, as everywhere in dct-hil), 1 if the
     loop was stopped by the overrun policy or a transport error, or the
     traffic log could not be written completely.
+
+    The summary ends with the run's verdict on its own timing
+    (``rt_loop.verdict.serve_verdict``, also in the JSON file as ``verdict``);
+    an INVALID run prints a warning to ``err``, and with ``strict`` a run that
+    would exit 0 exits ``verdict.EXIT_INVALID`` (3) instead.
     """
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
@@ -853,25 +887,29 @@ def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = Fal
             signals.__exit__()
     if view is not None:
         view.close()
-    report = server.write_report(stats_path)
+    report = server.report()
+    report["verdict"] = _verdict.serve_verdict(report)
+    server.write_report(stats_path, report)
     for line in _status.summary_lines(report, stats_path):
         print(line, file=out)
     out.flush()
 
     state = report["run"]["state"]
+    log = report.get("log")
+    code = 130 if signals.interrupted else 0
     if report["run"]["error"]:
         print(f"dct-hil: error: the loop stopped: {report['run']['error']}", file=err)
-        return 1
-    if state == "overrun_stop":
+        code = 1
+    elif state == "overrun_stop":
         print(f"dct-hil: stopped by the overrun policy after {report['run']['ticks']} ticks "
               f"(turnaround max {report['turnaround']['max_us']:.1f} us, period "
               f"{server.period_s * 1e6:g} us)", file=err)
-        return 1
-    log = report.get("log")
-    if log and log["error"]:
+        code = 1
+    elif log and log["error"]:
         print(f"dct-hil: error: the traffic log is incomplete: {log['error']}", file=err)
-        return 1
-    if signals.interrupted:
-        return 130
-    return 0
+        code = 1
+    warning = _verdict.warning_line(report["verdict"], strict and code == 0)
+    if warning:
+        print(warning, file=err)
+    return _verdict.exit_code(report["verdict"], strict, code)
 

@@ -196,8 +196,26 @@ def _fig(x: Any) -> str:
 
 
 def summary_lines(report: dict, stats_path: str) -> list[str]:
+    from rt_loop.verdict import verdict_lines  # noqa: PLC0415
+
     run, cfg, c = report["run"], report["config"], report["counts"]
     rx, tx = c["rx"], c["tx"]
+
+    def timeouts(name: str, m: dict) -> str:
+        # a message never received was timed out from the start: no timeout event
+        if m.get("accepted") == 0:
+            return f"{name} never received"
+        n = m["timeouts"]
+        if not n:
+            return f"{name} 0"
+        return (f"{name} timed out {'once' if n == 1 else f'{n} times'}"
+                + (", still timed out at the end" if m["timed_out"] else ", came back"))
+
+    messages = c["tcu_messages"]
+    if messages and all(m.get("accepted") == 0 for m in messages.values()):
+        tcu = "none: no TCU frame received (every TCU message timed out from the start)"
+    else:
+        tcu = "; ".join(timeouts(name, m) for name, m in messages.items())
     lines = [
         f"run               {run['state']}: {run['wall_s']:.3f} s, {run['ticks']} ticks at "
         f"{cfg['rate_hz']:g} Hz, {run['sim_time_s']:.3f} s simulated; {cfg['real_time']} real "
@@ -216,9 +234,7 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
         f"rejected (unknown id {rx['unknown_id']}, length {rx['bad_length']}, CRC "
         f"{rx['bad_crc']}, counter {rx['bad_counter']}), {rx['overflow']} lost to overflow",
         f"sent              {tx['frames']} frames, {tx['dropped']} dropped",
-        "TCU timeouts      " + ", ".join(
-            f"{name} {m['timeouts']}" + (" (timed out at the end)" if m["timed_out"] else "")
-            for name, m in c["tcu_messages"].items()),
+        f"TCU timeouts      {tcu}",
     ]
     if c.get("bridge"):
         b = c["bridge"]
@@ -234,4 +250,6 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
         lines.append(f"log               {log['path']} ({log['format']}): {log['written']} frames, "
                      f"{log['dropped']} lost" + (f"; ERROR {log['error']}" if log["error"] else ""))
     lines.append(f"stats             {stats_path}")
+    if report.get("verdict"):
+        lines += verdict_lines(report["verdict"])
     return lines

@@ -256,6 +256,9 @@ class CanTcu:
         self.commands = {sig: 0.0 for sigs in self._tx_signals.values() for sig in sigs}
         self.sensors = {}
         self.error = None                 # one line, when the task stopped on an exception
+        self._pause_s = 0.0               # a pause asked for by pause(), taken at the next tick
+        self.pauses = 0
+        self.paused_s = 0.0
         self.final_safe_frames = None     # True/False once stop() sent (or tried) them
         self._exec_us = _Histogram()
         self._late_us = _Histogram()
@@ -357,6 +360,38 @@ class CanTcu:
                 return ok
             time.sleep(poll_s)
 
+    def pause(self, seconds):
+        """Starves the node for ``seconds`` of wall time from its next tick, as a TCU
+        whose threads get no CPU (to see what a starved TCU does to a run, in a test
+        or while debugging). The task stops, holding the lock its reception needs:
+        no tick runs, no frame is sent and none is taken in. Its first tick after the
+        pause works with what the node had received before it (by then older than
+        the pause), and the deadlines missed are skipped as after any late wake-up;
+        then reception takes in the frames that queued up meanwhile. Returns at once;
+        the report counts the pauses (``pauses``). ValueError unless 0 < seconds <= 60."""
+        try:
+            s = float(seconds)
+        except (TypeError, ValueError):
+            raise ValueError(f"pause {seconds!r} is not a number of seconds") from None
+        if not (math.isfinite(s) and 0.0 < s <= 60.0):
+            raise ValueError(f"pause must be above 0 and at most 60 s, got {seconds}")
+        with self._lock:
+            self._pause_s = s
+
+    def _starve(self):
+        """The pause asked for by ``pause()``, taken in the task thread; returns the
+        plant frames as received before it (``peer.rx_snapshot()``)."""
+        with self._lock:
+            seconds, self._pause_s = self._pause_s, 0.0
+        snap = self.peer.rx_snapshot()
+        if seconds > 0:
+            with self.peer._lock:       # reception waits with the task: the whole node starves
+                self._stop.wait(seconds)
+            with self._lock:
+                self.pauses += 1
+                self.paused_s += seconds
+        return snap
+
     # ------------------------------------------------------------ the task
     def _task(self):
         if self.clock == "bus":
@@ -372,6 +407,10 @@ class CanTcu:
                     if self._stop.wait(deadline - now):
                         return
                     now = time.monotonic()
+                snap = None
+                if self._pause_s:
+                    snap = self._starve()
+                    now = time.monotonic()
                 late = now - deadline
                 if late > period:                       # skip the missed deadlines, no burst
                     missed = int(late // period)
@@ -380,7 +419,7 @@ class CanTcu:
                     late = now - deadline
                     with self._lock:
                         self.skipped_ticks += missed
-                self._tick(k, now)
+                self._tick(k, now, snap)
                 self._late_us.add(late * 1e6)
                 self._exec_us.add((time.monotonic() - now) * 1e6)
                 k += 1
@@ -403,6 +442,7 @@ class CanTcu:
                                    or p.counts(name)["accepted"] > seen, timeout=wait_s)
                 if self._stop.is_set():
                     return
+                snap = self._starve() if self._pause_s else None
                 now = time.monotonic()
                 accepted = self.peer.counts(name)["accepted"]
                 if accepted > seen + 1 and k > 0:       # frames this task did not get to
@@ -410,7 +450,7 @@ class CanTcu:
                         self.skipped_ticks += accepted - seen - 1
                     k += accepted - seen - 1
                 seen = max(seen, accepted)
-                self._tick(k, now)
+                self._tick(k, now, snap)
                 self._exec_us.add((time.monotonic() - now) * 1e6)
                 k += 1
         except Exception as e:  # noqa: BLE001 (the task stops; stop() sends the safe frames)
@@ -419,9 +459,11 @@ class CanTcu:
         finally:
             self._ended.set()
 
-    def _read_sensors(self, now):
-        """(sensors, {message: why} of the stale ones) from the last accepted plant frames."""
-        snap = self.peer.rx_snapshot()
+    def _read_sensors(self, now, snap=None):
+        """(sensors, {message: why} of the stale ones) from the last accepted plant frames
+        (``snap``: a ``peer.rx_snapshot()`` taken earlier, else one taken now)."""
+        if snap is None:
+            snap = self.peer.rx_snapshot()
         sensors = {}
         causes = {}
         for name in PLANT_NEEDED:
@@ -440,9 +482,9 @@ class CanTcu:
         sensors["stale"] = bool(causes)
         return sensors, causes, sim_time
 
-    def _tick(self, k, now):
+    def _tick(self, k, now, snap=None):
         t_s = k * PERIOD_S
-        sensors, causes, sim_time = self._read_sensors(now)
+        sensors, causes, sim_time = self._read_sensors(now, snap)
         cmd = self.logic.step(t_s, sensors)
         for name in TCU_MESSAGES:
             if k >= self._next_due[name]:
@@ -547,6 +589,7 @@ class CanTcu:
                 "last_commands": dict(self.commands),
                 "final_safe_frames": self.final_safe_frames,
                 "error": self.error,
+                "pauses": {"count": self.pauses, "total_s": round(self.paused_s, 6)},
             }
 
     def write_report(self, path):

@@ -1,7 +1,9 @@
 """dct-hil demo on the host: the embedded transport (no CAN in this kernel).
 
 The run over SocketCAN, with the TCU as a second process, is in
-tests/vcan/test_demo_over_can.py.
+tests/vcan/test_demo_over_can.py. The verdict's rules one by one are in
+tests/test_verdict.py; here a demo whose TCU is starved on purpose
+(``CanTcu.pause``) must say so in its verdict and fail under --strict.
 """
 
 import json
@@ -9,12 +11,14 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from dct_hil import demo
+from dct_hil import cli, demo
+from rt_loop import verdict as vd
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -69,6 +73,25 @@ def test_a_short_demo_launches_shifts_and_writes_everything(short_run):
     assert tcu["error"] is None and tcu["ticks"] > 1000
     stats = json.loads((out / "serve-stats.json").read_text())
     assert stats["run"]["maneuver"] == "done" and stats["record"]["dropped"] == 0
+
+
+def test_a_short_demo_ends_with_its_verdict_and_exit_0_without_strict(short_run):
+    """Whether this run's timing held depends on the machine: the test checks that the
+    verdict is there, consistent, printed last and warned about, never what it is."""
+    proc, out = short_run
+    summary = json.loads((out / "summary.json").read_text())
+    v = summary["verdict"]
+    assert set(v) == {"valid", "findings", "notes"} and v["valid"] == (not v["findings"])
+    assert [(s["from"], s["to"]) for s in summary["offline_shifts"]] == [(1, 2)]
+    lines = proc.stdout.strip().splitlines()
+    assert lines[-(1 + len(v["findings"]) + len(v["notes"]))] == vd.verdict_lines(v)[0]
+    assert lines[-(1 + len(v["findings"]) + len(v["notes"]))].startswith(
+        "timing: VALID" if v["valid"] else "timing: INVALID - ")
+    warned = "dct-hil: warning: timing INVALID" in proc.stderr
+    assert warned == (not v["valid"]) and proc.returncode == 0
+    stats = json.loads((out / "serve-stats.json").read_text())
+    assert set(stats["verdict"]) == {"valid", "findings", "notes"}
+    assert stats["rings"]["samples"] > 0
 
 
 def test_the_recording_starts_before_the_tcu_and_plays_the_pedals_from_its_first_frame(short_run):
@@ -136,3 +159,64 @@ def test_slow_motion_with_the_bus_clock_gives_the_offline_shifts_within_20_ms(tm
     same, diffs = compare_shifts(offline, over_can)
     assert same and len(offline) == 2, (offline, over_can)
     assert max(abs(d) for d in diffs) <= 0.020, diffs
+
+
+PAUSE_AT_S = 4.0      # TCU time: the 1-2 upshift of paper-cycle is under way (offline: 3.99-4.07 s)
+PAUSE_S = 0.5
+
+
+def test_a_demo_with_a_starved_tcu_is_invalid_names_why_and_strict_exits_3(
+        tmp_path, monkeypatch, capsys):
+    """The TCU thread starves for 0.5 s in the middle of the first upshift: the server
+    times its messages out, the TCU goes stale, the shifts move. The verdict says all
+    three and --strict turns the run into exit 3."""
+    paused = []
+
+    class StarvedTcu(demo._TcuThread):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            threading.Thread(target=self._starve_once, daemon=True).start()
+
+        def _starve_once(self):
+            while self.tcu.running and self.tcu.t_s < PAUSE_AT_S:
+                time.sleep(0.002)
+            if self.tcu.running:
+                self.tcu.pause(PAUSE_S)
+                paused.append(self.tcu.t_s)
+
+    monkeypatch.setattr(demo, "_TcuThread", StarvedTcu)
+    code = cli.main(["demo", "--duration", "8", "--priority", "0", "--quiet", "--strict",
+                     "--out", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert paused, "the TCU was never paused"
+    assert code == vd.EXIT_INVALID == 3, err
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["completed"]
+    v = summary["verdict"]
+    assert not v["valid"]
+    findings = "\n".join(v["findings"])
+    assert "TCU messages timed out during the maneuver (TCU_ClutchCmd" in findings
+    stale = [f for f in v["findings"] if f.startswith("TCU stale")]
+    assert stale and "timeout: DCT_ShaftSpeeds" in stale[0]
+    assert any(f.startswith(("shift sequence differs from the offline run",
+                             "shift times differ from the offline run")) for f in v["findings"])
+    assert any(n.startswith("TCU paused on request once, 0.5 s") for n in v["notes"])
+    tcu = summary["tcu"]
+    assert tcu["pauses"] == {"count": 1, "total_s": 0.5}
+    assert any(ep["start_s"] >= PAUSE_AT_S and "timeout" in ep["causes"].values()
+               for ep in tcu["stale"]["episodes"])
+    assert "timing: INVALID - " in out
+    assert err.strip().splitlines()[-1].endswith("(--strict: exit 3)")
+
+
+@pytest.mark.parametrize("seconds", [0, -1, float("nan"), 61, "x"])
+def test_a_tcu_pause_outside_0_to_60_s_is_refused(seconds):
+    from tcu_stub.can_tcu import CanTcu
+
+    tcu = CanTcu.open("virtual", f"pause-{os.getpid()}", start=False)
+    try:
+        with pytest.raises(ValueError) as e:
+            tcu.pause(seconds)
+        assert "pause" in str(e.value) and "\n" not in str(e.value)
+    finally:
+        tcu.close()
