@@ -240,6 +240,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
           + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
           file=out)
     print(f"transport         {iface} on {chan}: {why}", file=out)
+    print("PM QoS            " + ("off (--no-pm-qos)" if server.pm_qos is None
+                                else f"{server.pm_qos.path} at {server.pm_qos.latency_us} us "
+                                     "for the run"), file=out)
     if tcu_clock == "bus":
         print("TCU clock         bus: a TCU tick per DCT_ShaftSpeeds frame (follows plant time)",
               file=out)
@@ -353,7 +356,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     ta = report["turnaround"]
     print(f"loop              turnaround p99.9 {_us(ta.get('p99_9_us'))}, max {_us(ta.get('max_us'))}; "
           f"overruns {summary['overruns']}; rx rejected {summary['rx']['rejected']}, lost "
-          f"{summary['rx']['overflow']}", file=out)
+          f"{summary['rx'].get('lost', summary['rx']['overflow'])}", file=out)
     if received:
         mt = run["maneuver_time_s"]
         print(f"dct-hil demo: stopped by {signal.Signals(received[0]).name} at maneuver time "

@@ -583,6 +583,13 @@ class Server:
             bridge = {key: value for key, value in self.transport.counters.items()
                       if key != "last_error"}
         counts["bridge"] = bridge
+        # frames lost: those the loop counted (a full ring, or the kernel's drops of
+        # the SocketCAN socket) and those lost below the bridge (the kernel's drops of
+        # the bus's UDP socket); controller overflows are events of unknown size
+        rx = counts["rx"]
+        rx["lost_below_bridge"] = int(bridge.get("rx_kernel_drops") or 0)
+        rx["lost"] = rx["overflow"] + rx["lost_below_bridge"]
+        rx["overflow_events"] = int(bridge.get("rx_overflow_events") or 0)
         counts["record"] = {"written": 0 if self.recorder is None else self.recorder.written,
                             "dropped": int(self._l.rec.dropped)}
         return counts

@@ -96,7 +96,7 @@ def screen_lines(snap: dict, server: Any = None) -> list[str]:
         f"overruns    {c['overruns']} (skipped ticks {c['skipped_ticks']})",
         f"rx          {rx['frames']} frames, {rx['accepted']} accepted, {rx['rejected']} rejected "
         f"(id {rx['unknown_id']} len {rx['bad_length']} crc {rx['bad_crc']} ctr "
-        f"{rx['bad_counter']}), {rx['overflow']} lost",
+        f"{rx['bad_counter']}), {rx.get('lost', rx['overflow'])} lost",
         f"tx          {tx['frames']} frames, {tx['dropped']} dropped",
         "timeouts    " + "   ".join(
             f"{_short(name)} {m['timeouts']}{' TIMED OUT' if m['timed_out'] else ''}"
@@ -138,7 +138,7 @@ def status_line(snap: dict) -> str:
     maneuver = f" maneuver {mt:.1f}s" if mt is not None else ""
     return (f"t={snap['sim_time_s']:.1f}s{maneuver} {snap['state']} turnaround {snap['turnaround_us']:.1f}us "
             f"max {snap['turnaround_max_us']:.1f}us overruns {c['overruns']} | rx {rx['frames']} "
-            f"rejected {rx['rejected']} overflow {rx['overflow']} tx {tx['frames']} dropped "
+            f"rejected {rx['rejected']} lost {rx.get('lost', rx['overflow'])} tx {tx['frames']} dropped "
             f"{tx['dropped']} | timeouts {c['timeouts']}"
             + (f" (timed out: {','.join(late)})" if late else "")
             + f" | engine {p['engine_speed_rpm']:.0f}rpm {_z(p['vehicle_speed_kmh'], 1):.1f}km/h "
@@ -195,6 +195,50 @@ def _fig(x: Any) -> str:
     return "       -" if x is None else f"{x:8.1f}"
 
 
+def _lost(rx: dict) -> str:
+    """Frames lost, with their causes (the bridge's counts when there is one)."""
+    lost, below = rx.get("lost", rx["overflow"]), rx.get("lost_below_bridge", 0)
+    text = f"{lost} lost"
+    if below:
+        text += f" ({rx['overflow']} to a full ring, {below} dropped by the kernel below the bridge)"
+    elif lost:
+        text += " to overflow"
+    events = rx.get("overflow_events", 0)
+    if events:
+        text += f", and {events} controller overflows (frames lost: unknown)"
+    return text
+
+
+def _below_bridge_lines(b: dict) -> list[str]:
+    """What the bridge learnt about losses below it (summary lines)."""
+    lines = []
+    if b.get("udp_sockets"):
+        size = ("the kernel's default" if b.get("rcvbuf_bytes") is None
+                else f"{b['rcvbuf_bytes'] // 1024} KiB (about {b['rcvbuf_frames']} frames)")
+        drops = (f"{b['rx_kernel_drops']} frames dropped by the kernel"
+                 if b.get("kernel_drops_counted") else "the kernel's drops could NOT be read")
+        lines.append(f"below the bridge  UDP receive buffer {size}: {drops}")
+    kinds = b.get("error_frame_kinds") or {}
+    if kinds:
+        lines.append("error frames      " + ", ".join(f"{k} {n}" for k, n in kinds.items())
+                     + f" (controller overflows: {b.get('rx_overflow_events', 0)} receive, "
+                     f"{b.get('tx_overflow_events', 0)} send; frames lost each: unknown)")
+    if b.get("bus_state") is not None:
+        moves = b.get("bus_state_transitions") or {}
+        lines.append(f"bus state         {b['bus_state']} at the end; {b.get('bus_state_changes', 0)} "
+                     "changes" + (" (" + ", ".join(f"{k} {n}" for k, n in moves.items()) + ")"
+                                  if moves else ""))
+    if b.get("backend_overruns"):
+        lines.append(f"interface         {b['backend_overruns']} overruns reported by the backend "
+                     "(frames lost each: unknown)")
+    late = b.get("rx_left_in_ring", 0) + b.get("rx_drained_at_stop", 0)
+    if late:
+        lines.append(f"after the loop    {late} frames arrived too late to be read "
+                     f"({b.get('rx_left_in_ring', 0)} in the ring, "
+                     f"{b.get('rx_drained_at_stop', 0)} read from the bus at stop)")
+    return lines
+
+
 def summary_lines(report: dict, stats_path: str) -> list[str]:
     from rt_loop.verdict import verdict_lines  # noqa: PLC0415
 
@@ -232,7 +276,7 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
         f"overruns          {c['overruns']} (skipped ticks {c['skipped_ticks']})",
         f"received          {rx['frames']} frames: {rx['accepted']} accepted, {rx['rejected']} "
         f"rejected (unknown id {rx['unknown_id']}, length {rx['bad_length']}, CRC "
-        f"{rx['bad_crc']}, counter {rx['bad_counter']}), {rx['overflow']} lost to overflow",
+        f"{rx['bad_crc']}, counter {rx['bad_counter']}), {_lost(rx)}",
         f"sent              {tx['frames']} frames, {tx['dropped']} dropped",
         f"TCU timeouts      {tcu}",
     ]
@@ -243,6 +287,7 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
                      f"{b['rx_errors']} receive / {b['tx_errors']} send; not forwarded: "
                      f"{b['rx_error_frames']} error, {b['rx_remote_frames']} remote, "
                      f"{b['rx_fd_frames']} CAN FD frames")
+        lines += _below_bridge_lines(b)
         if report["transport"].get("last_error"):
             lines.append(f"bridge error      {report['transport']['last_error']}")
     log = report.get("log")
