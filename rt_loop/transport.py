@@ -24,6 +24,10 @@ frames it could not forward, bus errors, and what python-can's interface can
 tell about losses below it (``BusWatch``): the kernel's receive drops of its
 UDP socket (``udp_multicast``), controller overflows reported in error frames
 (``classify_error_frame``), bus state changes and a backend's overrun counter.
+On a bus that loops every frame back to its sender (``udp_multicast``), the
+bridge recognises the echoes of its own frames (``OwnFrames``) and drops them
+before the ring, counted as ``own_frames_dropped``: they are neither traffic
+received nor lost.
 
 Every failure to open a transport is a ``TransportError`` with a one-line
 message naming the cause.
@@ -32,6 +36,7 @@ message naming the cause.
 from __future__ import annotations
 
 import os
+import secrets
 import socket
 import stat
 import struct
@@ -45,6 +50,7 @@ __all__ = [
     "RCVBUF_BYTES",
     "BridgeTransport",
     "BusWatch",
+    "OwnFrames",
     "SocketCanTransport",
     "Transport",
     "TransportError",
@@ -88,6 +94,19 @@ BRIDGE_DRAIN_S = 1.0
 #: costs in a UDP receive buffer (measured on loopback: the default
 #: 212992-byte buffer held 256 of them)
 UDP_BYTES_PER_FRAME = 832
+#: python-can interfaces that deliver a bus's own frames back to it although
+#: it was opened with receive_own_messages=False, and carry each frame's
+#: ``Message.channel`` from the sender to every receiver (``OwnFrames``)
+ECHOING_INTERFACES = ("udp_multicast",)
+#: an echo is awaited for at most this many of the bridge's latest frames
+#: (far more than can be in flight between a send and its echo: the echo is
+#: queued on the socket at once, behind what the socket already holds)
+OWN_FRAMES_AWAITED_MAX = 1 << 16
+#: echoes may arrive out of order by this many frames (loopback delivery
+#: goes through the backlog queue of whichever CPU sent); an awaited echo
+#: further behind the latest one seen was lost (the kernel's drop counts
+#: have it) and is no longer awaited
+OWN_FRAMES_REORDER = 256
 
 # Linux socket options (asm-generic values, used by x86, arm, arm64, riscv)
 _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
@@ -650,6 +669,91 @@ def _check_rcvbuf(rcvbuf_bytes: Any) -> int | None:
     return rcvbuf_bytes
 
 
+class OwnFrames:
+    """Tells the echoes of a bridge's own frames from other programs' frames.
+
+    python-can's ``udp_multicast`` bus sends each frame as a UDP datagram to
+    a multicast group, and the kernel delivers it to every member socket on
+    the host, the sender's own included (multicast loopback). The bus does
+    not say who sent a datagram: it drops the source address, and that
+    address would not tell two programs on one host apart anyway (every
+    member is bound to the group's port on the same host address). What it
+    does carry, in the datagram, is the sending ``Message.channel``. So each
+    frame the bridge sends gets a channel of ``<channel>@<token>:<n>``: the
+    bus's channel, a random token of this bridge and the frame's sequence
+    number; a received frame is an echo when it carries this bridge's token
+    and a number still awaited. Each number is an echo once: a copy sent
+    again by another program (a replay of a recording of the bus keeps the
+    channel field) is that program's frame and goes to the loop.
+
+    Not the socket option IP_MULTICAST_LOOP = 0 instead: it stops the
+    kernel from looping this socket's datagrams back to *any* socket on the
+    host, so a TCU or a logger in another process on the same machine (the
+    demo's and the tests' set-up) would no longer hear the plant at all.
+
+    Echoes come back in the order sent, give or take ``OWN_FRAMES_REORDER``
+    frames; an awaited number further behind the latest echo seen was lost
+    below the bridge (the kernel's drop count has it) and is forgotten, as
+    is the oldest when more than ``OWN_FRAMES_AWAITED_MAX`` are awaited.
+    Used by the bridge thread only (no lock).
+    """
+
+    def __init__(self, channel: str, awaited_max: int = OWN_FRAMES_AWAITED_MAX,
+                 reorder: int = OWN_FRAMES_REORDER) -> None:
+        self.prefix = f"{channel}@{secrets.token_hex(4)}:"
+        self._next = 0
+        self._awaited: dict[int, None] = {}   # sequence numbers in the order sent
+        self._awaited_max = int(awaited_max)
+        self._reorder = int(reorder)
+        #: echoes recognised; awaited echoes given up (lost below the bridge,
+        #: or more awaited than ``awaited_max``)
+        self.echoes = 0
+        self.forgotten = 0
+
+    def stamp(self) -> tuple[str, int]:
+        """The channel for the next frame sent, and its sequence number."""
+        n = self._next
+        self._next += 1
+        awaited = self._awaited
+        awaited[n] = None
+        if len(awaited) > self._awaited_max:
+            del awaited[next(iter(awaited))]
+            self.forgotten += 1
+        return self.prefix + str(n), n
+
+    def unsent(self, n: int) -> None:
+        """Frame ``n`` could not be sent: no echo will come."""
+        self._awaited.pop(n, None)
+
+    def is_echo(self, msg: Any) -> bool:
+        """Whether ``msg`` is the echo of a frame sent through ``stamp``."""
+        channel = msg.channel
+        if type(channel) is not str or not channel.startswith(self.prefix):
+            return False
+        try:
+            n = int(channel[len(self.prefix):])
+        except ValueError:
+            return False
+        awaited = self._awaited
+        if n not in awaited:
+            return False     # seen already, or given up: another program's copy
+        del awaited[n]
+        self.echoes += 1
+        oldest = n - self._reorder
+        while awaited:
+            first = next(iter(awaited))
+            if first >= oldest:
+                break
+            del awaited[first]
+            self.forgotten += 1
+        return True
+
+    @property
+    def awaited(self) -> int:
+        """Frames sent whose echo has not been seen yet."""
+        return len(self._awaited)
+
+
 # --------------------------------------------------------------------------
 # bridge: a Python thread between a python-can Bus and the loop's rings
 # --------------------------------------------------------------------------
@@ -685,6 +789,15 @@ class BridgeTransport(Transport):
       ``bus.send`` (``last_error`` holds the latest, one line);
       ``watch_errors``: failures reading what was lost;
     * ``rx_forwarded`` / ``tx_forwarded``: frames moved;
+    * ``own_frames_dropped``: on a bus that loops frames back to their sender
+      (``ECHOING_INTERFACES``: ``udp_multicast``), the echoes of the frames
+      this bridge sent, recognised by ``OwnFrames`` and dropped before the
+      ring: not traffic received (the loop would count each as an unknown
+      identifier), not lost, not rejected; ``own_echoes_forgotten``: echoes
+      awaited and given up (lost below the bridge: the kernel's drops
+      include them). Frames of other programs, on this host or not, are
+      forwarded as before. Other interfaces do not return a bus's own frames
+      (it is opened with receive_own_messages=False): nothing to drop;
     * at stop (the loop has returned): ``rx_left_in_ring``, frames forwarded
       that the loop never read, and ``rx_drained_at_stop``, data frames read
       from the bus after the loop's last tick (for at most
@@ -723,9 +836,11 @@ class BridgeTransport(Transport):
             ("rx_forwarded", "tx_forwarded", "rx_ring_full", "rx_error_frames",
              "rx_overflow_events", "tx_overflow_events", "rx_remote_frames", "rx_fd_frames",
              "rx_errors", "tx_errors", "watch_errors", "rx_left_in_ring",
-             "rx_drained_at_stop"), 0)
+             "rx_drained_at_stop", "own_frames_dropped"), 0)
         self._error_kinds: dict[str, int] = {}
         self.last_error: str | None = None
+        #: the echoes of this bridge's frames, on a bus that returns them
+        self.own = OwnFrames(channel) if interface in ECHOING_INTERFACES else None
         try:
             self.watch = BusWatch(self.bus, can, rcvbuf_bytes, on_error=self._watch_error)
         except Exception as e:
@@ -793,6 +908,8 @@ class BridgeTransport(Transport):
         with self._lock:
             out = dict(self._counts)
             out["error_frame_kinds"] = dict(self._error_kinds)
+        own = self.own
+        out["own_echoes_forgotten"] = 0 if own is None else own.forgotten
         out.update(self.watch.counters())
         out["last_error"] = self.last_error
         return out
@@ -825,6 +942,13 @@ class BridgeTransport(Transport):
                 self._counts["rx_overflow_events"] += 1
             if "tx_overflow" in kinds:
                 self._counts["tx_overflow_events"] += 1
+
+    def _own_echo(self, msg: Any) -> bool:
+        """Counts the echo of a frame this bridge sent; False for any other frame."""
+        if self.own is not None and self.own.is_echo(msg):
+            self._count("own_frames_dropped")
+            return True
+        return False
 
     def _not_forwarded(self, msg: Any) -> bool:
         """Counts a frame that is not a classic CAN data frame; False for one that is."""
@@ -876,6 +1000,8 @@ class BridgeTransport(Transport):
                 msg = self.bus.recv(timeout=0.0)
                 if msg is None:
                     break
+                if self._own_echo(msg):
+                    continue
                 if not self._not_forwarded(msg):
                     drained += 1
         except Exception as e:  # noqa: BLE001 (counted; the bus is closed next)
@@ -893,7 +1019,7 @@ class BridgeTransport(Transport):
                 if msg is None:
                     break
                 timeout = 0.0
-                if self._not_forwarded(msg):
+                if self._own_echo(msg) or self._not_forwarded(msg):
                     continue
                 f = buf[n]
                 f.id = (msg.arbitration_id & CAN_EFF_MASK) | CAN_EFF_FLAG \
@@ -917,20 +1043,25 @@ class BridgeTransport(Transport):
                 self._count("rx_ring_full", n - pushed)
 
     def _forward_tx(self, buf: Any) -> None:
-        lib, ffi, can = self._lib, self._ffi, self._can
+        lib, ffi, can, own = self._lib, self._ffi, self._can, self.own
         while True:
             n = lib.rt_ring_pop_many(self._tx_ring, buf, BRIDGE_BATCH)
             for i in range(n):
                 f = buf[i]
                 length = min(int(f.len), 8)
                 ident = int(f.id)
+                channel, seq = self.channel, None
+                if own is not None:
+                    channel, seq = own.stamp()
                 msg = can.Message(arbitration_id=ident & CAN_EFF_MASK,
                                   is_extended_id=bool(ident & CAN_EFF_FLAG),
                                   data=ffi.unpack(ffi.cast("char *", f.data), length),
-                                  dlc=length, is_rx=False, channel=self.channel)
+                                  dlc=length, is_rx=False, channel=channel)
                 try:
                     self.bus.send(msg, timeout=0.005)
                 except Exception as e:  # counted, the next frame is tried
+                    if seq is not None:
+                        own.unsent(seq)
                     self._error("tx_errors", e)
                 else:
                     self._count("tx_forwarded")
