@@ -25,6 +25,7 @@ _RT_CSRC = os.path.join(_HERE, "csrc")
 _HEADERS = (
     os.path.join(_PLANT_CSRC, "dct_plant.h"),
     os.path.join(_CAN_CSRC, "dct_can.h"),
+    os.path.join(_CAN_CSRC, "can_table.h"),
     os.path.join(_RT_CSRC, "rt_loop.h"),
     os.path.join(_RT_CSRC, "rt_floor.h"),
 )
@@ -65,7 +66,7 @@ def make_builder():
     ffi.cdef("\n".join(_cdef_text(h) for h in _HEADERS))
     ffi.set_source(
         "rt_loop._rt_loop",
-        '#include "rt_loop.h"\n#include "rt_floor.h"',
+        '#include "rt_loop.h"\n#include "rt_floor.h"\n#include "can_table.h"',
         sources=_sources(),
         include_dirs=[_rel(d) for d in (_RT_CSRC, _CAN_CSRC, _CAN_GENERATED, _PLANT_CSRC)],
         extra_compile_args=_COMPILE_ARGS,

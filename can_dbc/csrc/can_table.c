@@ -1,0 +1,637 @@
+/*
+ * can_table.c - the table-driven CAN codec of can_table.h.
+ *
+ * Bit layout as cantools reads a DBC. Byte B bit b is bit 8 B + b of the
+ * frame (the DBC's numbering). A little-endian signal takes the bits start,
+ * start + 1, ... upwards through the bytes, its LSB at start. A big-endian
+ * signal has its MSB at start and runs down to bit 0 of that byte, then on
+ * from bit 7 of the next byte.
+ *
+ * Checksums (AUTOSAR E2E Protocol Specification for P1 and P2):
+ *   dct  CRC-8/SAE-J1850 (0x1D, init 0xFF, xorout 0xFF) over the identifier
+ *        as two bytes (low, high), then every byte but the checksum's;
+ *   P1   CRC-8/SAE-J1850's polynomial with start value and final XOR 0x00
+ *        (the library's CRC chained from 0xFF and un-XORed, as Profile 1
+ *        computes it) over the Data ID (by mode: both bytes low first; for
+ *        ALT the low byte with an even counter, the high byte with an odd
+ *        one; LOW the low byte; NIBBLE the low byte then 0x00) and every
+ *        byte but the checksum's; the counter runs 0..14;
+ *   P2   CRC-8H2F (0x2F, init 0xFF, xorout 0xFF) over every byte but the
+ *        checksum's, then the Data ID data_id_list[counter]; counter 0..15;
+ *   xor  the XOR of every byte but the checksum's.
+ *
+ * Floating point: every double converted to an integer has been limited to
+ * the integer's range first; rint() rounds half to even in the default
+ * rounding mode; expressions are written as cantools evaluates them (no
+ * contraction into fused multiply-adds in ISO C mode, -std=c11).
+ */
+#define _POSIX_C_SOURCE 199309L   /* clock_gettime, for ct_bench_tick only */
+
+#include <math.h>
+#include <string.h>
+#include <time.h>
+
+#include "can_table.h"
+
+static const uint8_t crc_1d[256] = {
+    0x00, 0x1D, 0x3A, 0x27, 0x74, 0x69, 0x4E, 0x53, 0xE8, 0xF5, 0xD2, 0xCF,
+    0x9C, 0x81, 0xA6, 0xBB, 0xCD, 0xD0, 0xF7, 0xEA, 0xB9, 0xA4, 0x83, 0x9E,
+    0x25, 0x38, 0x1F, 0x02, 0x51, 0x4C, 0x6B, 0x76, 0x87, 0x9A, 0xBD, 0xA0,
+    0xF3, 0xEE, 0xC9, 0xD4, 0x6F, 0x72, 0x55, 0x48, 0x1B, 0x06, 0x21, 0x3C,
+    0x4A, 0x57, 0x70, 0x6D, 0x3E, 0x23, 0x04, 0x19, 0xA2, 0xBF, 0x98, 0x85,
+    0xD6, 0xCB, 0xEC, 0xF1, 0x13, 0x0E, 0x29, 0x34, 0x67, 0x7A, 0x5D, 0x40,
+    0xFB, 0xE6, 0xC1, 0xDC, 0x8F, 0x92, 0xB5, 0xA8, 0xDE, 0xC3, 0xE4, 0xF9,
+    0xAA, 0xB7, 0x90, 0x8D, 0x36, 0x2B, 0x0C, 0x11, 0x42, 0x5F, 0x78, 0x65,
+    0x94, 0x89, 0xAE, 0xB3, 0xE0, 0xFD, 0xDA, 0xC7, 0x7C, 0x61, 0x46, 0x5B,
+    0x08, 0x15, 0x32, 0x2F, 0x59, 0x44, 0x63, 0x7E, 0x2D, 0x30, 0x17, 0x0A,
+    0xB1, 0xAC, 0x8B, 0x96, 0xC5, 0xD8, 0xFF, 0xE2, 0x26, 0x3B, 0x1C, 0x01,
+    0x52, 0x4F, 0x68, 0x75, 0xCE, 0xD3, 0xF4, 0xE9, 0xBA, 0xA7, 0x80, 0x9D,
+    0xEB, 0xF6, 0xD1, 0xCC, 0x9F, 0x82, 0xA5, 0xB8, 0x03, 0x1E, 0x39, 0x24,
+    0x77, 0x6A, 0x4D, 0x50, 0xA1, 0xBC, 0x9B, 0x86, 0xD5, 0xC8, 0xEF, 0xF2,
+    0x49, 0x54, 0x73, 0x6E, 0x3D, 0x20, 0x07, 0x1A, 0x6C, 0x71, 0x56, 0x4B,
+    0x18, 0x05, 0x22, 0x3F, 0x84, 0x99, 0xBE, 0xA3, 0xF0, 0xED, 0xCA, 0xD7,
+    0x35, 0x28, 0x0F, 0x12, 0x41, 0x5C, 0x7B, 0x66, 0xDD, 0xC0, 0xE7, 0xFA,
+    0xA9, 0xB4, 0x93, 0x8E, 0xF8, 0xE5, 0xC2, 0xDF, 0x8C, 0x91, 0xB6, 0xAB,
+    0x10, 0x0D, 0x2A, 0x37, 0x64, 0x79, 0x5E, 0x43, 0xB2, 0xAF, 0x88, 0x95,
+    0xC6, 0xDB, 0xFC, 0xE1, 0x5A, 0x47, 0x60, 0x7D, 0x2E, 0x33, 0x14, 0x09,
+    0x7F, 0x62, 0x45, 0x58, 0x0B, 0x16, 0x31, 0x2C, 0x97, 0x8A, 0xAD, 0xB0,
+    0xE3, 0xFE, 0xD9, 0xC4
+};
+
+static const uint8_t crc_2f[256] = {
+    0x00, 0x2F, 0x5E, 0x71, 0xBC, 0x93, 0xE2, 0xCD, 0x57, 0x78, 0x09, 0x26,
+    0xEB, 0xC4, 0xB5, 0x9A, 0xAE, 0x81, 0xF0, 0xDF, 0x12, 0x3D, 0x4C, 0x63,
+    0xF9, 0xD6, 0xA7, 0x88, 0x45, 0x6A, 0x1B, 0x34, 0x73, 0x5C, 0x2D, 0x02,
+    0xCF, 0xE0, 0x91, 0xBE, 0x24, 0x0B, 0x7A, 0x55, 0x98, 0xB7, 0xC6, 0xE9,
+    0xDD, 0xF2, 0x83, 0xAC, 0x61, 0x4E, 0x3F, 0x10, 0x8A, 0xA5, 0xD4, 0xFB,
+    0x36, 0x19, 0x68, 0x47, 0xE6, 0xC9, 0xB8, 0x97, 0x5A, 0x75, 0x04, 0x2B,
+    0xB1, 0x9E, 0xEF, 0xC0, 0x0D, 0x22, 0x53, 0x7C, 0x48, 0x67, 0x16, 0x39,
+    0xF4, 0xDB, 0xAA, 0x85, 0x1F, 0x30, 0x41, 0x6E, 0xA3, 0x8C, 0xFD, 0xD2,
+    0x95, 0xBA, 0xCB, 0xE4, 0x29, 0x06, 0x77, 0x58, 0xC2, 0xED, 0x9C, 0xB3,
+    0x7E, 0x51, 0x20, 0x0F, 0x3B, 0x14, 0x65, 0x4A, 0x87, 0xA8, 0xD9, 0xF6,
+    0x6C, 0x43, 0x32, 0x1D, 0xD0, 0xFF, 0x8E, 0xA1, 0xE3, 0xCC, 0xBD, 0x92,
+    0x5F, 0x70, 0x01, 0x2E, 0xB4, 0x9B, 0xEA, 0xC5, 0x08, 0x27, 0x56, 0x79,
+    0x4D, 0x62, 0x13, 0x3C, 0xF1, 0xDE, 0xAF, 0x80, 0x1A, 0x35, 0x44, 0x6B,
+    0xA6, 0x89, 0xF8, 0xD7, 0x90, 0xBF, 0xCE, 0xE1, 0x2C, 0x03, 0x72, 0x5D,
+    0xC7, 0xE8, 0x99, 0xB6, 0x7B, 0x54, 0x25, 0x0A, 0x3E, 0x11, 0x60, 0x4F,
+    0x82, 0xAD, 0xDC, 0xF3, 0x69, 0x46, 0x37, 0x18, 0xD5, 0xFA, 0x8B, 0xA4,
+    0x05, 0x2A, 0x5B, 0x74, 0xB9, 0x96, 0xE7, 0xC8, 0x52, 0x7D, 0x0C, 0x23,
+    0xEE, 0xC1, 0xB0, 0x9F, 0xAB, 0x84, 0xF5, 0xDA, 0x17, 0x38, 0x49, 0x66,
+    0xFC, 0xD3, 0xA2, 0x8D, 0x40, 0x6F, 0x1E, 0x31, 0x76, 0x59, 0x28, 0x07,
+    0xCA, 0xE5, 0x94, 0xBB, 0x21, 0x0E, 0x7F, 0x50, 0x9D, 0xB2, 0xC3, 0xEC,
+    0xD8, 0xF7, 0x86, 0xA9, 0x64, 0x4B, 0x3A, 0x15, 0x8F, 0xA0, 0xD1, 0xFE,
+    0x33, 0x1C, 0x6D, 0x42
+};
+
+/* ------------------------------------------------------------------ */
+/* CRC                                                                 */
+/* ------------------------------------------------------------------ */
+
+uint8_t ct_crc8_j1850(const uint8_t *bytes, size_t n)
+{
+    uint8_t crc = 0xFFu;
+    for (size_t i = 0; i < n; i++) {
+        crc = crc_1d[crc ^ bytes[i]];
+    }
+    return (uint8_t)(crc ^ 0xFFu);
+}
+
+uint8_t ct_crc8_h2f(const uint8_t *bytes, size_t n)
+{
+    uint8_t crc = 0xFFu;
+    for (size_t i = 0; i < n; i++) {
+        crc = crc_2f[crc ^ bytes[i]];
+    }
+    return (uint8_t)(crc ^ 0xFFu);
+}
+
+/* crc register run over data[0 .. len-1] without data[skip] */
+static uint8_t crc_run(const uint8_t *tab, uint8_t crc, const uint8_t *data, int len, int skip)
+{
+    for (int i = 0; i < len; i++) {
+        if (i != skip) {
+            crc = tab[crc ^ data[i]];
+        }
+    }
+    return crc;
+}
+
+/* ------------------------------------------------------------------ */
+/* Bit fields                                                          */
+/* ------------------------------------------------------------------ */
+
+static uint64_t field_mask(unsigned length)
+{
+    return length >= 64u ? ~(uint64_t)0 : (((uint64_t)1 << length) - 1u);
+}
+
+static uint64_t get_bits(const uint8_t *d, const ct_signal *s)
+{
+    unsigned len = s->length;
+    uint64_t v = 0;
+    if (!s->big_endian) {
+        unsigned pos = s->start;
+        unsigned shift = 0;
+        while (shift < len) {
+            unsigned off = pos & 7u;
+            unsigned n = 8u - off;
+            if (n > len - shift) {
+                n = len - shift;
+            }
+            uint64_t chunk = (uint64_t)((d[pos >> 3] >> off) & ((1u << n) - 1u));
+            v |= chunk << shift;
+            shift += n;
+            pos += n;
+        }
+    } else {
+        unsigned byte = (unsigned)s->start >> 3;
+        unsigned top = (unsigned)s->start & 7u;   /* highest bit of the field in this byte */
+        unsigned rem = len;
+        while (rem > 0u) {
+            unsigned n = top + 1u;
+            if (n > rem) {
+                n = rem;
+            }
+            uint64_t chunk = (uint64_t)((d[byte] >> (top + 1u - n)) & ((1u << n) - 1u));
+            v = (v << n) | chunk;
+            rem -= n;
+            byte++;
+            top = 7u;
+        }
+    }
+    return v;
+}
+
+static void put_bits(uint8_t *d, const ct_signal *s, uint64_t v)
+{
+    unsigned len = s->length;
+    if (!s->big_endian) {
+        unsigned pos = s->start;
+        unsigned shift = 0;
+        while (shift < len) {
+            unsigned off = pos & 7u;
+            unsigned n = 8u - off;
+            if (n > len - shift) {
+                n = len - shift;
+            }
+            unsigned m = ((1u << n) - 1u) << off;
+            unsigned chunk = (unsigned)((v >> shift) & ((1u << n) - 1u)) << off;
+            d[pos >> 3] = (uint8_t)((d[pos >> 3] & ~m) | chunk);
+            shift += n;
+            pos += n;
+        }
+    } else {
+        unsigned byte = (unsigned)s->start >> 3;
+        unsigned top = (unsigned)s->start & 7u;
+        unsigned rem = len;
+        while (rem > 0u) {
+            unsigned n = top + 1u;
+            if (n > rem) {
+                n = rem;
+            }
+            unsigned lo = top + 1u - n;
+            unsigned m = ((1u << n) - 1u) << lo;
+            unsigned chunk = (unsigned)((v >> (rem - n)) & ((1u << n) - 1u)) << lo;
+            d[byte] = (uint8_t)((d[byte] & ~m) | chunk);
+            rem -= n;
+            byte++;
+            top = 7u;
+        }
+    }
+}
+
+/* ------------------------------------------------------------------ */
+/* Raw <-> physical                                                    */
+/* ------------------------------------------------------------------ */
+
+/* magnitude (hi:lo, 128 bits) to the nearest double, ties to even */
+static double u128_to_double(uint64_t hi, uint64_t lo)
+{
+    if (hi == 0u) {
+        return (double)lo;
+    }
+    unsigned s = 0;                  /* bits of hi */
+    for (uint64_t h = hi; h != 0u; h >>= 1) {
+        s++;
+    }
+    /* the top 64 bits, with the bits shifted out kept as a sticky bit in
+     * bit 0: far below double's rounding position, so one rounding of
+     * the 64-bit value rounds the whole 128-bit one correctly */
+    uint64_t top = s == 64u ? hi : ((hi << (64u - s)) | (lo >> s));
+    uint64_t below = s == 64u ? lo : (lo << (64u - s));
+    if (below != 0u) {
+        top |= 1u;
+    }
+    return ldexp((double)top, (int)s);
+}
+
+/* raw (-1)^neg * mag times factor_int plus offset_int, exactly, rounded once
+ * (|factor_int|, |offset_int| <= 2^53: the sum stays within 128 bits) */
+static double integer_value(const ct_signal *s, int neg, uint64_t mag)
+{
+    uint64_t f = s->factor_int < 0 ? (uint64_t)0 - (uint64_t)s->factor_int : (uint64_t)s->factor_int;
+    /* 64 x 64 -> 128 bit product of the magnitudes */
+    uint64_t a0 = mag & 0xFFFFFFFFu, a1 = mag >> 32;
+    uint64_t b0 = f & 0xFFFFFFFFu, b1 = f >> 32;
+    uint64_t p00 = a0 * b0, p01 = a0 * b1, p10 = a1 * b0, p11 = a1 * b1;
+    uint64_t mid = (p00 >> 32) + (p01 & 0xFFFFFFFFu) + (p10 & 0xFFFFFFFFu);
+    uint64_t lo = (p00 & 0xFFFFFFFFu) | (mid << 32);
+    uint64_t hi = p11 + (p01 >> 32) + (p10 >> 32) + (mid >> 32);
+    /* as two's complement, plus the offset sign-extended */
+    if (neg != (s->factor_int < 0)) {
+        lo = ~lo + 1u;
+        hi = ~hi + (lo == 0u ? 1u : 0u);
+    }
+    uint64_t olo = (uint64_t)s->offset_int;
+    uint64_t ohi = s->offset_int < 0 ? ~(uint64_t)0 : 0u;
+    uint64_t sum_lo = lo + olo;
+    uint64_t sum_hi = hi + ohi + (sum_lo < lo ? 1u : 0u);
+    if (sum_hi >> 63) {               /* negative */
+        sum_lo = ~sum_lo + 1u;
+        sum_hi = ~sum_hi + (sum_lo == 0u ? 1u : 0u);
+        return -u128_to_double(sum_hi, sum_lo);
+    }
+    return u128_to_double(sum_hi, sum_lo);
+}
+
+/* the physical value of a signal's raw bits, as cantools decodes it */
+static double decode_bits(const ct_signal *s, uint64_t u)
+{
+    if (s->is_float) {
+        double raw;
+        if (s->length == 32u) {
+            uint32_t w = (uint32_t)u;
+            float f;
+            memcpy(&f, &w, sizeof f);
+            raw = (double)f;
+        } else {
+            memcpy(&raw, &u, sizeof raw);
+        }
+        return s->conversion == CT_CONV_IDENTITY ? raw : raw * s->factor + s->offset;
+    }
+    int neg = 0;
+    uint64_t mag = u;
+    if (s->is_signed && ((u >> (s->length - 1u)) & 1u)) {
+        neg = 1;
+        mag = (~u & field_mask(s->length)) + 1u;
+    }
+    double raw = neg ? -(double)mag : (double)mag;
+    switch (s->conversion) {
+    case CT_CONV_IDENTITY:
+        return raw;
+    case CT_CONV_INTEGER:
+        if (mag <= s->exact_raw) {    /* every step exact in double */
+            return raw * (double)s->factor_int + (double)s->offset_int;
+        }
+        return integer_value(s, neg, mag);
+    case CT_CONV_INT_FACTOR:
+        if (mag <= s->exact_raw) {
+            return raw * (double)s->factor_int + s->offset;
+        }
+        return integer_value(s, neg, mag) + s->offset;
+    default:
+        return raw * s->factor + s->offset;
+    }
+}
+
+/* the raw bits cantools would pack for physical value v, limited as
+ * can_table.h says */
+static uint64_t encode_bits(const ct_signal *s, double v)
+{
+    if (isnan(v)) {
+        v = 0.0;
+    }
+    if (s->limited) {
+        if (v < s->minimum) {
+            v = s->minimum;
+        } else if (v > s->maximum) {
+            v = s->maximum;
+        }
+    }
+    double x = (v - s->offset) / s->factor;
+    if (s->is_float) {
+        if (s->length == 32u) {
+            float f = (float)x;
+            uint32_t w;
+            memcpy(&w, &f, sizeof w);
+            return w;
+        }
+        uint64_t w;
+        memcpy(&w, &x, sizeof w);
+        return w;
+    }
+    double r = rint(x);
+    if (!(r >= s->raw_min)) {         /* also NaN, which a finite offset and factor never give */
+        r = s->raw_min;
+    }
+    if (r >= s->raw_end) {
+        return s->is_signed ? field_mask(s->length) >> 1 : field_mask(s->length);
+    }
+    if (r < 0.0) {                    /* signed field: two's complement */
+        uint64_t mag = (uint64_t)(-r);
+        return ((~mag) + 1u) & field_mask(s->length);
+    }
+    return (uint64_t)r;
+}
+
+/* ------------------------------------------------------------------ */
+/* Multiplexing                                                        */
+/* ------------------------------------------------------------------ */
+
+static int in_ranges(const ct_table *t, const ct_signal *s, double selector)
+{
+    double v = trunc(selector);
+    if (!(v >= -9223372036854775808.0 && v < 9223372036854775808.0)) {
+        return 0;
+    }
+    int64_t k = (int64_t)v;
+    for (uint32_t i = 0; i < s->mux_count; i++) {
+        const ct_mux_range *r = &t->mux[s->mux_first + i];
+        if (k >= r->lo && k <= r->hi) {
+            return 1;
+        }
+    }
+    return 0;
+}
+
+/* 1 if signal i of the message is selected: by the frame data (values
+ * NULL) or by the values to encode (the selector's value as written) */
+static int selected(const ct_table *t, const ct_message *m, int i, const uint8_t *data,
+                    const double *values)
+{
+    const ct_signal *sig = t->signals + m->first_signal;
+    int hops = 0;
+    while (sig[i].mux_signal >= 0) {
+        int sel = sig[i].mux_signal;
+        if (sel >= (int)m->n_signals || ++hops > (int)m->n_signals) {
+            return 0;                 /* a broken table: never loop */
+        }
+        uint64_t bits = values != NULL ? encode_bits(&sig[sel], values[sel]) : get_bits(data, &sig[sel]);
+        if (!in_ranges(t, &sig[i], decode_bits(&sig[sel], bits))) {
+            return 0;
+        }
+        i = sel;
+    }
+    return 1;
+}
+
+/* ------------------------------------------------------------------ */
+/* Messages                                                            */
+/* ------------------------------------------------------------------ */
+
+static const ct_message *message(const ct_table *t, int msg)
+{
+    if (t == NULL || msg < 0 || msg >= t->n_messages) {
+        return NULL;
+    }
+    return &t->messages[msg];
+}
+
+int ct_find(const ct_table *t, uint32_t id, int extended)
+{
+    if (t == NULL) {
+        return -1;
+    }
+    for (int i = 0; i < t->n_messages; i++) {
+        if (t->messages[i].id == id && (t->messages[i].extended != 0) == (extended != 0)) {
+            return i;
+        }
+    }
+    return -1;
+}
+
+int ct_encode(const ct_table *t, int msg, const double *values, uint8_t *data)
+{
+    const ct_message *m = message(t, msg);
+    if (m == NULL) {
+        return -1;
+    }
+    const ct_signal *sig = t->signals + m->first_signal;
+    memset(data, 0, m->length);
+    for (uint32_t i = 0; i < m->n_signals; i++) {
+        if (sig[i].mux_signal >= 0 && !selected(t, m, (int)i, NULL, values)) {
+            continue;
+        }
+        put_bits(data, &sig[i], encode_bits(&sig[i], values[i]));
+    }
+    return m->length;
+}
+
+int ct_decode(const ct_table *t, int msg, const uint8_t *data, int len, double *values,
+              uint8_t *written)
+{
+    const ct_message *m = message(t, msg);
+    if (m == NULL || len != (int)m->length) {
+        return -1;
+    }
+    const ct_signal *sig = t->signals + m->first_signal;
+    int n = 0;
+    for (uint32_t i = 0; i < m->n_signals; i++) {
+        int on = sig[i].mux_signal < 0 || selected(t, m, (int)i, data, NULL);
+        if (on) {
+            values[i] = decode_bits(&sig[i], get_bits(data, &sig[i]));
+            n++;
+        }
+        if (written != NULL) {
+            written[i] = (uint8_t)on;
+        }
+    }
+    return n;
+}
+
+/* the checksum byte of a frame of message m with counter value counter */
+static uint8_t checksum(const ct_message *m, const uint8_t *data, int counter)
+{
+    int len = m->length;
+    int skip = m->crc_byte;
+    uint8_t crc;
+    switch (m->protection) {
+    case CT_PROT_DCT:
+        crc = crc_1d[0xFFu ^ (uint8_t)(m->id & 0xFFu)];
+        crc = crc_1d[crc ^ (uint8_t)((m->id >> 8) & 0xFFu)];
+        return (uint8_t)(crc_run(crc_1d, crc, data, len, skip) ^ 0xFFu);
+    case CT_PROT_P1: {
+        uint8_t lo = (uint8_t)(m->data_id & 0xFFu), hi = (uint8_t)(m->data_id >> 8);
+        crc = 0x00u;
+        switch (m->data_id_mode) {
+        case CT_P1_BOTH:
+            crc = crc_1d[crc ^ lo];
+            crc = crc_1d[crc ^ hi];
+            break;
+        case CT_P1_ALT:
+            crc = crc_1d[crc ^ ((counter & 1) ? hi : lo)];
+            break;
+        case CT_P1_LOW:
+            crc = crc_1d[crc ^ lo];
+            break;
+        default:                      /* CT_P1_NIBBLE: the high byte counts as 0 */
+            crc = crc_1d[crc ^ lo];
+            crc = crc_1d[crc];
+            break;
+        }
+        return crc_run(crc_1d, crc, data, len, skip);
+    }
+    case CT_PROT_P2:
+        crc = crc_run(crc_2f, 0xFFu, data, len, skip);
+        crc = crc_2f[crc ^ m->data_id_list[counter & 0x0F]];
+        return (uint8_t)(crc ^ 0xFFu);
+    case CT_PROT_XOR:
+        crc = 0x00u;
+        for (int i = 0; i < len; i++) {
+            if (i != skip) {
+                crc ^= data[i];
+            }
+        }
+        return crc;
+    default:
+        return 0u;
+    }
+}
+
+static int has_checksum(const ct_message *m)
+{
+    return m->crc_byte >= 0 && m->crc_byte < (int)m->length
+        && (m->protection == CT_PROT_DCT || m->protection == CT_PROT_P1
+            || m->protection == CT_PROT_P2 || m->protection == CT_PROT_XOR);
+}
+
+int ct_protect(const ct_table *t, int msg, uint8_t *data, uint32_t counter)
+{
+    const ct_message *m = message(t, msg);
+    if (m == NULL) {
+        return -1;
+    }
+    const ct_signal *sig = t->signals + m->first_signal;
+    int c = 0;
+    if (m->counter_signal >= 0 && m->counter_modulus > 0u) {
+        c = (int)(counter % m->counter_modulus);
+        put_bits(data, &sig[m->counter_signal], (uint64_t)c);
+    }
+    if (m->protection == CT_PROT_P1 && m->data_id_mode == CT_P1_NIBBLE && m->nibble_signal >= 0) {
+        put_bits(data, &sig[m->nibble_signal], (uint64_t)((m->data_id >> 8) & 0x0Fu));
+    }
+    if (has_checksum(m)) {
+        data[m->crc_byte] = checksum(m, data, c);
+    }
+    return c;
+}
+
+int ct_check(const ct_table *t, int msg, const uint8_t *data, int len, ct_rx_state *state)
+{
+    const ct_message *m = message(t, msg);
+    if (m == NULL) {
+        return CT_RX_UNKNOWN_ID;
+    }
+    if (len != (int)m->length) {
+        return CT_RX_BAD_LENGTH;
+    }
+    const ct_signal *sig = t->signals + m->first_signal;
+    int c = -1;
+    if (m->counter_signal >= 0 && m->counter_modulus > 0u) {
+        c = (int)get_bits(data, &sig[m->counter_signal]);
+    }
+    if (has_checksum(m)) {
+        if (data[m->crc_byte] != checksum(m, data, c < 0 ? 0 : c)) {
+            return CT_RX_BAD_CRC;
+        }
+        if (m->protection == CT_PROT_P1 && m->data_id_mode == CT_P1_NIBBLE && m->nibble_signal >= 0
+            && get_bits(data, &sig[m->nibble_signal]) != (uint64_t)((m->data_id >> 8) & 0x0Fu)) {
+            return CT_RX_BAD_CRC;
+        }
+    }
+    if (c >= 0) {
+        int mod = (int)m->counter_modulus;
+        if (c >= mod) {
+            return CT_RX_BAD_COUNTER;
+        }
+        if (state != NULL) {
+            if (state->last_counter >= 0) {
+                int step = ((c - state->last_counter) % mod + mod) % mod;
+                if (step == 0 || step > (int)m->max_delta_counter) {
+                    return CT_RX_BAD_COUNTER;
+                }
+            }
+            state->last_counter = c;
+        }
+    }
+    return CT_RX_OK;
+}
+
+/* ------------------------------------------------------------------ */
+/* Benchmark                                                           */
+/* ------------------------------------------------------------------ */
+
+#define BENCH_FRAMES 16
+
+/* what the timed loop computes goes here, so none of it can be optimised away */
+static volatile unsigned bench_sink;
+
+double ct_bench_tick(const ct_table *t, const int32_t *tx, int32_t n_tx, const double *tx_values,
+                     const int32_t *rx, int32_t n_rx, const double *rx_values, double *rx_out,
+                     int64_t iterations, int64_t *accepted)
+{
+    uint8_t frames[CT_BENCH_MAX_RX][BENCH_FRAMES][CT_MAX_LENGTH];
+    const double *rx_in[CT_BENCH_MAX_RX];
+    double *rx_dst[CT_BENCH_MAX_RX];
+    const double *tx_in[64];
+    int n_frames[CT_BENCH_MAX_RX];
+    ct_rx_state states[CT_BENCH_MAX_RX];
+    uint8_t out[CT_MAX_LENGTH];
+    struct timespec t0, t1;
+
+    if (t == NULL || n_tx < 0 || n_tx > 64 || n_rx < 0 || n_rx > CT_BENCH_MAX_RX || iterations < 1) {
+        return -1.0;
+    }
+    size_t k = 0;
+    for (int i = 0; i < n_tx; i++) {
+        const ct_message *m = message(t, tx[i]);
+        if (m == NULL) {
+            return -1.0;
+        }
+        tx_in[i] = tx_values + k;
+        k += m->n_signals;
+    }
+    k = 0;
+    for (int j = 0; j < n_rx; j++) {
+        const ct_message *m = message(t, rx[j]);
+        if (m == NULL) {
+            return -1.0;
+        }
+        rx_in[j] = rx_values + k;
+        rx_dst[j] = rx_out + k;
+        k += m->n_signals;
+        n_frames[j] = (m->counter_modulus > 0u && m->counter_modulus < BENCH_FRAMES)
+            ? (int)m->counter_modulus : BENCH_FRAMES;
+        for (int f = 0; f < n_frames[j]; f++) {
+            ct_encode(t, rx[j], rx_in[j], frames[j][f]);
+            ct_protect(t, rx[j], frames[j][f], (uint32_t)f);
+        }
+        states[j].last_counter = -1;
+    }
+
+    unsigned sink = 0;
+    int64_t ok = 0;
+    clock_gettime(CLOCK_MONOTONIC, &t0);
+    for (int64_t it = 0; it < iterations; it++) {
+        for (int i = 0; i < n_tx; i++) {
+            ct_encode(t, tx[i], tx_in[i], out);
+            ct_protect(t, tx[i], out, (uint32_t)it);
+            sink += out[0];
+        }
+        for (int j = 0; j < n_rx; j++) {
+            const ct_message *m = &t->messages[rx[j]];
+            const uint8_t *f = frames[j][it % n_frames[j]];
+            if (ct_check(t, rx[j], f, m->length, &states[j]) == CT_RX_OK) {
+                ct_decode(t, rx[j], f, m->length, rx_dst[j], NULL);
+                ok++;
+            }
+        }
+    }
+    clock_gettime(CLOCK_MONOTONIC, &t1);
+    bench_sink = sink;
+    if (accepted != NULL) {
+        *accepted = ok;
+    }
+    double ns = (double)(t1.tv_sec - t0.tv_sec) * 1e9 + (double)(t1.tv_nsec - t0.tv_nsec);
+    return ns / (double)iterations;
+}

@@ -1,0 +1,549 @@
+"""The table-driven CAN codec: any DBC's messages as flat C arrays.
+
+``CodecTable([(message, protection), ...])`` turns cantools messages (a
+DBC's parse) and their end-to-end protection (``can_dbc.protection``) into
+the arrays of ``can_dbc/csrc/can_table.h``: one ``ct_message`` per message,
+one ``ct_signal`` per signal (start bit, length, byte order, signedness,
+float type, factor, offset, limits, multiplexer), one ``ct_mux_range`` per
+run of multiplexer values. The C functions pack, unpack, protect and check
+frames from these arrays alone, bit-exact with cantools' encode and decode
+(the rules are in can_table.h): the real-time loop can speak any vehicle's
+matrix without generated code and without Python in its tick.
+
+Layouts the codec cannot take are refused with a one-line ``TableError``
+naming the message and signal: a message longer than 64 bytes, a signal
+outside its message, overlapping signals that can be sent together (in the
+same multiplexed branch), float signals other than 32/64 bits, a zero or
+non-finite factor, a multiplexer that is missing or a float, protection
+signals of the wrong shape.
+
+``python -m can_dbc.table --bench`` times, in C, one tick's CAN work for the
+project's own contract (every plant message encoded and protected, every TCU
+message checked and decoded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+from . import codec
+from .protection import KINDS, P1_DATA_ID_MODES, Protection
+
+__all__ = ["CodecTable", "TableError", "bench", "contract_protection", "contract_table"]
+
+MAX_LENGTH = 64
+_EXACT = 2 ** 53            # integers up to this are exact in double
+
+
+class TableError(ValueError):
+    """A message layout or protection the table codec cannot take (one line)."""
+
+
+def _c():
+    from rt_loop._rt_loop import ffi, lib  # built by scripts/setup
+    return ffi, lib
+
+
+def _conversion_classes():
+    from cantools.database.conversion import (BaseConversion, IdentityConversion,
+                                              LinearIntegerConversion)
+    return BaseConversion, IdentityConversion, LinearIntegerConversion
+
+
+def signal_bits(signal) -> list[int]:
+    """The frame bits (8 * byte + bit) a cantools signal occupies."""
+    if signal.byte_order == "little_endian":
+        return list(range(signal.start, signal.start + signal.length))
+    msb = 8 * (signal.start // 8) + 7 - signal.start % 8       # in network order
+    return [8 * (k // 8) + 7 - k % 8 for k in range(msb, msb + signal.length)]
+
+
+def _signal_end(signal) -> int:
+    """One past the last bit in the order the signal runs (its own numbering)."""
+    if signal.byte_order == "little_endian":
+        return signal.start + signal.length
+    return 8 * (signal.start // 8) + 7 - signal.start % 8 + signal.length
+
+
+class CodecTable:
+    """The C tables of a list of messages, with a small Python API over them.
+
+    ``messages``: (cantools Message, Protection) pairs, or bare Messages (no
+    protection). Message ``i`` of the list is index ``i`` of the C table;
+    its values are in ``signal_names(i)`` order (cantools' order).
+    """
+
+    def __init__(self, messages):
+        ffi, lib = _c()
+        self.ffi, self.lib = ffi, lib
+        pairs = []
+        for item in messages:
+            msg, prot = item if isinstance(item, tuple) else (item, Protection())
+            pairs.append((msg, prot if prot is not None else Protection()))
+        if not pairs:
+            raise TableError("no messages: the table needs at least one")
+        seen = {}
+        for msg, _ in pairs:
+            key = (msg.frame_id, bool(msg.is_extended_frame))
+            if key in seen:
+                raise TableError(f"messages {seen[key]} and {msg.name} have the same identifier "
+                                 f"0x{msg.frame_id:X}")
+            seen[key] = msg.name
+        self.messages = [m for m, _ in pairs]
+        self.protections = [p for _, p in pairs]
+        self._names = {m.name: i for i, m in enumerate(self.messages)}
+        self._signals = [list(m.signals) for m in self.messages]
+
+        n_sig = sum(len(s) for s in self._signals)
+        mux_runs = [[] for _ in pairs]            # per message: per signal its runs
+        for mi, (msg, prot) in enumerate(pairs):
+            mux_runs[mi] = _check_layout(msg)
+            _check_protection(msg, prot)
+        n_mux = sum(len(r) for runs in mux_runs for r in runs)
+
+        self._c_messages = ffi.new("ct_message[]", len(pairs))
+        self._c_signals = ffi.new("ct_signal[]", max(n_sig, 1))
+        self._c_mux = ffi.new("ct_mux_range[]", max(n_mux, 1))
+        first = 0
+        mux_at = 0
+        for mi, (msg, prot) in enumerate(pairs):
+            sigs = self._signals[mi]
+            index = {s.name: i for i, s in enumerate(sigs)}
+            for i, s in enumerate(sigs):
+                c = self._c_signals[first + i]
+                _fill_signal(c, msg, s)
+                if s.multiplexer_signal is not None:
+                    c.mux_signal = index[s.multiplexer_signal]
+                    c.mux_first = mux_at
+                    c.mux_count = len(mux_runs[mi][i])
+                    for lo, hi in mux_runs[mi][i]:
+                        self._c_mux[mux_at].lo = lo
+                        self._c_mux[mux_at].hi = hi
+                        mux_at += 1
+                else:
+                    c.mux_signal = -1
+            cm = self._c_messages[mi]
+            cm.id = msg.frame_id
+            cm.extended = 1 if msg.is_extended_frame else 0
+            cm.fd = 1 if getattr(msg, "is_fd", False) else 0
+            cm.length = msg.length
+            cm.first_signal = first
+            cm.n_signals = len(sigs)
+            _fill_protection(cm, msg, prot, index)
+            first += len(sigs)
+        self.table = ffi.new("ct_table *", {"messages": self._c_messages, "signals": self._c_signals,
+                                            "mux": self._c_mux, "n_messages": len(pairs)})
+        self._first = [self._c_messages[i].first_signal for i in range(len(pairs))]
+
+    # -- lookup -------------------------------------------------------------
+
+    def __len__(self):
+        return len(self.messages)
+
+    def index(self, message) -> int:
+        """The table index of a message given by index, name or cantools Message."""
+        if isinstance(message, bool):
+            raise TableError(f"not a message: {message!r}")
+        if isinstance(message, int):
+            if not 0 <= message < len(self.messages):
+                raise TableError(f"message index {message} out of range 0..{len(self.messages) - 1}")
+            return message
+        name = message if isinstance(message, str) else getattr(message, "name", None)
+        if name not in self._names:
+            raise TableError(f"unknown message {name!r} (the table has {', '.join(self._names)})")
+        return self._names[name]
+
+    def find(self, frame_id, extended=False) -> int:
+        """The index of the message with this identifier, -1 if none (ct_find)."""
+        return self.lib.ct_find(self.table, int(frame_id), 1 if extended else 0)
+
+    def signal_names(self, message) -> list[str]:
+        return [s.name for s in self._signals[self.index(message)]]
+
+    # -- codec --------------------------------------------------------------
+
+    def encode(self, message, values=None, counter=None) -> bytes:
+        """A frame's data: ``values`` (signal name -> physical value; missing
+        signals 0) packed by ct_encode; with ``counter`` also protected
+        (ct_protect), and then the protection's own signals may not be given."""
+        i = self.index(message)
+        msg = self.messages[i]
+        given = dict(values or {})
+        sigs = self._signals[i]
+        names = {s.name: k for k, s in enumerate(sigs)}
+        arr = self.ffi.new("double[]", max(len(sigs), 1))
+        protected = set(self.protections[i].signals()) if counter is not None else set()
+        for name, value in given.items():
+            if name not in names:
+                raise TableError(f"{msg.name} has no signal {name!r} (it has {', '.join(names)})")
+            if name in protected:
+                raise TableError(f"{msg.name}: {name} is written by the protection, not given as a value")
+            arr[names[name]] = _number(sigs[names[name]], value)
+        data = self.ffi.new("uint8_t[]", MAX_LENGTH)
+        self.lib.ct_encode(self.table, i, arr, data)
+        if counter is not None:
+            self.lib.ct_protect(self.table, i, data, _counter(counter))
+        return bytes(self.ffi.buffer(data, msg.length))
+
+    def decode(self, message, data) -> dict:
+        """{signal name: physical value} of the signals the frame carries
+        (multiplexed signals of other branches left out), by ct_decode."""
+        i = self.index(message)
+        msg = self.messages[i]
+        data = bytes(data)
+        if len(data) != msg.length:
+            raise TableError(f"{msg.name}: {len(data)} data bytes, the message has {msg.length}")
+        n = len(self._signals[i])
+        values = self.ffi.new("double[]", max(n, 1))
+        written = self.ffi.new("uint8_t[]", max(n, 1))
+        self.lib.ct_decode(self.table, i, data, len(data), values, written)
+        return {s.name: values[k] for k, s in enumerate(self._signals[i]) if written[k]}
+
+    def protect(self, message, data, counter) -> bytes:
+        """``data`` with counter, Data ID nibble and checksum written (ct_protect)."""
+        i = self.index(message)
+        msg = self.messages[i]
+        data = bytes(data)
+        if len(data) != msg.length:
+            raise TableError(f"{msg.name}: {len(data)} data bytes, the message has {msg.length}")
+        buf = self.ffi.new("uint8_t[]", data or b"\0")
+        self.lib.ct_protect(self.table, i, buf, _counter(counter))
+        return bytes(self.ffi.buffer(buf, len(data)))
+
+    def new_state(self):
+        """A receive state for ``check`` (no frame accepted yet)."""
+        return self.ffi.new("ct_rx_state *", {"last_counter": -1})
+
+    def check(self, message, data, state=None) -> str:
+        """One of can_dbc.codec.STATUSES for a received frame (ct_check);
+        ``state`` from ``new_state()`` moves on only when the frame is accepted."""
+        i = self.index(message)
+        data = bytes(data)
+        code = self.lib.ct_check(self.table, i, data or b"\0", len(data),
+                                 state if state is not None else self.ffi.NULL)
+        return codec.STATUSES[code]
+
+
+def _number(signal, value) -> float:
+    if isinstance(value, str):
+        for number, name in (signal.choices or {}).items():
+            if str(name) == value:
+                return float(number)
+        raise TableError(f"signal {signal.name}: {value!r} is not one of its values "
+                         f"({', '.join(str(n) for n in (signal.choices or {}).values()) or 'no named values'})")
+    try:
+        return float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise TableError(f"signal {signal.name}: {value!r} is not a number") from None
+
+
+def _counter(counter) -> int:
+    if isinstance(counter, bool) or not isinstance(counter, int) or not 0 <= counter <= 0xFFFFFFFF:
+        raise TableError(f"counter must be a whole number 0..4294967295, got {counter!r}")
+    return counter
+
+
+# ---------------------------------------------------------------------------
+# Building the arrays
+# ---------------------------------------------------------------------------
+
+def _check_layout(msg):
+    """Per signal its multiplexer value runs [(lo, hi), ...] (empty if not
+    multiplexed), after checking everything the C codec relies on."""
+    if getattr(msg, "is_container", False):
+        raise TableError(f"{msg.name}: container messages are not supported")
+    if not 0 <= msg.length <= MAX_LENGTH:
+        raise TableError(f"{msg.name}: {msg.length} bytes, at most {MAX_LENGTH}")
+    sigs = list(msg.signals)
+    index = {}
+    for i, s in enumerate(sigs):
+        if s.name in index:
+            raise TableError(f"{msg.name}: two signals named {s.name}")
+        index[s.name] = i
+    masks = []
+    for s in sigs:
+        where = f"{msg.name}.{s.name}"
+        if not 1 <= s.length <= 64:
+            raise TableError(f"{where}: {s.length} bits, must be 1..64")
+        if s.is_float and s.length not in (32, 64):
+            raise TableError(f"{where}: a float signal of {s.length} bits, must be 32 or 64")
+        if s.start < 0 or _signal_end(s) > 8 * msg.length:
+            raise TableError(f"{where}: start bit {s.start}, {s.length} bits "
+                             f"({s.byte_order.replace('_', ' ')}) ends beyond the message's "
+                             f"{msg.length} bytes")
+        for what, v in (("factor", s.scale), ("offset", s.offset)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise TableError(f"{where}: {what} {v!r} is not a finite number")
+        if s.scale == 0:
+            raise TableError(f"{where}: factor 0")
+        for what, v in (("minimum", s.minimum), ("maximum", s.maximum)):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v)):
+                raise TableError(f"{where}: {what} {v!r} is not a number")
+        bits = 0
+        for b in signal_bits(s):
+            bits |= 1 << b
+        masks.append(bits)
+
+    # multiplexers: each chain ends at an unmultiplexed signal
+    runs = []
+    chains = []
+    for i, s in enumerate(sigs):
+        where = f"{msg.name}.{s.name}"
+        if s.multiplexer_signal is None:
+            runs.append([])
+            continue
+        sel = s.multiplexer_signal
+        if sel not in index:
+            raise TableError(f"{where}: multiplexer {sel} is not a signal of the message")
+        sel_sig = sigs[index[sel]]
+        if not sel_sig.is_multiplexer:
+            raise TableError(f"{where}: multiplexer {sel} is not marked as a multiplexer")
+        if sel_sig.is_float:
+            raise TableError(f"{where}: multiplexer {sel} is a float signal")
+        ids = s.multiplexer_ids
+        if not ids:
+            raise TableError(f"{where}: multiplexed by {sel} but has no multiplexer values")
+        if any(isinstance(v, bool) or not isinstance(v, int) or not -2 ** 63 <= v < 2 ** 63 for v in ids):
+            raise TableError(f"{where}: multiplexer values must be 64-bit whole numbers")
+        runs.append(_runs(ids))
+    for i, s in enumerate(sigs):
+        chain = {}
+        j = i
+        while sigs[j].multiplexer_signal is not None:
+            sel = index[sigs[j].multiplexer_signal]
+            if sel in chain or sel == i:
+                raise TableError(f"{msg.name}.{s.name}: its multiplexers form a loop")
+            chain[sel] = frozenset(sigs[j].multiplexer_ids)
+            j = sel
+        chains.append(chain)
+
+    # overlapping bits are allowed only between signals of exclusive branches
+    for a in range(len(sigs)):
+        for b in range(a + 1, len(sigs)):
+            if not masks[a] & masks[b]:
+                continue
+            ca, cb = chains[a], chains[b]
+            if any(sel in cb and not (ca[sel] & cb[sel]) for sel in ca):
+                continue
+            branch = " in one multiplexed branch" if ca or cb else ""
+            raise TableError(f"{msg.name}: signals {sigs[a].name} and {sigs[b].name} overlap{branch}")
+    return runs
+
+
+def _runs(ids):
+    out = []
+    for v in sorted(set(ids)):
+        if out and v == out[-1][1] + 1:
+            out[-1][1] = v
+        else:
+            out.append([v, v])
+    return [tuple(r) for r in out]
+
+
+def _fill_signal(c, msg, s):
+    lib = _c()[1]
+    BaseConversion, IdentityConversion, LinearIntegerConversion = _conversion_classes()
+    c.start = s.start
+    c.length = s.length
+    c.big_endian = 1 if s.byte_order == "big_endian" else 0
+    c.is_signed = 1 if s.is_signed else 0
+    c.is_float = 1 if s.is_float else 0
+    scale, offset = s.scale, s.offset
+    conv = BaseConversion.factory(scale=scale, offset=offset, choices=None, is_float=s.is_float)
+    c.factor = float(scale)
+    c.offset = float(offset)
+    c.factor_int = c.offset_int = 0
+    c.exact_raw = 0
+    if isinstance(conv, IdentityConversion):
+        c.conversion = lib.CT_CONV_IDENTITY
+    elif isinstance(conv, LinearIntegerConversion) or (isinstance(scale, int) and not s.is_float):
+        # cantools multiplies Python integers here: reproduce it exactly
+        f = int(scale)
+        o = int(offset) if isinstance(conv, LinearIntegerConversion) else 0
+        if abs(f) > _EXACT or abs(o) > _EXACT:
+            raise TableError(f"{msg.name}.{s.name}: integer factor {scale} or offset {offset} "
+                             "beyond 2^53, cannot be decoded exactly")
+        c.factor_int = f
+        c.offset_int = o
+        c.exact_raw = (_EXACT - abs(o)) // abs(f)
+        c.conversion = lib.CT_CONV_INTEGER if isinstance(conv, LinearIntegerConversion) \
+            else lib.CT_CONV_INT_FACTOR
+    else:
+        c.conversion = lib.CT_CONV_LINEAR
+    lo = -math.inf if s.minimum is None else float(s.minimum)
+    hi = math.inf if s.maximum is None else float(s.maximum)
+    c.limited = 1 if lo < hi else 0
+    c.minimum = lo
+    c.maximum = hi
+    if s.is_signed:
+        c.raw_min = -float(2 ** (s.length - 1))
+        c.raw_end = float(2 ** (s.length - 1))
+    else:
+        c.raw_min = 0.0
+        c.raw_end = float(2 ** s.length)
+    c.mux_first = c.mux_count = 0
+
+
+def _check_protection(msg, prot):
+    if not isinstance(prot, Protection):
+        raise TableError(f"{msg.name}: protection must be a can_dbc.protection.Protection, got {prot!r}")
+    if prot.kind not in KINDS:
+        raise TableError(f"{msg.name}: protection kind {prot.kind!r}: choose one of {', '.join(KINDS)}")
+    if prot.kind == "none":
+        return
+    sigs = {s.name: s for s in msg.signals}
+    kind = prot.kind
+    needs_crc = kind in ("dct", "p1", "p2", "xor")
+    needs_counter = kind in ("counter", "dct", "p1", "p2")
+    for role, name, needed in (("checksum", prot.crc_signal, needs_crc),
+                               ("counter", prot.counter_signal, needs_counter),
+                               ("Data ID nibble", prot.data_id_nibble_signal,
+                                kind == "p1" and prot.data_id_mode == "nibble")):
+        if name is None:
+            if needed:
+                raise TableError(f"{msg.name}: protection {kind!r} needs a {role} signal")
+            continue
+        if name not in sigs:
+            raise TableError(f"{msg.name}: {role} signal {name} is not a signal of the message")
+        s = sigs[name]
+        if s.multiplexer_signal is not None:
+            raise TableError(f"{msg.name}.{name}: the {role} signal must not be multiplexed")
+        if s.is_float:
+            raise TableError(f"{msg.name}.{name}: the {role} signal must not be a float signal")
+    if needs_crc:
+        s = sigs[prot.crc_signal]
+        whole_byte = s.length == 8 and s.start % 8 == (0 if s.byte_order == "little_endian" else 7)
+        if not whole_byte:
+            raise TableError(f"{msg.name}.{s.name}: the checksum must fill one whole byte "
+                             f"(8 bits from bit 0 of a byte), not start bit {s.start}, {s.length} bits")
+    if prot.counter_signal:
+        s = sigs[prot.counter_signal]
+        if kind in ("dct", "p1", "p2") and s.length != 4:
+            raise TableError(f"{msg.name}.{s.name}: the {kind} counter has 4 bits, not {s.length}")
+        if not 1 <= s.length <= 16:
+            raise TableError(f"{msg.name}.{s.name}: a counter of {s.length} bits, must be 1..16")
+    if kind == "p1" and prot.data_id_mode == "nibble":
+        s = sigs[prot.data_id_nibble_signal]
+        if s.length != 4:
+            raise TableError(f"{msg.name}.{s.name}: the Data ID nibble has 4 bits, not {s.length}")
+    if kind == "p1" and prot.data_id is None:
+        raise TableError(f"{msg.name}: protection 'p1' needs data_id")
+    if kind == "p2" and (prot.data_id_list is None or len(prot.data_id_list) != 16):
+        raise TableError(f"{msg.name}: protection 'p2' needs data_id_list (16 Data IDs)")
+    if not 1 <= prot.max_delta_counter <= 14:
+        raise TableError(f"{msg.name}: max_delta_counter {prot.max_delta_counter}, must be 1..14")
+
+
+def _fill_protection(cm, msg, prot, index):
+    kind = prot.kind
+    cm.protection = KINDS.index(kind)
+    cm.crc_signal = cm.counter_signal = cm.nibble_signal = cm.crc_byte = -1
+    cm.counter_modulus = 0
+    cm.data_id = 0
+    cm.data_id_mode = 0
+    cm.max_delta_counter = prot.max_delta_counter
+    if kind == "none":
+        return
+    if kind != "counter" and prot.crc_signal:
+        cm.crc_signal = index[prot.crc_signal]
+        cm.crc_byte = msg.get_signal_by_name(prot.crc_signal).start // 8
+    if prot.counter_signal and kind in ("counter", "dct", "p1", "p2", "xor"):
+        cm.counter_signal = index[prot.counter_signal]
+        length = msg.get_signal_by_name(prot.counter_signal).length
+        cm.counter_modulus = {"p1": 15, "dct": 16, "p2": 16}.get(kind, 2 ** length)
+    if kind == "p1":
+        cm.data_id = prot.data_id
+        cm.data_id_mode = P1_DATA_ID_MODES.index(prot.data_id_mode)
+        if prot.data_id_mode == "nibble":
+            cm.nibble_signal = index[prot.data_id_nibble_signal]
+    if kind == "p2":
+        for k, v in enumerate(prot.data_id_list):
+            cm.data_id_list[k] = v
+
+
+# ---------------------------------------------------------------------------
+# The project's own contract and the benchmark
+# ---------------------------------------------------------------------------
+
+def contract_protection() -> Protection:
+    """The protection of every message of can_dbc/dct_hil.dbc."""
+    return Protection(kind="dct", crc_signal=codec.CRC_SIGNAL, counter_signal=codec.COUNTER_SIGNAL,
+                      max_delta_counter=codec.COUNTER_MAX_JUMP)
+
+
+def contract_table() -> CodecTable:
+    """A CodecTable of can_dbc/dct_hil.dbc: the plant's messages, then the TCU's."""
+    msgs = codec.messages("PLANT") + codec.messages("TCU")
+    return CodecTable([(m, contract_protection()) for m in msgs])
+
+
+def bench(iterations=200_000, repeat=5) -> dict:
+    """ns per tick of one tick's CAN work on the contract, timed in C
+    (ct_bench_tick): every plant message encoded and protected, every TCU
+    message checked and decoded. The best of ``repeat`` runs of
+    ``iterations`` ticks (each run's figure kept)."""
+    if iterations < 1 or repeat < 1:
+        raise ValueError("iterations and repeat must be at least 1")
+    t = contract_table()
+    ffi, lib = t.ffi, t.lib
+    tx = [i for i, m in enumerate(t.messages) if "PLANT" in m.senders]
+    rx = [i for i, m in enumerate(t.messages) if "TCU" in m.senders]
+
+    def values(indices):
+        out = []
+        for i in indices:
+            for s in t._signals[i]:
+                lo = s.minimum if s.minimum is not None else 0.0
+                hi = s.maximum if s.maximum is not None else 1.0
+                out.append(lo + 0.37 * (hi - lo))
+        return out
+
+    tx_values = ffi.new("double[]", values(tx) or [0.0])
+    rx_vals = values(rx)
+    rx_values = ffi.new("double[]", rx_vals or [0.0])
+    rx_out = ffi.new("double[]", max(len(rx_vals), 1))
+    tx_c = ffi.new("int32_t[]", tx)
+    rx_c = ffi.new("int32_t[]", rx)
+    accepted = ffi.new("int64_t *")
+    runs = []
+    for _ in range(repeat):
+        ns = lib.ct_bench_tick(t.table, tx_c, len(tx), tx_values, rx_c, len(rx), rx_values, rx_out,
+                               iterations, accepted)
+        if ns < 0:
+            raise RuntimeError("ct_bench_tick refused its arguments")
+        if accepted[0] != iterations * len(rx):
+            raise RuntimeError(f"the benchmark's frames were rejected ({accepted[0]} of "
+                               f"{iterations * len(rx)} accepted)")
+        runs.append(ns)
+    return {"ns_per_tick": min(runs), "runs_ns": runs, "iterations": iterations,
+            "tx_messages": [t.messages[i].name for i in tx], "rx_messages": [t.messages[i].name for i in rx]}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m can_dbc.table",
+                                     description="The table-driven CAN codec (can_dbc/csrc/can_table.c).")
+    parser.add_argument("--bench", action="store_true",
+                        help="time one tick's CAN work on the contract in C: every plant message "
+                             "encoded and protected, every TCU message checked and decoded")
+    parser.add_argument("--iterations", type=int, default=200_000, help="ticks per run (default: %(default)s)")
+    parser.add_argument("--repeat", type=int, default=5, help="runs; the best is reported (default: %(default)s)")
+    args = parser.parse_args(argv)
+    if not args.bench:
+        parser.print_usage(sys.stderr)
+        print("python -m can_dbc.table: nothing to do (try --bench)", file=sys.stderr)
+        return 2
+    if args.iterations < 1 or args.repeat < 1:
+        print("python -m can_dbc.table: --iterations and --repeat must be at least 1", file=sys.stderr)
+        return 2
+    r = bench(args.iterations, args.repeat)
+    print(f"table codec, can_dbc/dct_hil.dbc: {len(r['tx_messages'])} plant messages encoded + protected, "
+          f"{len(r['rx_messages'])} TCU messages checked + decoded")
+    print(f"{r['ns_per_tick']:.0f} ns per tick (best of {args.repeat} runs of {args.iterations} ticks; runs: "
+          f"{', '.join(f'{x:.0f}' for x in r['runs_ns'])} ns)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
