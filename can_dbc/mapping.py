@@ -344,7 +344,7 @@ def _codec_key(m):
 def find_mapping(name_or_path):
     """A path as given, or the name of a shipped mapping (``dct_hil``, ``vehicle``)."""
     p = str(name_or_path)
-    if os.path.exists(p) or os.sep in p or p.endswith(".toml"):
+    if os.path.isfile(p) or os.sep in p or p.endswith(".toml"):
         return p
     shipped = os.path.join(MAPPINGS_DIR, p + ".toml")
     return shipped if os.path.exists(shipped) else p
@@ -395,7 +395,7 @@ def _number(x):
 
 
 def _fmt(x):
-    return f"{x:g}" if isinstance(x, float) else str(x)
+    return f"{x:.10g}" if isinstance(x, float) else str(x)
 
 
 def _suggest(name, known):
@@ -1118,7 +1118,19 @@ def check_report(mapping):
                      f"{load.frames_per_s:.0f} frames/s)")
         if load.warning:
             warnings.append(f"warning: {load.warning}")
+        for m in msgs:
+            if m.protection.kind != "none" or m.message is None:
+                continue
+            crc, cnt = _protection_names(m.message)
+            names = [n for n in crc[:1] + cnt[:1] if _without_entry(m.signal(n))]
+            if names:
+                warnings.append(f"note: message {m.name} (bus {b.name}): {', '.join(names)} look like a "
+                                "checksum or counter, but the message has no protection")
     return "\n".join(lines + warnings) + "\n"
+
+
+def _without_entry(s):
+    return s.target is None and (s.source is None or s.source.kind == "start")
 
 
 def _values(table, default):
@@ -1229,7 +1241,7 @@ def _describe_signal(sig):
     kind = "float" if sig.is_float else "signed" if sig.is_signed else "unsigned"
     lo, hi = sig.minimum, sig.maximum
     rng = f"{_fmt(lo)} .. {_fmt(hi)}" if lo is not None and hi is not None else "no range"
-    unit = (sig.unit or "").strip()
+    unit = "" if _no_unit(sig.unit) else sig.unit.strip()
     text = f"{sig.length} bit {kind} at bit {sig.start} ({order}), {rng}{' ' + unit if unit else ''}, step {sig.scale:g}"
     if sig.offset:
         text += f", offset {sig.offset:g}"
@@ -1368,6 +1380,8 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
 
     base = os.path.dirname(os.path.abspath(out_path)) if out_path else os.getcwd()
     rel = os.path.relpath(os.path.abspath(dbc_path), base)
+    if rel.split(os.sep)[:3] == [os.pardir] * 3:       # far away: say where
+        rel = os.path.abspath(dbc_path)
     stem = os.path.splitext(os.path.basename(dbc_path))[0]
     name = bus_name or re.sub(r"[^A-Za-z0-9_-]", "_", stem) or "can"
     if not name[0].isalpha():
@@ -1421,8 +1435,7 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
             w(f"direction = \"{direction}\"")
         if not m.cycle_time:
             w("# cycle_ms =                    # cycle time missing: give cycle_ms")
-        crc = [s.name for s in m.signals if _CRC_NAME.search(s.name)]
-        cnt = [s.name for s in m.signals if _COUNTER_NAME.search(s.name)]
+        crc, cnt = _protection_names(m)
         if crc or cnt:
             parts = ", ".join(x for x in (f"crc = \"{crc[0]}\"" if crc else "",
                                           f"counter = \"{cnt[0]}\"" if cnt else "") if x)
@@ -1431,10 +1444,16 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
             w("#    none, counter, dct, p1 (data_id), p2 (data_id_list) or xor; see can_dbc/protection.py)")
 
     def signals(m, direction):
+        w("")
         w(f"[message.{_toml_key(m.name)}.signals]")
         groups = out_groups if direction == "send" else in_groups
+        crc, cnt = _protection_names(m)
         for sig in m.signals:
             w(f"# {sig.name}: {_describe_signal(sig)}")
+            if sig.name in crc[:1] + cnt[:1]:
+                w(f"#   (the protection's {'checksum' if sig.name in crc[:1] else 'counter'}: written "
+                  "or checked by the protection, no entry)")
+                continue
             guess = guesses.get((direction, sig.name))
             entry = _guess_entry(guess, sig, direction) if guess else None
             if entry is not None:
@@ -1492,6 +1511,13 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
             cycle = f"every {m.cycle_time} ms" if m.cycle_time else "no cycle time"
             w(f"# {_ident_of(m)} {m.name} ({senders}), {m.length} bytes, {cycle}")
     return "\n".join(L) + "\n"
+
+
+def _protection_names(msg):
+    """Signals that look like a checksum and a counter by their names."""
+    crc = [s.name for s in msg.signals if _CRC_NAME.search(s.name)]
+    cnt = [s.name for s in msg.signals if _COUNTER_NAME.search(s.name) and s.name not in crc]
+    return crc, cnt
 
 
 def _ident_of(msg):
