@@ -871,15 +871,25 @@ class _Loader:
                 try:
                     gain, bias = conversion(field_unit, unit) if to_signal else conversion(unit, field_unit)
                 except ValueError as e:
-                    self.fail(f"{key}.unit", str(e))
+                    self.fail(f"{key}.unit", f"{e}: no unit converts one into the other (without unit, "
+                                             "factor does)")
         else:
             if ref is not None:
                 self.fail(f"{key}.reference", "reference needs unit = \"%\"")
-            if (field_unit is not None and not _no_unit(dbc_unit) and _known_unit(dbc_unit) is not None
-                    and not _same_unit(field_unit, dbc_unit)):
-                self.fail(key, f"the DBC's unit of the signal is {dbc_unit!r}, {what} {name} is in "
-                               f"{field_unit!r}: give unit = \"{dbc_unit}\" to convert"
-                               + (" (with reference)" if _known_unit(dbc_unit) == "%" else ""))
+            known = _known_unit(dbc_unit) if not _no_unit(dbc_unit) else None
+            if field_unit is not None and known is not None and not _same_unit(field_unit, known):
+                q_dbc, q_field = _UNIT_INDEX[known][0], _UNIT_INDEX[_known_unit(field_unit)][0]
+                cause = (f"the DBC's unit of the signal is {dbc_unit!r}, {what} {name} is in "
+                         f"{field_unit!r}")
+                if known == "%":
+                    self.fail(key, f"{cause}: give unit = \"%\" and reference (100 % in {field_unit})")
+                if q_dbc == q_field:
+                    self.fail(key, f"{cause}: give unit = \"{dbc_unit}\" to convert")
+                if "factor" not in raw:
+                    per = f"{dbc_unit} per {field_unit}" if to_signal else f"{field_unit} per {dbc_unit}"
+                    self.fail(key, f"{cause}, another quantity ({q_dbc}, {q_field}): no unit converts one "
+                                   f"into the other; give factor ({per}) if the signal derives from it")
+                unit = known          # the factor converts: say so in the description
         return gain * factor, bias * factor + offset, unit, None if ref is None else float(ref)
 
     def table(self, raw, key, sig, to_signal):
@@ -1124,8 +1134,11 @@ def check_report(mapping):
             crc, cnt = _protection_names(m.message)
             names = [n for n in crc[:1] + cnt[:1] if _without_entry(m.signal(n))]
             if names:
-                warnings.append(f"note: message {m.name} (bus {b.name}): {', '.join(names)} look like a "
-                                "checksum or counter, but the message has no protection")
+                what = " and ".join(x for x, n in (("a checksum", crc[:1]), ("a counter", cnt[:1]))
+                                    if n and n[0] in names)
+                verb = "looks" if len(names) == 1 else "look"
+                warnings.append(f"note: message {m.name} (bus {b.name}): {', '.join(names)} {verb} like "
+                                f"{what}, but the message has no protection")
     return "\n".join(lines + warnings) + "\n"
 
 
@@ -1147,7 +1160,16 @@ def _linear(gain, bias):
     return " ".join(parts)
 
 
-def _describe_source(s):
+def _value_name(value, sig):
+    """' "D"' when the signal's DBC names the value."""
+    if sig is None or not sig.choices or not sig.scale:
+        return ""
+    raw = (value - sig.offset) / sig.scale
+    name = sig.choices.get(int(round(raw))) if abs(raw - round(raw)) < 1e-9 else None
+    return "" if name is None else f" \"{name}\""
+
+
+def _describe_source(s, sig=None):
     if s.kind in ("output", "status"):
         what = s.name if s.kind == "output" else f"status {s.name}"
         if s.table is not None:
@@ -1159,12 +1181,12 @@ def _describe_source(s):
         lin = _linear(s.gain, s.bias)
         return f"<- {what}{unit}" + (f" {lin}" if lin else "")
     if s.kind == "constant":
-        return f"= {_fmt(s.value)} (constant)"
+        return f"= {_fmt(s.value)}{_value_name(s.value, sig)} (constant)"
     if s.kind == "toggle":
         return "toggle 0, 1 per frame"
     if s.kind == "counter":
         return f"counter 0..{s.counter_max} per frame"
-    return f"= {_fmt(s.value)} (start value)"
+    return f"= {_fmt(s.value)}{_value_name(s.value, sig)} (start value)"
 
 
 def _describe_target(t):
@@ -1216,7 +1238,7 @@ def show(mapping):
                 if s.protection_field:
                     text = f"protection {s.protection_field}"
                 elif s.source is not None:
-                    text = _describe_source(s.source)
+                    text = _describe_source(s.source, s.signal)
                 elif s.target is not None:
                     text = _describe_target(s.target)
                 else:
@@ -1232,8 +1254,8 @@ def show(mapping):
 # Template
 # ---------------------------------------------------------------------------
 
-_CRC_NAME = re.compile(r"(crc|chk|checksum|check_sum|pruef|prüf)", re.IGNORECASE)
-_COUNTER_NAME = re.compile(r"(counter|cnt|alive|_bz$|^bz$|zaehler|zähler|sqc)", re.IGNORECASE)
+_CRC_NAME = re.compile(r"(crc|chk|checksum|check_sum|xor|pruef|prüf)", re.IGNORECASE)
+_COUNTER_NAME = re.compile(r"(counter|alive|zaehler|zähler|(^|_)(ctr|cnt|bz|sqc|seq)(_|$))", re.IGNORECASE)
 
 
 def _describe_signal(sig):
@@ -1461,7 +1483,10 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
                 continue
             cands = _candidates(groups, sig.unit)
             hint = ""
-            if cands is not None:
+            if cands is not None and _known_unit(sig.unit) == "%":
+                hint = (f"   # in %: {', '.join(cands)}; or any {'output' if direction == 'send' else 'input'} "
+                        "with unit = \"%\", reference = (its 100 %)")
+            elif cands is not None:
                 hint = (f"   # {'outputs' if direction == 'send' else 'inputs'} in its quantity: "
                         f"{', '.join(cands[:6])}{', ...' if len(cands) > 6 else ''}" if cands
                         else f"   # no {'output' if direction == 'send' else 'input'} in its quantity")

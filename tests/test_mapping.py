@@ -585,7 +585,7 @@ def test_a_template_of_the_contract_dbc_loads_after_filling_and_equals_the_shipp
     code, report, err = run_cli(capsys, "mapping", "check", out)
     assert code == 0, err
     assert "0 protected" in report
-    assert "note: message TCU_ClutchCmd (bus dct_hil): CRC, AliveCounter look like a checksum or counter" in report
+    assert "note: message TCU_ClutchCmd (bus dct_hil): CRC, AliveCounter look like a checksum and a counter" in report
     # filled in: the project's contract
     out.write_text(body.replace('# protection = { kind = "?"', 'protection = { kind = "dct"'))
     filled, shipped = M.load(str(out)), M.load(M.DEFAULT_MAPPING)
@@ -701,3 +701,83 @@ def test_bus_load_of_an_fd_bus_and_the_warning_above_half(tmp_path, capsys):
     path.write_text(path.read_text().replace("bitrate = 500000\n", "bitrate = 500000\nfd = false\n"))
     code, out, err = run_cli(capsys, "mapping", "check", path)
     assert_one_line(code, err, "message.Odd:", "is a CAN FD frame (64 bytes) but bus can1 is classic CAN")
+
+
+# ---------------------------------------------------------------------------
+# the example vehicle matrix (can_dbc/matrices/): two buses
+# ---------------------------------------------------------------------------
+
+VEHICLE_MAPPING = os.path.join(ROOT, "can_dbc", "mappings", "vehicle.toml")
+
+
+def _comment_protection(msg):
+    """The protection a message's DBC comment names ('Protection: p1; crc X; ...')."""
+    found = re.search(r"Protection: ([^.]*)\.", msg.comment or "")
+    assert found, msg.name
+    kind, *items = [x.strip() for x in found.group(1).split(";")]
+    spec = {"kind": kind}
+    for item in items:
+        key, value = item.split(" ", 1)
+        if key == "data_id":
+            value = int(value, 16)
+        elif key == "data_id_list":
+            value = tuple(int(x, 16) for x in value.split(","))
+        spec[key] = value
+    return spec
+
+
+def test_the_vehicle_mapping_loads_and_passes_check(capsys):
+    m = M.load(M.find_mapping("vehicle"))
+    assert [(b.name, os.path.basename(b.dbc), b.bitrate, b.plant_nodes, b.tcu_nodes) for b in m.buses] == [
+        ("pt", "vehicle_pt.dbc", 500_000, ("ECM", "ESP", "IC", "GW"), ("TCU",)),
+        ("io", "vehicle_io.dbc", 1_000_000, ("PLANT",), ("TCU",))]
+    for b in m.buses:
+        senders = {n: [x.name for x in b.database.messages if n in x.senders] for n in b.plant_nodes + b.tcu_nodes}
+        assert {x.name for x in m.codec_order(b.name)} == {n for names in senders.values() for n in names}
+    # every message's protection is the one its DBC comment names
+    for x in m.messages:
+        p, spec = x.protection, _comment_protection(x.message)
+        assert p.kind == spec["kind"], x.name
+        assert (p.crc_signal, p.counter_signal) == (spec.get("crc"), spec.get("counter")), x.name
+        assert p.data_id == spec.get("data_id"), x.name
+        assert p.data_id_list == spec.get("data_id_list"), x.name
+        if "data_id_mode" in spec:
+            assert p.data_id_mode == spec["data_id_mode"], x.name
+        assert p.data_id_nibble_signal == spec.get("data_id_nibble"), x.name
+    # the TCU drives every input it drives through the project's contract, and the target gear is recorded
+    def driven(mapping, kind):
+        return {s.target.name for x in mapping.messages for s in x.signals if s.target and s.target.kind == kind}
+    assert driven(m, "input") == driven(M.load(), "input")
+    assert "target_gear" in driven(m, "record")
+    torque = m.message("TCU_TorqueReq").signal("TrqReqValue").target
+    assert torque.gain == pytest.approx(2.8)                    # % of EngineRefTorque (280 Nm) -> Nm
+    assert m.message("ECM_Info").signal("EngineRefTorque").source.value == 280.0
+    assert m.message("ESP_WheelSpeeds").signal("WheelSpeedFL").source.gain == pytest.approx(
+        2 * math.pi * 0.316 * 60 / 1000, rel=1e-5)             # wheel rpm -> km/h at the tyre's radius
+
+    code, out, err = run_cli(capsys, "mapping", "check", "vehicle")
+    assert code == 0, err
+    assert "bus pt: vehicle_pt.dbc, classic CAN at 500 kbit/s" in out
+    assert "bus io: vehicle_io.dbc, classic CAN at 1 Mbit/s" in out
+    assert len(re.findall(r"worst-case bus load at", out)) == 2
+    assert "warning" not in out and "note" not in out
+    code, out, err = run_cli(capsys, "mapping", "show", "vehicle")
+    assert code == 0, err
+    assert re.search(r"SelectorLever\s+= 3 \"D\" \(constant\)", out)
+
+
+def test_a_factor_converts_between_quantities_that_no_unit_converts(vehicle, capsys):
+    toml = VEHICLE_TOML.replace('Raddrehzahl = { output = "wheel_speed_fl_rpm", unit = "rad/s" }',
+                                'Raddrehzahl = { output = "vehicle_speed_kmh" }')
+    code, out, err = run_cli(capsys, "mapping", "check", vehicle(toml=toml))
+    assert_one_line(code, err, "message.ABS_1.signals.Raddrehzahl:", "the DBC's unit of the signal is 'rad/s'",
+                    "'km/h', another quantity", "give factor (rad/s per km/h)")
+    toml = toml.replace('Raddrehzahl = { output = "vehicle_speed_kmh" }',
+                        'Raddrehzahl = { output = "vehicle_speed_kmh", unit = "rad/s" }')
+    code, out, err = run_cli(capsys, "mapping", "check", vehicle(toml=toml))
+    assert_one_line(code, err, "signals.Raddrehzahl.unit:", "cannot convert km/h (speed) to rad/s",
+                    "without unit, factor does")
+    toml = toml.replace('"vehicle_speed_kmh", unit = "rad/s" }', '"vehicle_speed_kmh", factor = 0.879 }')
+    m = M.load(vehicle(toml=toml))
+    src = m.message("ABS_1").signal("Raddrehzahl").source
+    assert (src.gain, src.unit, src.signal_unit) == (0.879, "km/h", "rad/s")
