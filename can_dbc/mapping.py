@@ -33,6 +33,9 @@ The format, with every key::
     Motormoment = { output = "engine_torque_nm", unit = "%", reference = 350.0 }
     Geschwindigkeit = { output = "vehicle_speed_kmh", unit = "m/s", factor = 1.0, offset = 0.0 }
     Gang = { output = "gear", table = { "-1" = 7, "0" = 0, "1" = 1, default = 15 } }
+    Richtung = { output = "vehicle_speed_kmh", table = { "..-1" = 2, "0" = 0, "1.." = 1, default = 3 } }
+    Tempo = { output = "vehicle_speed_kmh", abs = true }   # the magnitude (a direction signal beside it)
+    Rad_VL = { output = "wheel_speed_fl_rpm", factor = 0.119129 }   # rpm -> km/h: no unit converts it
     Zeit = { status = "sim_time_s" }
     Kodierung = { constant = 3 }     # a number or one of the signal's DBC value names
     Toggle = { toggle = true }       # 0, 1, 0, 1 per frame
@@ -48,8 +51,10 @@ Rules:
   destination's unit: sent, signal = convert(output) * factor + offset;
   received, input = convert(signal) * factor + offset, then limited to
   ``min``/``max``; ``safe`` is the input's (or recorded) value while the
-  message is timed out (default 0). A ``table`` replaces all of that: the
-  source rounded to a whole number picks the entry, ``default`` any other.
+  message is timed out (default 0). ``abs = true`` (sent signals) takes the
+  output's magnitude first. A ``table`` replaces the scaling: the source
+  rounded to a whole number picks the entry, keys are whole numbers or ranges
+  ("1..5", "..-1", "10.."; no two overlap), ``default`` any other value.
 - Units: an output's or input's unit is its name's suffix (``_rpm``,
   ``_kmh``, ``_bar``, ``_nm``, ``_pct``, ``_a``, ``_n``, ``_mm``,
   ``_mps2``, ``_s``, ``_us``, ...; see ``SUFFIX_UNITS``); ``unit`` is the
@@ -57,7 +62,9 @@ Rules:
   an unknown unit is an error); ``unit = "%"`` needs ``reference`` (in the
   output's unit) unless the output is a percentage. When the DBC's unit is a
   known one, ``unit`` must agree with it, and without ``unit`` it must be the
-  output's: otherwise an error names both. Outputs and inputs without a unit
+  output's: otherwise an error names both. Between quantities no unit
+  converts (wheel rpm to km/h, pedal % to bar) an explicit ``factor`` does,
+  in the signal's unit per the output's. Outputs and inputs without a unit
   suffix (states, counts, the gear) and DBC units that are not known ("",
   "-", "Stufe") are not checked.
 - Status sources (``STATUS_FIELDS``): the simulator's own state, as the
@@ -109,11 +116,12 @@ DIRECTIONS = ("send", "receive", "ignore")
 _BUS_KEYS = ("name", "dbc", "bitrate", "data_bitrate", "fd", "plant_nodes", "tcu_nodes")
 _MESSAGE_KEYS = ("bus", "direction", "cycle_ms", "timeout_cycles", "protection", "signals")
 _SEND_KINDS = ("output", "status", "constant", "toggle", "counter")
-_SEND_KEYS = _SEND_KINDS + ("factor", "offset", "unit", "reference", "table")
+_SEND_KEYS = _SEND_KINDS + ("factor", "offset", "unit", "reference", "table", "abs")
 _RECEIVE_KINDS = ("input", "record")
 _RECEIVE_KEYS = _RECEIVE_KINDS + ("factor", "offset", "unit", "reference", "table", "min", "max",
                                   "safe")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_RANGE_KEY = re.compile(r"^\s*(-?\d+)?\s*\.\.\s*(-?\d+)?\s*$")
 _BUS_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$")
 _FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
@@ -236,8 +244,10 @@ class Source:
     """Where a sent signal's value comes from.
 
     kind ``output`` (a dct_outputs field) or ``status`` (STATUS_FIELDS):
-    signal = gain * field + bias, or with ``table`` the entry of the field
-    rounded to a whole number (``default`` for any other); ``constant`` and
+    signal = gain * field + bias (``absolute``: of the field's magnitude), or
+    with ``table`` the entry of the field rounded to a whole number, else the
+    first of ``ranges`` (lo, hi, value; lo/hi None: open) that holds it, else
+    ``default``; ``constant`` and
     ``start`` (no entry: the GenSigStartValue or 0): ``value``; ``toggle``:
     0, 1, 0, ... per frame; ``counter``: 0 .. ``counter_max`` per frame."""
     kind: str
@@ -245,7 +255,9 @@ class Source:
     gain: float = 1.0
     bias: float = 0.0
     table: tuple[tuple[int, float], ...] | None = None
+    ranges: tuple[tuple[int | None, int | None, float], ...] = ()
     default: float | None = None
+    absolute: bool = False
     value: float | None = None
     counter_max: int | None = None
     unit: str | None = None                   # the field's unit (from its name)
@@ -258,13 +270,15 @@ class Target:
     """What a received signal drives: kind ``input`` (a dct_inputs field) or
     ``record`` (recorded with the commands under ``name``, drives no input).
     value = gain * signal + bias (or the ``table`` entry of the signal rounded to
-    a whole number, ``default`` for any other), limited to [minimum, maximum];
+    a whole number, else the first of ``ranges`` that holds it, else
+    ``default``), limited to [minimum, maximum];
     ``safe`` while the message is timed out."""
     kind: str
     name: str
     gain: float = 1.0
     bias: float = 0.0
     table: tuple[tuple[int, float], ...] | None = None
+    ranges: tuple[tuple[int | None, int | None, float], ...] = ()
     default: float | None = None
     minimum: float | None = None
     maximum: float | None = None
@@ -351,11 +365,35 @@ def find_mapping(name_or_path):
 
 
 def load(path=DEFAULT_MAPPING, rate_hz=DEFAULT_RATE_HZ, *, outputs=None, inputs=None):
-    """The checked :class:`Mapping` of a mapping file, or MappingError (one line).
+    """The checked :class:`Mapping` of a mapping file, or MappingError (one line:
+    file: key: cause); nothing is returned half-loaded.
 
     ``rate_hz``: the loop's rate; every cycle time must be a whole number of its
     ticks. ``outputs``/``inputs``: the plant's field names (default: those of
-    dct_outputs/dct_inputs as plant.model sees them)."""
+    dct_outputs/dct_inputs as plant.model sees them).
+
+    Used messages are those the plant sends (every message of a plant node, or
+    direction = "send") and receives (every message of a TCU node, or
+    direction = "receive"); direction = "ignore" drops one. Errors: a file that
+    is not TOML, a DBC cantools cannot parse even leniently; unknown keys
+    anywhere (the known ones are named); an unknown bus, node (or the
+    placeholder Vector__XXX), message (or one on several buses without bus),
+    signal, plant output, plant input or status field; a message named but
+    neither sent nor received by its nodes, or sent by a plant and a TCU node,
+    without direction; in a used message, a signal outside the frame or two
+    overlapping (except in different branches of one multiplexer), a CAN FD
+    frame on a classic bus; a used message without a cycle time (DBC or
+    cycle_ms) or one that is not a whole number of ticks; timeout_cycles on a
+    sent message; an identifier used twice on one bus (both sent and received,
+    or twice in one direction); a signal that is a protection field and has an
+    entry, a protection field the message lacks, a bad protection; an entry
+    with no or two sources, a key of the other direction; a value table without
+    a default, with overlapping keys, or a value outside the signal's range or
+    not among its value names (constants, counters, sent tables); unknown
+    units, a unit that contradicts the DBC's, a DBC unit the output's differs
+    from without unit (or factor, between quantities), % without reference;
+    one plant input driven twice, a record name used twice; min above max, a
+    safe value outside them."""
     if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
         raise ValueError(f"rate must be a positive number of Hz, got {rate_hz!r}")
     if outputs is None or inputs is None:
@@ -790,12 +828,17 @@ class _Loader:
         elif name not in STATUS_FIELDS:
             self.fail(f"{key}.status", f"unknown status {name!r} (known: {', '.join(STATUS_FIELDS)})")
         unit = unit_of_name(name)
+        absolute = raw.get("abs", False)
+        if not isinstance(absolute, bool):
+            self.fail(f"{key}.abs", f"must be true (send the magnitude) or false, got {absolute!r}")
         if "table" in raw:
-            table, default = self.table(raw, key, sig, to_signal=True)
-            return Source(kind, name=name, table=table, default=default, unit=unit)
+            table, ranges, default = self.table(raw, key, sig, to_signal=True)
+            return Source(kind, name=name, table=table, ranges=ranges, default=default, absolute=absolute,
+                          unit=unit)
         gain, bias, to_unit, ref = self.scaling(raw, key, unit, sig.unit, name, "output" if kind == "output"
                                                else "status", to_signal=True)
-        return Source(kind, name=name, gain=gain, bias=bias, unit=unit, signal_unit=to_unit, reference=ref)
+        return Source(kind, name=name, gain=gain, bias=bias, absolute=absolute, unit=unit, signal_unit=to_unit,
+                      reference=ref)
 
     def target(self, raw, sig, msg, key):
         kind = self.entry_table(raw, key, _RECEIVE_KINDS, _RECEIVE_KEYS, ("output", "status", "constant",
@@ -832,8 +875,8 @@ class _Loader:
         common = dict(minimum=None if lo is None else float(lo), maximum=None if hi is None else float(hi),
                       safe=float(safe), unit=unit)
         if "table" in raw:
-            table, default = self.table(raw, key, sig, to_signal=False)
-            return Target(kind, name, table=table, default=default, **common)
+            table, ranges, default = self.table(raw, key, sig, to_signal=False)
+            return Target(kind, name, table=table, ranges=ranges, default=default, **common)
         gain, bias, from_unit, ref = self.scaling(raw, key, unit, sig.unit, name, kind, to_signal=False)
         return Target(kind, name, gain=gain, bias=bias, signal_unit=from_unit, reference=ref, **common)
 
@@ -901,23 +944,29 @@ class _Loader:
             self.fail(f"{key}.table", "must be a table such as { \"0\" = 0, \"1\" = 1, default = 15 }")
         if "default" not in t:
             self.fail(f"{key}.table", "a value table needs a default (the value for anything not listed)")
-        entries = []
+        entries, ranges, spans = [], [], []
         for k, v in t.items():
             if k == "default":
                 continue
-            try:
-                n = int(k.strip())
-            except ValueError:
-                self.fail(f"{key}.table", f"key {k!r} is not a whole number (keys are the "
+            span = _table_key(k)
+            if span is None:
+                self.fail(f"{key}.table", f"key {k!r} is not a whole number or a range A..B (keys are the "
                                           f"{'source' if to_signal else 'signal'} value, rounded)")
-            if any(n == e[0] for e in entries):
-                self.fail(f"{key}.table", f"key {n} is given twice")
+            for other_key, other in spans:
+                if max(span[0], other[0]) <= min(span[1], other[1]):
+                    self.fail(f"{key}.table", f"keys {other_key!r} and {k!r} overlap")
+            spans.append((k, span))
             value = (self.signal_value(v, sig, f"{key}.table.{k}") if to_signal
                      else self.plain_value(v, f"{key}.table.{k}"))
-            entries.append((n, value))
+            if span[0] == span[1]:
+                entries.append((int(span[0]), value))
+            else:
+                ranges.append((None if span[0] == -math.inf else int(span[0]),
+                               None if span[1] == math.inf else int(span[1]), value))
         default = (self.signal_value(t["default"], sig, f"{key}.table.default") if to_signal
                    else self.plain_value(t["default"], f"{key}.table.default"))
-        return tuple(sorted(entries)), default
+        ranges.sort(key=lambda r: -math.inf if r[0] is None else r[0])
+        return tuple(sorted(entries)), tuple(ranges), default
 
     def plain_value(self, v, key):
         if not _number(v):
@@ -938,6 +987,22 @@ class _Loader:
         if not lo - 1e-9 * max(1.0, abs(lo)) <= v <= hi + 1e-9 * max(1.0, abs(hi)):
             self.fail(key, f"value {_fmt(v)} is outside signal {sig.name}'s range {_fmt(lo)} .. {_fmt(hi)}")
         return float(v)
+
+
+def _table_key(text):
+    """(lo, hi) of a value table key: "3" -> (3, 3), "1..5", "..-1" -> (-inf, -1),
+    "1.." -> (1, inf); None when it is neither."""
+    try:
+        n = int(text.strip())
+        return (n, n)
+    except ValueError:
+        pass
+    m = _RANGE_KEY.match(text)
+    if not m or (m.group(1) is None and m.group(2) is None):
+        return None
+    lo = -math.inf if m.group(1) is None else int(m.group(1))
+    hi = math.inf if m.group(2) is None else int(m.group(2))
+    return (lo, hi) if lo <= hi else None
 
 
 def _has_signal(msg, name):
@@ -1146,8 +1211,10 @@ def _without_entry(s):
     return s.target is None and (s.source is None or s.source.kind == "start")
 
 
-def _values(table, default):
-    body = ", ".join(f"{k}: {_fmt(v)}" for k, v in table)
+def _values(table, default, ranges=()):
+    items = [f"{k}: {_fmt(v)}" for k, v in table]
+    items += [f"{'' if lo is None else lo}..{'' if hi is None else hi}: {_fmt(v)}" for lo, hi, v in ranges]
+    body = ", ".join(items)
     return "{" + body + (", " if body else "") + f"default: {_fmt(default)}" + "}"
 
 
@@ -1172,8 +1239,10 @@ def _value_name(value, sig):
 def _describe_source(s, sig=None):
     if s.kind in ("output", "status"):
         what = s.name if s.kind == "output" else f"status {s.name}"
+        if s.absolute:
+            what = f"|{what}|"
         if s.table is not None:
-            return f"<- {what} via table {_values(s.table, s.default)}"
+            return f"<- {what} via table {_values(s.table, s.default, s.ranges)}"
         unit = ""
         if s.signal_unit is not None:
             ref = f" of {_fmt(s.reference)} {s.unit or ''}".rstrip() if s.reference is not None else ""
@@ -1192,7 +1261,7 @@ def _describe_source(s, sig=None):
 def _describe_target(t):
     what = t.name if t.kind == "input" else f"record {t.name}"
     if t.table is not None:
-        text = f"-> {what} via table {_values(t.table, t.default)}"
+        text = f"-> {what} via table {_values(t.table, t.default, t.ranges)}"
     else:
         unit = ""
         if t.signal_unit is not None:

@@ -300,6 +300,23 @@ def test_a_vehicle_mapping_units_tables_and_restbus(vehicle, capsys):
     assert re.search(r"send\s+0x320 Kombi_1 \(8 B\) every 100 ms; no protection", out)
 
 
+def test_value_table_ranges_and_magnitudes(vehicle):
+    toml = VEHICLE_TOML.replace(
+        'Gang = { output = "gear", table = { "-1" = "R", "0" = 0, "1" = 1, "2" = 2, default = "invalid" } }',
+        'Gang = { output = "vehicle_speed_kmh", table = { "..-1" = 2, "0" = 0, "1..9" = 1, "10.." = 3, default = 15 } }')
+    toml = toml.replace('Geschwindigkeit = { output = "vehicle_speed_kmh", unit = "m/s" }',
+                        'Geschwindigkeit = { output = "vehicle_speed_kmh", unit = "m/s", abs = true }')
+    m = M.load(vehicle(toml=toml))
+    gang = m.message("Kombi_1").signal("Gang").source
+    assert (gang.table, gang.ranges, gang.default) == (((0, 0.0),), ((None, -1, 2.0), (1, 9, 1.0), (10, None, 3.0)),
+                                                       15.0)
+    speed = m.message("ABS_1").signal("Geschwindigkeit").source
+    assert speed.absolute and speed.gain == pytest.approx(1 / 3.6)
+    assert not m.message("ABS_1").signal("Raddrehzahl").source.absolute
+    with pytest.raises(M.MappingError, match=r"Kodierung\.abs: abs applies to output and status, not constant"):
+        M.load(vehicle(toml=toml.replace("Kodierung = { constant = 3 }", "Kodierung = { constant = 3, abs = true }")))
+
+
 def test_unit_conversions():
     assert M.conversion("degC", "K") == (1.0, 273.15)
     g, b = M.conversion("degC", "degF")
@@ -372,6 +389,11 @@ BAD_MAPPINGS = {
                                       ["message.Kombi_1.signals.Gang.table:", "needs a default"]),
     "value table value outside the signal's range": (_sub('"2" = 2, default', '"2" = 16, default'), None,
                                                      ["signals.Gang.table.2:", "value 16 is outside signal Gang's range 0 .. 15"]),
+    "overlapping value table keys": (_sub('"1" = 1, "2" = 2, default = "invalid"', '"1..3" = 1, "2" = 2, default = "invalid"'),
+                                     None, ["signals.Gang.table:", "keys '1..3' and '2' overlap"]),
+    "value table key neither number nor range": (_sub('"1" = 1, "2" = 2, default = "invalid"',
+                                                      '"one" = 1, default = "invalid"'), None,
+                                                 ["signals.Gang.table:", "key 'one' is not a whole number or a range A..B"]),
     "value name the signal lacks": (_sub('"-1" = "R"', '"-1" = "Reverse"'), None,
                                     ["signals.Gang.table.-1:", "'Reverse' is not a value name of signal Gang"]),
     "source and protection field": (_sub("Temperatur = { constant = 90 }", "Motor_1_CRC = { constant = 1 }"),
@@ -781,3 +803,23 @@ def test_a_factor_converts_between_quantities_that_no_unit_converts(vehicle, cap
     m = M.load(vehicle(toml=toml))
     src = m.message("ABS_1").signal("Raddrehzahl").source
     assert (src.gain, src.unit, src.signal_unit) == (0.879, "km/h", "rad/s")
+
+
+def test_the_vehicle_mapping_carries_what_the_reference_tcu_needs_where_the_matrices_put_it():
+    """tests/test_matrices.py names, for each contract signal the reference TCU reads
+    or writes, the vehicle matrix signal that carries it: the vehicle mapping fills
+    that signal from (or into) the same plant field as the contract's mapping."""
+    needs = getattr(pytest.importorskip("test_matrices"), "TCU_NEEDS", None)
+    if needs is None:
+        pytest.skip("tests/test_matrices.py names no TCU_NEEDS")
+    contract, vehicle_map = M.load(), M.load(M.find_mapping("vehicle"))
+
+    def field(mapped):
+        what = mapped.source or mapped.target
+        return (what.kind, what.name)
+
+    contract_fields = {s.name: field(s) for x in contract.messages for s in x.signals if not s.protection_field}
+    buses = {"vehicle_pt": "pt", "vehicle_io": "io"}
+    for name, (matrix, message, signal) in needs.items():
+        carrier = vehicle_map.message(message, bus=buses[matrix]).signal(signal)
+        assert field(carrier) == contract_fields[name], (name, message, signal)
