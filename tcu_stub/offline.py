@@ -114,14 +114,17 @@ RECORDED = ("vehicle_speed_kmh", "vehicle_accel_mps2", "engine_speed_rpm", "inpu
 
 
 def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, stale_fn=None,
-                on_period=None):
+                on_period=None, link=None):
     """Run plant + stub TCU for ``duration_s``.
 
     ``driver_fn(t_s, plant_outputs) -> (accel_pedal_pct, brake_pedal_pct)`` is
     called every 10 ms. ``stale_fn(t_s) -> bool`` (optional) marks the plant
     messages as missing. ``on_period(k, plant)`` (optional) is called every
     TCU period ``k`` once the pedals and commands are applied, before the
-    plant steps (a copy of ``plant.inputs`` there replays the run). Returns a
+    plant steps (a copy of ``plant.inputs`` there replays the run). ``link``:
+    the CAN matrix between them (default ``ContractLink``, the project's own
+    contract; ``tcu_stub.mapped_link.MappedLink(mapping)`` for a vehicle's
+    matrix described by a mapping file). Returns a
     dict of arrays (``time_s``, the names in
     ``RECORDED``, ``tcu_target_gear``, ``tcu_gear``, ``tcu_phase``) and
     ``shifts``: a list of (time_s, from_gear, to_gear)."""
@@ -134,7 +137,7 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
     n = int(round(duration_s / PERIOD_S))
     rec = {k: [] for k in ("time_s",) + RECORDED + ("tcu_target_gear", "tcu_gear", "tcu_phase")}
     t0 = plant.time_s
-    link = ContractLink()
+    link = ContractLink() if link is None else link
     for k in range(n):
         t = plant.time_s - t0
         out = plant.outputs
