@@ -31,6 +31,7 @@ import threading
 import time
 
 from . import codec
+from .own_frames import OwnFrames, is_echoing_bus
 
 SIDES = {"tcu": ("TCU", "PLANT"), "plant": ("PLANT", "TCU")}
 
@@ -86,6 +87,10 @@ class CanPeer:
         self.last_send_error = None
         self.injected = 0
         self.error_frames = 0
+        # a bus that loops our own frames back (udp_multicast): stamp what we
+        # send and drop the echoes before they count as received traffic
+        self._own = OwnFrames(str(getattr(bus, "channel_info", "") or side)) \
+            if is_echoing_bus(bus) else None
         self._rx_stats = {name: _RxStats() for name in self.rx.names}
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()   # one frame at a time: send thread and send_now share counters
@@ -194,8 +199,8 @@ class CanPeer:
         if not 0 <= int(frame_id) <= limit:
             raise ValueError(f"frame id 0x{int(frame_id):X} out of range for a "
                              f"{'29' if is_extended_id else '11'}-bit identifier")
-        self.bus.send(can.Message(arbitration_id=int(frame_id), data=data, dlc=len(data),
-                                  is_extended_id=is_extended_id))
+        self.bus.send(self._message(can, arbitration_id=int(frame_id), data=data, dlc=len(data),
+                                    is_extended_id=is_extended_id))
         with self._lock:
             self.injected += 1
 
@@ -292,6 +297,7 @@ class CanPeer:
                 "duration_s": (end - self.started_at) if self.started_at is not None else 0.0,
                 "received": received,
                 "unknown_frames": self.rx.unknown,
+                "own_echoes_dropped": self.own_echoes,
                 "error_frames": self.error_frames,
                 "sent": sent,
                 "injected": self.injected,
@@ -314,7 +320,8 @@ class CanPeer:
             counter = self._counter[msg.name]
         data = codec.encode(msg.name, values, counter)
         try:
-            self.bus.send(can.Message(arbitration_id=msg.frame_id, data=data, is_extended_id=False))
+            self.bus.send(self._message(can, arbitration_id=msg.frame_id, data=data,
+                                        is_extended_id=False))
         except Exception as e:  # a full tx queue or a bus error: counted, the next cycle tries again
             with self._lock:
                 self.send_errors[msg.name] += 1
@@ -324,6 +331,18 @@ class CanPeer:
             self._counter[msg.name] = (counter + 1) & 0x0F
             self.sent[msg.name] += 1
         return True
+
+    def _message(self, can, **kw):
+        """A can.Message to send, stamped when the bus echoes our own frames."""
+        if self._own is not None:
+            with self._lock:
+                kw["channel"], _ = self._own.stamp()
+        return can.Message(**kw)
+
+    @property
+    def own_echoes(self):
+        """Our own frames the bus looped back and the peer dropped (0 on other buses)."""
+        return 0 if self._own is None else self._own.echoes
 
     def _send_loop(self):
         t0 = time.monotonic()
@@ -357,6 +376,8 @@ class CanPeer:
                 continue
             t = time.monotonic()
             with self._lock:
+                if self._own is not None and self._own.is_echo(msg):
+                    continue                          # our own frame, looped back
                 if msg.is_error_frame:
                     self.error_frames += 1
                     self._changed.notify_all()

@@ -286,7 +286,9 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
                      f"{b['rx_ring_full']} refused by a full ring; bus errors "
                      f"{b['rx_errors']} receive / {b['tx_errors']} send; not forwarded: "
                      f"{b['rx_error_frames']} error, {b['rx_remote_frames']} remote, "
-                     f"{b['rx_fd_frames']} CAN FD frames")
+                     f"{b['rx_fd_frames']} CAN FD frames"
+                     + (f"; {b['own_frames_dropped']} of its own frames heard back and dropped"
+                        if b.get("own_frames_dropped") else ""))
         lines += _below_bridge_lines(b)
         if report["transport"].get("last_error"):
             lines.append(f"bridge error      {report['transport']['last_error']}")

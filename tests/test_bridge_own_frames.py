@@ -254,3 +254,26 @@ def test_a_bus_that_does_not_echo_has_nothing_to_drop():
         assert c["own_frames_dropped"] == 0 and c["own_echoes_forgotten"] == 0
     finally:
         t.close()
+
+
+# ----------------------------------------------------- the peer's own echoes
+def test_the_peer_drops_its_own_echoes_and_hears_the_plant(group):
+    """The test TCU (CanPeer, which the TCU node uses) on udp_multicast hears
+    its own frames looped back too: they are dropped and counted apart, never
+    unknown identifiers, while the plant's frames are accepted."""
+    address, port = group
+    srv = _server(group)
+    srv.start()
+    bus = can.Bus(interface="udp_multicast", channel=address, port=port)
+    peer = CanPeer(bus, side="tcu")
+    try:
+        assert wait_until(lambda: peer.own_echoes >= 300 and all(
+            peer.counts(m)["accepted"] > 0 for m in ("DCT_ShaftSpeeds", "DCT_Clutch")))
+        rep = peer.report()
+    finally:
+        peer.close()
+        bus.shutdown()
+        srv.stop()
+    assert rep["unknown_frames"] == 0
+    assert rep["own_echoes_dropped"] >= 300
+    assert srv.report()["counts"]["rx"]["unknown_id"] == 0
