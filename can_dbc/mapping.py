@@ -638,8 +638,11 @@ class _Loader:
             key, entry = entries.get((bus.name, msg.name), (f"message.{msg.name}", None))
             direction = self.direction(bus, msg, key, entry)
             if direction == "ignore":
-                if entry is not None:
-                    ignored.append((bus.name, msg.name))
+                extra = [k for k in (entry or {}) if k not in ("bus", "direction")]
+                if extra:
+                    self.fail(f"{key}.{extra[0]}", f"message {msg.name} is ignored (direction = \"ignore\"): "
+                                                   f"{extra[0]} has no use")
+                ignored.append((bus.name, msg.name))
                 continue
             if direction is None:
                 continue

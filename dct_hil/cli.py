@@ -244,6 +244,31 @@ def build_parser():
                         help="write the report as JSON to FILE, or to stdout (-, or no FILE) "
                              "instead of the table")
     doctor.set_defaults(func=cmd_doctor)
+
+    mapping = sub.add_parser(
+        "mapping", help="vehicle CAN matrices: write, check and show mapping files",
+        description="A mapping file (TOML) says what the plant sends and receives on a vehicle's "
+                    "DBC (README: Vehicle CAN matrices).")
+    msub = mapping.add_subparsers(dest="mapping_command", metavar="ACTION")
+    tpl = msub.add_parser("template", help="a commented mapping skeleton for a DBC")
+    tpl.add_argument("dbc", metavar="VEHICLE.dbc")
+    tpl.add_argument("--tcu-node", action="append", default=[], metavar="NAME",
+                     help="a DBC node of the TCU (its messages are received); repeatable")
+    tpl.add_argument("--tcu-messages", default="", metavar="A,B,...",
+                     help="messages the TCU sends (for a DBC without node names)")
+    tpl.add_argument("--plant-node", action="append", default=[], metavar="NAME",
+                     help="a DBC node the plant plays (default: the senders of what the TCU receives)")
+    tpl.add_argument("--bitrate", type=argtypes.bitrate, metavar="BIT/S",
+                     help="the bus's bit rate (default: the DBC's Baudrate)")
+    tpl.add_argument("--out", metavar="FILE", help="write it to FILE (default: stdout)")
+    for action, text in (("check", "validate a mapping file; a summary with the bus load per bus"),
+                         ("show", "what goes where: per bus and message, each signal's source or target")):
+        p = msub.add_parser(action, help=text)
+        p.add_argument("mapping", metavar="MAPPING.toml",
+                       help="a mapping file, or a shipped one by name (dct_hil, vehicle)")
+        p.add_argument("--rate", type=_serve_rate, default=2000.0, metavar="HZ",
+                       help="the loop's rate: cycle times must be whole ticks (default 2000)")
+    mapping.set_defaults(func=cmd_mapping)
     return parser
 
 
@@ -793,6 +818,34 @@ def cmd_doctor(args):
     return report.exit_code
 
 
+# ---------------------------------------------------------------------- mapping
+def cmd_mapping(args):
+    from can_dbc import mapping
+
+    if args.mapping_command is None:
+        raise UserError("choose an action: dct-hil mapping template, check or show")
+    try:
+        if args.mapping_command == "template":
+            if args.out:
+                _check_writable(args.out, "--out")
+            text = mapping.template(
+                args.dbc, tcu_nodes=args.tcu_node, plant_nodes=args.plant_node,
+                tcu_messages=[n.strip() for n in args.tcu_messages.split(",") if n.strip()],
+                bitrate=args.bitrate, out_path=args.out)
+            if not args.out:
+                sys.stdout.write(text)
+                return 0
+            with open(args.out, "w", encoding="utf-8") as f:
+                f.write(text)
+            print(f"template: {args.out}")
+            return 0
+        m = mapping.load(mapping.find_mapping(args.mapping), rate_hz=args.rate)
+    except mapping.MappingError as e:
+        raise UserError(str(e)) from None
+    sys.stdout.write(mapping.check_report(m) if args.mapping_command == "check" else mapping.show(m))
+    return 0
+
+
 # ------------------------------------------------------------------------- main
 def _one_line(text):
     return " ".join(str(text).split())
@@ -816,8 +869,8 @@ def main(argv=None):
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise UserError("choose a command: demo, simulate, serve, tcu, bench, valve or doctor "
-                            "(dct-hil --help)")
+            raise UserError("choose a command: demo, simulate, serve, tcu, bench, valve, doctor or "
+                            "mapping (dct-hil --help)")
         try:
             user_errors = _user_errors()
         except ImportError as e:

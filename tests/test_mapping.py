@@ -444,6 +444,8 @@ BAD_MAPPINGS = {
     "message of neither side": (_add("\n[message.Airbag_1]\ncycle_ms = 10\n"), None,
                                 ["message.Airbag_1.direction:", "sent by Airbag, not a plant or TCU node",
                                  "give direction"]),
+    "an ignored message with entries": (_sub("timeout_cycles = 5", 'timeout_cycles = 5\ndirection = "ignore"'), None,
+                                        ["message.Getriebe_1.timeout_cycles:", "is ignored", "has no use"]),
     "two sources in one entry": (_sub("Kodierung = { constant = 3 }", "Kodierung = { constant = 3, toggle = true }"),
                                  None, ["signals.Kodierung:", "give exactly one of output, status, constant, toggle, counter"]),
     "not TOML": (lambda text: text + "\n[message.Motor_1\n", None, ["vehicle.toml: not valid TOML"]),
@@ -492,7 +494,7 @@ def test_the_rate_decides_which_cycle_times_are_whole_ticks(vehicle, capsys):
 def test_ignore_and_direction_overrides(vehicle):
     toml = VEHICLE_TOML + '\n[message.Airbag_1]\ndirection = "ignore"\n\n[message.Kombi_1]\ndirection = "ignore"\n'
     toml = toml.replace("[message.Kombi_1.signals]\nKodierung = { constant = 3 }\nToggle = { toggle = true }\n"
-                        "Zaehler = { counter = 15 }\n", "[message.Kombi_1.signals]\n")
+                        "Zaehler = { counter = 15 }\n", "")
     toml = re.sub(r"Gang = \{ output = \"gear\".*\n", "", toml)
     m = M.load(vehicle(toml=toml))
     assert [x.name for x in m.messages] == ["ABS_1", "Motor_1", "Getriebe_1"]
