@@ -129,7 +129,12 @@ static uint64_t get_bits(const uint8_t *d, const ct_signal *s)
 {
     unsigned len = s->length;
     uint64_t v = 0;
-    if (!s->big_endian) {
+    if (((s->start | len) & 7u) == 0u && !s->big_endian) {   /* whole bytes, the common case */
+        const uint8_t *p = d + (s->start >> 3);
+        for (unsigned k = len >> 3; k-- > 0u;) {
+            v = (v << 8) | p[k];
+        }
+    } else if (!s->big_endian) {
         unsigned pos = s->start;
         unsigned shift = 0;
         while (shift < len) {
@@ -165,7 +170,12 @@ static uint64_t get_bits(const uint8_t *d, const ct_signal *s)
 static void put_bits(uint8_t *d, const ct_signal *s, uint64_t v)
 {
     unsigned len = s->length;
-    if (!s->big_endian) {
+    if (((s->start | len) & 7u) == 0u && !s->big_endian) {
+        uint8_t *p = d + (s->start >> 3);
+        for (unsigned k = 0; k < (len >> 3); k++) {
+            p[k] = (uint8_t)(v >> (8u * k));
+        }
+    } else if (!s->big_endian) {
         unsigned pos = s->start;
         unsigned shift = 0;
         while (shift < len) {
