@@ -33,6 +33,12 @@
 
 #include "can_table.h"
 
+#if defined(__GNUC__)
+#define CT_INLINE static inline __attribute__((always_inline))
+#else
+#define CT_INLINE static inline
+#endif
+
 static const uint8_t crc_1d[256] = {
     0x00, 0x1D, 0x3A, 0x27, 0x74, 0x69, 0x4E, 0x53, 0xE8, 0xF5, 0xD2, 0xCF,
     0x9C, 0x81, 0xA6, 0xBB, 0xCD, 0xD0, 0xF7, 0xEA, 0xB9, 0xA4, 0x83, 0x9E,
@@ -125,7 +131,7 @@ static uint64_t field_mask(unsigned length)
     return length >= 64u ? ~(uint64_t)0 : (((uint64_t)1 << length) - 1u);
 }
 
-static uint64_t get_bits(const uint8_t *d, const ct_signal *s)
+CT_INLINE uint64_t get_bits(const uint8_t *d, const ct_signal *s)
 {
     unsigned len = s->length;
     uint64_t v = 0;
@@ -167,7 +173,7 @@ static uint64_t get_bits(const uint8_t *d, const ct_signal *s)
     return v;
 }
 
-static void put_bits(uint8_t *d, const ct_signal *s, uint64_t v)
+CT_INLINE void put_bits(uint8_t *d, const ct_signal *s, uint64_t v)
 {
     unsigned len = s->length;
     if (((s->start | len) & 7u) == 0u && !s->big_endian) {
@@ -265,7 +271,7 @@ static double integer_value(const ct_signal *s, int neg, uint64_t mag)
 }
 
 /* the physical value of a signal's raw bits, as cantools decodes it */
-static double decode_bits(const ct_signal *s, uint64_t u)
+CT_INLINE double decode_bits(const ct_signal *s, uint64_t u)
 {
     if (s->is_float) {
         double raw;
@@ -306,7 +312,7 @@ static double decode_bits(const ct_signal *s, uint64_t u)
 
 /* the raw bits cantools would pack for physical value v, limited as
  * can_table.h says */
-static uint64_t encode_bits(const ct_signal *s, double v)
+CT_INLINE uint64_t encode_bits(const ct_signal *s, double v)
 {
     if (isnan(v)) {
         v = 0.0;
