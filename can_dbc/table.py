@@ -46,10 +46,15 @@ def _c():
     return ffi, lib
 
 
-def _conversion_classes():
-    from cantools.database.conversion import (BaseConversion, IdentityConversion,
-                                              LinearIntegerConversion)
-    return BaseConversion, IdentityConversion, LinearIntegerConversion
+def _arithmetic(signal):
+    """The conversion whose arithmetic cantools' decode runs for a signal:
+    its own, or for a signal with named values the numeric one it wraps."""
+    from cantools.database.conversion import BaseConversion, NamedSignalConversion
+    conv = signal.conversion
+    if isinstance(conv, NamedSignalConversion):
+        return BaseConversion.factory(scale=conv.scale, offset=conv.offset, choices=None,
+                                      is_float=conv.is_float)
+    return conv
 
 
 def signal_bits(signal) -> list[int]:
@@ -343,33 +348,33 @@ def _runs(ids):
 
 
 def _fill_signal(c, msg, s):
+    from cantools.database.conversion import IdentityConversion
     lib = _c()[1]
-    BaseConversion, IdentityConversion, LinearIntegerConversion = _conversion_classes()
     c.start = s.start
     c.length = s.length
     c.big_endian = 1 if s.byte_order == "big_endian" else 0
     c.is_signed = 1 if s.is_signed else 0
     c.is_float = 1 if s.is_float else 0
-    scale, offset = s.scale, s.offset
-    conv = BaseConversion.factory(scale=scale, offset=offset, choices=None, is_float=s.is_float)
+    conv = _arithmetic(s)
+    scale, offset = conv.scale, conv.offset
     c.factor = float(scale)
     c.offset = float(offset)
     c.factor_int = c.offset_int = 0
     c.exact_raw = 0
     if isinstance(conv, IdentityConversion):
         c.conversion = lib.CT_CONV_IDENTITY
-    elif isinstance(conv, LinearIntegerConversion) or (isinstance(scale, int) and not s.is_float):
-        # cantools multiplies Python integers here: reproduce it exactly
-        f = int(scale)
-        o = int(offset) if isinstance(conv, LinearIntegerConversion) else 0
-        if abs(f) > _EXACT or abs(o) > _EXACT:
+    elif isinstance(scale, int) and not s.is_float:
+        # cantools multiplies Python integers here (raw * scale, and with an
+        # integer offset the sum too): reproduce it exactly
+        exact_sum = isinstance(offset, int)
+        o = offset if exact_sum else 0
+        if abs(scale) > _EXACT or abs(o) > _EXACT:
             raise TableError(f"{msg.name}.{s.name}: integer factor {scale} or offset {offset} "
                              "beyond 2^53, cannot be decoded exactly")
-        c.factor_int = f
+        c.factor_int = scale
         c.offset_int = o
-        c.exact_raw = (_EXACT - abs(o)) // abs(f)
-        c.conversion = lib.CT_CONV_INTEGER if isinstance(conv, LinearIntegerConversion) \
-            else lib.CT_CONV_INT_FACTOR
+        c.exact_raw = (_EXACT - abs(o)) // abs(scale)
+        c.conversion = lib.CT_CONV_INTEGER if exact_sum else lib.CT_CONV_INT_FACTOR
     else:
         c.conversion = lib.CT_CONV_LINEAR
     lo = -math.inf if s.minimum is None else float(s.minimum)

@@ -239,8 +239,11 @@ def layouts(draw, allow_mux=True):
         lo, hi = (None, None) if selector else draw(limits(sig_len, signed, scale, offset, is_float))
         counter[0] += 1
         name = f"{'M' if selector else 'S'}{counter[0]}"
+        # named values (not on a multiplexer: cantools makes each an empty branch)
+        choices = {0: "zero", 1: "one"} if not selector and draw(st.integers(0, 5)) == 0 else None
         sig = Signal(name, start, sig_len, order, signed,
-                     conversion=BaseConversion.factory(scale=scale, offset=offset, is_float=is_float),
+                     conversion=BaseConversion.factory(scale=scale, offset=offset, choices=choices,
+                                                       is_float=is_float),
                      minimum=lo, maximum=hi, is_multiplexer=selector,
                      multiplexer_ids=ids, multiplexer_signal=mux)
         signals.append(sig)
