@@ -38,8 +38,11 @@ def record_interval(text):
 
 
 def pm_qos_us(text):
-    """A PM QoS CPU wake-up latency: a whole number of microseconds, 0..1000000."""
-    n = _int(text)
+    """A PM QoS CPU wake-up latency: a whole number of microseconds, 0..1000000,
+    or "auto" (0 under SCHED_FIFO, no request under normal scheduling)."""
+    if text == "auto":
+        return text
+    n = _int(text, 'a whole number of microseconds or "auto"')
     if not 0 <= n <= 1_000_000:
         raise argparse.ArgumentTypeError(f"must be 0..1000000 us, got {text}")
     return n

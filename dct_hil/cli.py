@@ -274,9 +274,10 @@ def build_parser():
 
 def _add_pm_qos_options(parser):
     qos = parser.add_mutually_exclusive_group()
-    qos.add_argument("--pm-qos-us", type=argtypes.pm_qos_us, default=0, metavar="US",
+    qos.add_argument("--pm-qos-us", type=argtypes.pm_qos_us, default="auto", metavar="US",
                      help="hold /dev/cpu_dma_latency at US for the run (PM QoS: idle CPUs stay "
-                          "in states that wake up within US; default 0, as cyclictest does)")
+                          "in states that wake up within US; default 0 under SCHED_FIFO, as "
+                          "cyclictest does, none with --priority 0)")
     qos.add_argument("--no-pm-qos", dest="pm_qos_us", action="store_const", const=None,
                      help="make no PM QoS request (idle CPUs may wake up late)")
 

@@ -201,7 +201,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
              channel: str | None = None, interface: str | None = None,
              time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
              duration_s: float | None = None, tcu_clock: str | None = None,
-             pm_qos_us: int | None = 0, strict: bool = False, out=None, err=None) -> int:
+             pm_qos_us: int | str | None = "auto", strict: bool = False, out=None, err=None) -> int:
     """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C; with
     ``strict``, 3 for a run that would exit 0 but whose timing verdict is INVALID).
 
@@ -240,7 +240,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
           + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
           file=out)
     print(f"transport         {iface} on {chan}: {why}", file=out)
-    print("PM QoS            " + ("off (--no-pm-qos)" if server.pm_qos is None
+    print("PM QoS            " + (f"off ({server.pm_qos_off_because})" if server.pm_qos is None
                                 else f"{server.pm_qos.path} at {server.pm_qos.latency_us} us "
                                      "for the run"), file=out)
     if tcu_clock == "bus":

@@ -222,8 +222,12 @@ class Server:
     ``pm_qos_us``: the CPU wake-up latency (us) requested through PM QoS
     (``/dev/cpu_dma_latency``, or ``pm_qos_path``) from before the loop
     starts until it has stopped, so that idle CPUs do not sink into states
-    whose exit costs the tick its deadline; None makes no request. A request
-    the kernel refuses is a warning, not an error (``pm_qos.error``).
+    whose exit costs the tick its deadline; None makes no request; "auto"
+    (the default) requests ``DEFAULT_PM_QOS_US`` when the loop runs under
+    SCHED_FIFO (``priority`` > 0) and nothing under normal scheduling, whose
+    timing is not real time anyway (a request there only keeps idle CPUs
+    polling: in an emulated machine that takes CPU time from the busy ones).
+    A request the kernel refuses is a warning, not an error (``pm_qos.error``).
 
     Errors in the arguments, the parameters (``ParamError``) or the
     transport (``TransportError``) are raised with one-line messages.
@@ -238,7 +242,7 @@ class Server:
                  maneuver_start: str = "tcu", maneuver_end_s: float | None = None,
                  record_path: str | os.PathLike | None = None,
                  record_every_s: float = 0.002,
-                 pm_qos_us: int | None = DEFAULT_PM_QOS_US,
+                 pm_qos_us: int | str | None = "auto",
                  pm_qos_path: str | None = None) -> None:
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
@@ -286,6 +290,12 @@ class Server:
             raise ServerError(f"spin {spin_us} us: must be at least 0 and under 80 % of the "
                               f"period ({0.8 * self.period_s * 1e6:.0f} us)")
         self.spin_us = float(spin_us)
+        #: why no PM QoS request is made (None: one is)
+        self.pm_qos_off_because = None if pm_qos_us is not None else "no request asked for"
+        if pm_qos_us == "auto":
+            pm_qos_us = DEFAULT_PM_QOS_US if self.priority > 0 else None
+            if pm_qos_us is None:
+                self.pm_qos_off_because = "normal scheduling (priority 0): no request"
         if pm_qos_us is not None and (isinstance(pm_qos_us, bool) or not isinstance(pm_qos_us, int)
                                       or not 0 <= pm_qos_us <= 1_000_000):
             raise ServerError(f"PM QoS latency must be a whole number of microseconds 0..1000000, "

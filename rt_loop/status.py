@@ -61,7 +61,8 @@ def banner_lines(server: Any, stats_path: str) -> list[str]:
         lines.append(f"driver            pedal table of {len(server.driver_rows)} rows, starts "
                      f"{start}{end}")
     q = getattr(server, "pm_qos", None)
-    lines.append("PM QoS            " + ("off (--no-pm-qos)" if q is None else q.describe()))
+    lines.append("PM QoS            " + (f"off ({getattr(server, 'pm_qos_off_because', None)})"
+                                        if q is None else q.describe()))
     lines.append(f"plant             {server.params_path or 'default parameters'}; "
                  "solenoid currents drive the clutch hydraulics")
     if server.logger is not None:

@@ -98,6 +98,17 @@ def test_server_without_pm_qos_makes_no_request(fake_device):
     assert os.path.getsize(fake_device) == 0
 
 
+def test_by_default_only_a_real_time_loop_makes_the_request(fake_device):
+    """Normal scheduling is not real time: no request (it would only keep idle
+    CPUs polling); SCHED_FIFO asks for 0 us. Asking explicitly always counts."""
+    idle = Server("x", interface="virtual", priority=0, pm_qos_path=fake_device)
+    assert idle.pm_qos is None and "priority 0" in idle.pm_qos_off_because
+    rt = Server("x", interface="virtual", priority=80, pm_qos_path=fake_device)
+    assert rt.pm_qos is not None and rt.pm_qos.latency_us == 0
+    asked = Server("x", interface="virtual", priority=0, pm_qos_us=0, pm_qos_path=fake_device)
+    assert asked.pm_qos is not None
+
+
 def test_server_runs_on_with_a_warning_when_the_request_fails(tmp_path):
     srv = Server(f"dct-test-{uuid.uuid4().hex[:10]}", interface="virtual", priority=0,
                  pm_qos_us=0, pm_qos_path=str(tmp_path / "no" / "such"))
@@ -162,7 +173,10 @@ def test_cli_options(tmp_path):
     assert len(lines) == 1 and "--pm-qos-us" in lines[0]
     r = subprocess.run(base + ["--no-pm-qos"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    assert "PM QoS            off" in r.stdout
+    assert "PM QoS            off (no request asked for)" in r.stdout
+    r = subprocess.run(base, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 3 or r.returncode == 0, r.stderr     # no TCU: INVALID, exit 0 or 3
+    assert "PM QoS            off (normal scheduling (priority 0): no request)" in r.stdout
     r = subprocess.run(base + ["--no-pm-qos", "--pm-qos-us", "5"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2
