@@ -103,19 +103,22 @@ class MappedLink:
     def _fail(self, what):
         raise MissingSignalError(f"{self.mapping.path}: the reference TCU needs {what}")
 
+    @staticmethod
+    def _carrier(messages, role, kind, name):
+        """(message, signal) of the first signal whose ``role`` ("source" or
+        "target") is of ``kind`` on plant field ``name`` with plain scaling."""
+        for m in messages:
+            for s in m.signals:
+                x = getattr(s, role)
+                if (x is not None and x.kind == kind and x.name == name and x.table is None
+                        and not x.ranges and x.gain != 0):
+                    return m, s
+        return None
+
     def _find_readers(self):
         readers = {}
         for name, output in TCU_READS.items():
-            found = None
-            for m in self.sent:
-                for s in m.signals:
-                    src = s.source
-                    if (src is not None and src.kind == "output" and src.name == output
-                            and src.table is None and not src.ranges and src.gain != 0):
-                        found = (m, s)
-                        break
-                if found:
-                    break
+            found = self._carrier(self.sent, "source", "output", output)
             if found is None:
                 if name in REQUIRED_READS:
                     self._fail(f"{output} ({name}), which no signal the plant sends carries")
@@ -135,16 +138,7 @@ class MappedLink:
         for name, input_name in TCU_WRITES.items():
             if input_name is None:
                 continue
-            found = None
-            for m in self.received:
-                for s in m.signals:
-                    t = s.target
-                    if (t is not None and t.kind == "input" and t.name == input_name
-                            and t.table is None and not t.ranges and t.gain != 0):
-                        found = (m, s)
-                        break
-                if found:
-                    break
+            found = self._carrier(self.received, "target", "input", input_name)
             if found is None:
                 self._fail(f"a received signal that drives {input_name} ({name})")
             writers[name] = found
