@@ -85,6 +85,10 @@ def build_parser():
                           "scenario's own clutch and fork columns")
     sim.add_argument("--plot", action="store_true",
                      help="write PNG plots next to the CSV (or in out/NAME/ without --out)")
+    sim.add_argument("--mapping", metavar="FILE_OR_NAME",
+                     help="the TCU stub talks to the plant through this vehicle matrix (a "
+                          "mapping file, or a shipped one: dct_hil, vehicle) instead of the "
+                          "project's own contract")
     sim.set_defaults(func=cmd_simulate)
 
     bench = sub.add_parser("bench", help="measure the cost of one plant step")
@@ -300,7 +304,7 @@ def _tcu_columns():
 
 
 def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
-                   csv_target_gear=True):
+                   csv_target_gear=True, link=None):
     """Plant + stub TCU in one process, every message through the CAN contract.
 
     Each 2 ms TCU tick: the scenario rows due (or, every 10 ms, ``pedals_fn``)
@@ -320,7 +324,7 @@ def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
     from tcu_stub.offline import DRIVER_PERIOD_S, ContractLink
 
     tcu = TcuLogic()
-    link = ContractLink()
+    link = ContractLink() if link is None else link
     steps_per_tick = max(1, int(round(PERIOD_S / plant.step_s)))
     tick_s = steps_per_tick * plant.step_s
     ticks_per_record = max(1, int(round(RECORD_EVERY_S / tick_s)))
@@ -436,6 +440,20 @@ def _guarded_run(plant, args, fn, *a, **kw):
         raise
 
 
+def _stub_link(args):
+    """(link, description) of the matrix between the plant and the TCU stub."""
+    if not getattr(args, "mapping", None):
+        return None, "the CAN contract"
+    from can_dbc.mapping import MappingError, find_mapping, load
+    from tcu_stub.mapped_link import MappedLink, MissingSignalError
+
+    try:
+        m = load(find_mapping(args.mapping))
+        return MappedLink(m), f"the matrix of {m.path}"
+    except (MappingError, MissingSignalError) as e:
+        raise UserError(str(e)) from None
+
+
 def _simulate_maneuver(args):
     from plant.maneuvers import get_maneuver, report, format_report
     from plant.model import Plant
@@ -450,16 +468,17 @@ def _simulate_maneuver(args):
     duration = m.duration_s if args.duration is None else args.duration
     if duration <= 0:
         raise UserError(f"--duration must be > 0 for maneuver {m.name}")
+    link, through = _stub_link(args)
     plant = Plant(args.params)
     if m.reset_kwargs:
         plant.reset(**m.reset_kwargs)
     try:
         names, data, shifts, wall = _guarded_run(plant, args, _run_with_stub, plant, duration,
-                                                 args.out, pedals_fn=m.driver)
+                                                 args.out, pedals_fn=m.driver, link=link)
     except _Interrupted as e:
         return e.code
     print(f"maneuver          {m.name}  ({m.description})")
-    print("tcu               stub (in-process, through the CAN contract)")
+    print(f"tcu               stub (in-process, through {through})")
     _print_run(plant, float(data[-1, 0]), wall, len(data), args)
     rec = {n: data[:, k] for k, n in enumerate(names)}
     figures = report(m, rec)
@@ -491,6 +510,10 @@ def cmd_simulate(args):
     if tcu == "stub" and scripted:
         raise UserError(f"--tcu stub: scenario {scenario.name} scripts {', '.join(scripted)}, "
                         "which the stub drives; use --tcu none or drop those columns")
+    if tcu == "none" and args.mapping:
+        raise UserError(f"--mapping: scenario {scenario.name} runs without the TCU stub "
+                        "(--tcu none), and the mapping is the stub's matrix")
+    link, through = _stub_link(args) if tcu == "stub" else (None, None)
     plant = Plant(args.params, scenario.param_overrides())
     if tcu == "stub":
         from plant.simulate import start
@@ -500,11 +523,11 @@ def cmd_simulate(args):
         try:
             names, data, _shifts, wall = _guarded_run(
                 plant, args, _run_with_stub, plant, duration, args.out, scenario=scenario,
-                csv_target_gear=False)
+                csv_target_gear=False, link=link)
         except _Interrupted as e:
             return e.code
         print(f"scenario          {scenario.name}  ({scenario.path})")
-        print("tcu               stub (in-process, through the CAN contract): clutches and forks")
+        print(f"tcu               stub (in-process, through {through}): clutches and forks")
         _print_run(plant, float(data[-1, 0]), wall, len(data), args)
         if args.plot:
             _plots(args, names, data, scenario.name)

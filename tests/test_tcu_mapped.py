@@ -92,3 +92,24 @@ def test_a_matrix_without_a_quantity_the_tcu_needs_is_refused_in_one_line(tmp_pa
     text = str(e.value)
     assert "\n" not in text
     assert "vehicle-without.toml" in text and "clutch1_pressure_bar" in text
+
+
+def test_simulate_runs_the_stub_through_a_mapping(capsys):
+    from dct_hil import cli
+
+    assert cli.main(["simulate", "--scenario", "0-100", "--duration", "3", "--mapping",
+                     "vehicle"]) == 0
+    out = capsys.readouterr().out
+    assert "through the matrix of" in out and "vehicle.toml" in out
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--mapping", "no-such-mapping.toml"], "no-such-mapping.toml"),
+    (["--mapping", "vehicle", "--tcu", "none"], "--tcu none"),
+])
+def test_simulate_with_a_bad_mapping_is_one_line(capsys, args, says):
+    from dct_hil import cli
+
+    assert cli.main(["simulate", "--scenario", "0-100", "--duration", "1", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("dct-hil: error:") and says in err[0]
