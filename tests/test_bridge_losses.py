@@ -9,11 +9,10 @@ wait is for a behaviour, with a generous time limit.
 """
 
 import random
-import socket
-import time
 
 import can
 import pytest
+from waiting import wait_until
 
 from can_dbc import codec
 from can_dbc.peer import CanPeer
@@ -27,49 +26,29 @@ from rt_loop.transport import (
 )
 
 TCU_MESSAGES = ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd")
-WAIT_S = 20.0
 #: flood at most this many frames waiting for the kernel to drop some
 MAX_FLOOD_FRAMES = 200_000
 
 
-def wait_until(predicate, timeout=WAIT_S, step=0.01):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value or time.monotonic() > deadline:
-            return value
-        time.sleep(step)
 
 
-def _free_udp_port():
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("", 0))
-        return s.getsockname()[1]
 
 
-@pytest.fixture
-def group():
-    """(multicast group, port) of this test only."""
-    pytest.importorskip("msgpack", reason="python-can's udp_multicast needs msgpack "
-                                          "(pip install 'python-can[multicast]')")
-    rnd = random.Random()
-    return f"239.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}", \
-        _free_udp_port()
 
 
-def _udp_bus(group):
-    address, port = group
+def _udp_bus(udp_group):
+    address, port = udp_group
     return can.Bus(interface="udp_multicast", channel=address, port=port)
 
 
 # ----------------------------------------------------------------- the server
-def test_every_frame_sent_is_accepted_rejected_or_counted_lost(group):
-    address, port = group
+def test_every_frame_sent_is_accepted_rejected_or_counted_lost(udp_group):
+    address, port = udp_group
     # a receive buffer of 8 KiB (the kernel doubles it: about 20 datagrams), so
     # the kernel drops frames as soon as the bridge thread falls behind the flood
     srv = Server(address, interface="udp_multicast", priority=0,
                  bus_kwargs={"port": port, "rcvbuf_bytes": 8192})
-    sender = _udp_bus(group)
+    sender = _udp_bus(udp_group)
     tcu = CanPeer(sender, side="tcu", start=False, send_thread=False)
     sent = {"tcu": 0, "unknown_id": 0, "bad_crc": 0, "error": 0, "remote": 0}
     overflow = can.Message(arbitration_id=0x004, is_error_frame=True,
@@ -173,8 +152,8 @@ def _accounted(srv):
             + b["rx_fd_frames"])
 
 
-def test_the_receive_buffer_is_raised_and_reported(group):
-    address, port = group
+def test_the_receive_buffer_is_raised_and_reported(udp_group):
+    address, port = udp_group
     t = BridgeTransport("udp_multicast", address, port=port)
     try:
         c = t.counters
@@ -192,9 +171,9 @@ def test_the_receive_buffer_is_raised_and_reported(group):
         BridgeTransport("udp_multicast", address, port=port, rcvbuf_bytes="big")
 
 
-def test_kernel_drops_read_two_ways_agree(group):
+def test_kernel_drops_read_two_ways_agree(udp_group):
     """SO_MEMINFO and /proc/net/udp give the same drop count of the bus's socket."""
-    sender, receiver = _udp_bus(group), _udp_bus(group)
+    sender, receiver = _udp_bus(udp_group), _udp_bus(udp_group)
     meminfo = BusWatch(receiver, can, rcvbuf_bytes=4096, drops_from="meminfo")
     proc = BusWatch(receiver, can, drops_from="proc")
     try:

@@ -14,7 +14,6 @@ behaviour, with a generous limit.
 import json
 import os
 import random
-import socket
 import subprocess
 import sys
 import textwrap
@@ -22,6 +21,7 @@ import time
 
 import can
 import pytest
+from waiting import wait_until
 
 from can_dbc import codec
 from can_dbc.peer import CanPeer
@@ -35,33 +35,14 @@ TCU_MESSAGES = ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd")
 ROUNDS = 200
 
 
-def wait_until(predicate, timeout=WAIT_S, step=0.01):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value or time.monotonic() > deadline:
-            return value
-        time.sleep(step)
 
 
-def _free_udp_port():
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("", 0))
-        return s.getsockname()[1]
 
 
-@pytest.fixture
-def group():
-    """(multicast group, port) of this test only."""
-    pytest.importorskip("msgpack", reason="python-can's udp_multicast needs msgpack "
-                                          "(pip install 'python-can[multicast]')")
-    rnd = random.Random()
-    return f"239.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}", \
-        _free_udp_port()
 
 
-def _server(group):
-    address, port = group
+def _server(udp_group):
+    address, port = udp_group
     return Server(address, interface="udp_multicast", priority=0, bus_kwargs={"port": port})
 
 
@@ -122,9 +103,9 @@ def _check_counts(srv, peer_sent):
     return report
 
 
-def test_a_peer_in_another_process_is_heard_and_the_echoes_are_not_traffic(group):
-    address, port = group
-    srv = _server(group)
+def test_a_peer_in_another_process_is_heard_and_the_echoes_are_not_traffic(udp_group):
+    address, port = udp_group
+    srv = _server(udp_group)
     try:
         srv.start()
         env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -142,9 +123,9 @@ def test_a_peer_in_another_process_is_heard_and_the_echoes_are_not_traffic(group
     _check_counts(srv, peer["sent"])
 
 
-def test_a_peer_on_another_bus_object_is_heard_and_the_echoes_are_not_traffic(group):
-    address, port = group
-    srv = _server(group)
+def test_a_peer_on_another_bus_object_is_heard_and_the_echoes_are_not_traffic(udp_group):
+    address, port = udp_group
+    srv = _server(udp_group)
     bus = can.Bus(interface="udp_multicast", channel=address, port=port)
     peer = CanPeer(bus, side="tcu", start=True, send_thread=False,
                    values={"SolenoidCurrent1": 0.4})
@@ -165,11 +146,11 @@ def test_a_peer_on_another_bus_object_is_heard_and_the_echoes_are_not_traffic(gr
     _check_counts(srv, sent)
 
 
-def test_a_copy_of_a_server_frame_sent_again_by_another_program_reaches_the_loop(group):
+def test_a_copy_of_a_server_frame_sent_again_by_another_program_reaches_the_loop(udp_group):
     """A replay keeps the channel field of the frames it recorded: the copy is the
     replaying program's frame, so the loop gets it (a plant message: unknown id)."""
-    address, port = group
-    srv = _server(group)
+    address, port = udp_group
+    srv = _server(udp_group)
     listener = can.Bus(interface="udp_multicast", channel=address, port=port)
     try:
         srv.start()
@@ -257,12 +238,12 @@ def test_a_bus_that_does_not_echo_has_nothing_to_drop():
 
 
 # ----------------------------------------------------- the peer's own echoes
-def test_the_peer_drops_its_own_echoes_and_hears_the_plant(group):
+def test_the_peer_drops_its_own_echoes_and_hears_the_plant(udp_group):
     """The test TCU (CanPeer, which the TCU node uses) on udp_multicast hears
     its own frames looped back too: they are dropped and counted apart, never
     unknown identifiers, while the plant's frames are accepted."""
-    address, port = group
-    srv = _server(group)
+    address, port = udp_group
+    srv = _server(udp_group)
     srv.start()
     bus = can.Bus(interface="udp_multicast", channel=address, port=port)
     peer = CanPeer(bus, side="tcu")

@@ -20,6 +20,7 @@ import uuid
 import can
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from can_dbc import codec
 from can_dbc.peer import CanPeer
@@ -42,13 +43,6 @@ TCU_MESSAGES = ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd")
 WAIT_S = 20.0
 
 
-def wait_until(predicate, timeout=WAIT_S, step=0.01):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value or time.monotonic() > deadline:
-            return value
-        time.sleep(step)
 
 
 def counts(srv):
