@@ -340,6 +340,40 @@ class Mapping:
             raise KeyError(name)
         return hits[0]
 
+    def channels(self, first, named=None, derive=True):
+        """{bus name: CAN channel} for serving (or testing) this mapping.
+
+        The first bus is on ``first`` unless ``named`` (bus name -> channel,
+        from ``--bus NAME=CHANNEL``) names it; every other bus on the channel
+        ``named`` gives it, else (``derive``: in-process and virtual buses)
+        ``f"{first}-{bus}"``, else it is an error. A name in ``named`` that is
+        not a bus of the mapping, or one channel for two buses, is a
+        MappingError (one line)."""
+        named = dict(named or {})
+        known = [b.name for b in self.buses]
+        for name in named:
+            if name not in known:
+                raise MappingError(f"{self.path}: bus {name!r} (from --bus): the mapping's buses "
+                                   f"are {', '.join(known)}")
+        out = {}
+        for i, b in enumerate(self.buses):
+            if b.name in named:
+                out[b.name] = str(named[b.name])
+            elif i == 0:
+                out[b.name] = str(first)
+            elif derive:
+                out[b.name] = f"{first}-{b.name}"
+            else:
+                raise MappingError(f"{self.path}: bus {b.name!r} has no CAN channel: give "
+                                   f"--bus {b.name}=CHANNEL")
+        seen = {}
+        for name, ch in out.items():
+            if ch in seen:
+                raise MappingError(f"{self.path}: buses {seen[ch]!r} and {name!r} are both on "
+                                   f"channel {ch!r}; each bus needs a channel of its own")
+            seen[ch] = name
+        return out
+
     def codec_order(self, bus):
         """The messages of ``bus`` in the order the C codec gets them: first the
         sent ones, then the received ones, each by identifier (standard before
