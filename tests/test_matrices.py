@@ -9,6 +9,7 @@ the set of signals is taken from a closed-loop run of the TCU, not written
 down by hand.
 """
 
+import glob
 import os
 import re
 
@@ -234,8 +235,9 @@ def test_ranges_fit_the_raw_values_and_units_are_known(dbs, matrix):
 
 @pytest.mark.parametrize("matrix", [PT, IO])
 def test_not_available_codes_are_the_start_values(dbs, matrix):
-    """A code named in a signal's comment ("0xFF: not available") lies outside its range
-    and is its GenSigStartValue; every start value other than 0 is such a code, a value
+    """A code named in a signal's comment ("0xFF: not available") is its GenSigStartValue
+    and the top of its range (above every valid value, and sendable: a sender limits values
+    to [minimum, maximum]); every start value other than 0 is such a code, a value
     description, or a constant of the protection (the Data ID nibble)."""
     coded = 0
     for m in dbs[matrix].messages:
@@ -246,11 +248,117 @@ def test_not_available_codes_are_the_start_values(dbs, matrix):
                 coded += 1
                 raw = int(code.group(1), 16)
                 assert s.raw_initial == raw, f"{m.name}.{s.name}: start value {s.raw_initial}"
-                assert raw * s.scale + s.offset > s.maximum, f"{m.name}.{s.name}: code in range"
+                assert raw * s.scale + s.offset == pytest.approx(s.maximum, abs=abs(s.scale) * 1e-6), \
+                    f"{m.name}.{s.name}: code {raw} is not the top of the range {s.minimum}..{s.maximum}"
             elif s.raw_initial:
                 assert s.name == nibble or (s.choices and s.raw_initial in s.choices), \
                     f"{m.name}.{s.name}: start value {s.raw_initial} unexplained"
     assert coded > 0
+
+
+#: every shipped matrix, not only the two above: a new one is checked as it is added
+SHIPPED = sorted(glob.glob(os.path.join(MATRICES, "*.dbc")))
+
+
+def _start_raw(db, sig):
+    """The raw value a sender starts with: GenSigStartValue, else the attribute's
+    default (BA_DEF_DEF_), else None."""
+    if sig.raw_initial is not None:
+        return sig.raw_initial
+    definition = db.dbc.attribute_definitions.get("GenSigStartValue") if db.dbc else None
+    return None if definition is None else definition.default_value
+
+
+def _code_problems(db):
+    """One line per start value or value table entry of a signal that lies outside the
+    signal's [minimum, maximum] or outside what its bits hold (raw units; the tolerance
+    of cantools' own range check, 1e-6 of a step)."""
+    problems = []
+    for m in db.messages:
+        for s in m.signals:
+            codes = [("start value", _start_raw(db, s))]
+            codes += [(f"value {int(k)} ({v})", k) for k, v in sorted((s.choices or {}).items())]
+            lo, hi = (None, None) if s.is_float else _raw_limits(s)
+            ends = [(x - s.offset) / s.scale for x in (s.minimum, s.maximum) if x is not None]
+            rmin = min(ends) if s.minimum is not None and s.maximum is not None else None
+            rmax = max(ends) if s.minimum is not None and s.maximum is not None else None
+            if rmin is None and len(ends) == 1:         # one limit only
+                end = ends[0]
+                below = (s.minimum is not None) == (s.scale > 0)
+                rmin, rmax = (end, None) if below else (None, end)
+            for what, raw in codes:
+                if raw is None:
+                    continue
+                where = f"{m.name}.{s.name}: {what}, raw {raw}"
+                if not s.is_float and (raw != int(raw) or not lo <= raw <= hi):
+                    problems.append(f"{where}, is not a value of its {s.length} bits "
+                                    f"({'signed' if s.is_signed else 'unsigned'}: {lo}..{hi})")
+                    continue
+                if (rmin is not None and raw < rmin - 1e-6) or (rmax is not None and raw > rmax + 1e-6):
+                    phys = raw * s.scale + s.offset
+                    problems.append(f"{where} = {phys:.10g}{' ' + s.unit if s.unit else ''}, lies outside its range "
+                                    f"{s.minimum}..{s.maximum}: a sender cannot send it")
+    return problems
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=os.path.basename)
+def test_start_values_and_value_tables_lie_in_the_range_and_the_bits(path):
+    """A sender (cantools, can_dbc.table's C codec) limits a value to the signal's
+    [minimum, maximum] and to what its bits hold: a start value ("not available" code)
+    or a value description outside them could never be sent."""
+    db = cantools.database.load_file(path, database_format="dbc", strict=True)
+    assert not _code_problems(db), "\n".join(_code_problems(db))
+
+
+@pytest.mark.parametrize("change, problems", [
+    (("[0|16383.75]", "[0|16383.5]"),
+     ["ECM_Speed.EngineSpeed: start value, raw 65535 = 16383.75 rpm, lies outside its range 0..16383.5"]),
+    (("12|4@1- (1,0) [-1|7]", "12|4@1- (1,0) [-1|6]"),
+     ["TCU_Gear.GearEngaged: start value, raw 7 = 7, lies outside its range -1..6",
+      "TCU_Gear.GearEngaged: value 7 (not available), raw 7 = 7, lies outside its range -1..6"]),
+    (("(1,0) [0|3] \"\" TCU,GW", "(1,0) [0|2] \"\" TCU,GW"),
+     ["ECM_Torque.TrqIntervState: value 3 (request refused), raw 3 = 3, lies outside its range 0..2"]),
+    (("SelectorDisplay 15;", "SelectorDisplay 16;"),
+     ["TCU_Gear.SelectorDisplay: start value, raw 16, is not a value of its 4 bits (unsigned: 0..15)"]),
+    (("[-51.2|51.1]", "[1|51.1]"),       # no GenSigStartValue: the default, raw 0
+     ["ESP_Accel.RoadInclination: start value, raw 0 = 0 %, lies outside its range 1..51.1"]),
+])
+def test_the_range_check_finds_a_code_outside(change, problems):
+    """The check above on a copy of vehicle_pt.dbc with one range or start value broken."""
+    with open(os.path.join(MATRICES, f"{PT}.dbc"), encoding="utf-8") as f:
+        text = f.read()
+    old, new = change
+    assert text.count(old) == 1
+    db = cantools.database.load_string(text.replace(old, new), database_format="dbc")
+    found = _code_problems(db)
+    assert len(found) == len(problems), found
+    for line, problem in zip(found, problems):
+        assert line.startswith(problem), found
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=os.path.basename)
+def test_start_values_are_sent_as_they_are(path):
+    """Every message encoded with its signals' start values (each multiplexer branch in
+    turn) by cantools (strict range check) and by the C table codec carries exactly the
+    raw start values."""
+    from can_dbc.table import CodecTable
+
+    db = cantools.database.load_file(path, database_format="dbc", strict=True)
+    table = CodecTable(list(db.messages))
+    for i, m in enumerate(db.messages):
+        mux = next((s for s in m.signals if s.is_multiplexer), None)
+        branches = sorted({b for s in m.signals for b in (s.multiplexer_ids or ())}) or [None]
+        for branch in branches:
+            raw = {s.name: _start_raw(db, s) or 0 for s in m.signals
+                   if not s.multiplexer_ids or branch in s.multiplexer_ids}
+            if mux is not None:
+                raw[mux.name] = branch
+            values = {name: r * m.get_signal_by_name(name).scale + m.get_signal_by_name(name).offset
+                      for name, r in raw.items()}
+            for who, data in (("cantools", m.encode(values, strict=True)),
+                              ("C table codec", table.encode(i, values))):
+                sent = m.decode(data, decode_choices=False, scaling=False)
+                assert sent == raw, f"{m.name} (branch {branch}), {who}: sent {sent}, start values {raw}"
 
 
 def test_the_plants_values_fit_the_vehicle_signals(dbs):
