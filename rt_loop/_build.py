@@ -1,10 +1,10 @@
 """cffi builder of the real-time loop (build time only; never imported at run time).
 
 setup.py names it in ``cffi_modules``; ``scripts/setup`` (or any ``pip
-install``) compiles ``rt_loop/_rt_loop*.so``: the loop itself, the CAN facade
-and the code generated from the DBC, and the plant core, in one extension, so
-the whole tick runs in C without crossing into Python. The cdef is the public
-headers themselves (dct_plant.h, dct_can.h, rt_loop.h), read the same way as
+install``) compiles ``rt_loop/_rt_loop*.so``: the loop itself, the
+table-driven CAN codec and the plant core, in one extension, so the whole
+tick runs in C without crossing into Python. The cdef is the public headers
+themselves (dct_plant.h, can_table.h, rt_loop.h, rt_floor.h), read the same way as
 plant/_build.py reads dct_plant.h: every preprocessor line dropped except
 ``#define NAME <integer>``.
 """
@@ -19,12 +19,10 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 _ROOT = os.path.dirname(_HERE)
 _PLANT_CSRC = os.path.join(_ROOT, "plant", "csrc")
 _CAN_CSRC = os.path.join(_ROOT, "can_dbc", "csrc")
-_CAN_GENERATED = os.path.join(_ROOT, "can_dbc", "generated")
 _RT_CSRC = os.path.join(_HERE, "csrc")
 # in dependency order: each header's types are declared before their use
 _HEADERS = (
     os.path.join(_PLANT_CSRC, "dct_plant.h"),
-    os.path.join(_CAN_CSRC, "dct_can.h"),
     os.path.join(_CAN_CSRC, "can_table.h"),
     os.path.join(_RT_CSRC, "rt_loop.h"),
     os.path.join(_RT_CSRC, "rt_floor.h"),
@@ -56,9 +54,8 @@ def _sources():
     plant = [p for p in sorted(glob.glob(os.path.join(_PLANT_CSRC, "*.c")))
              if os.path.basename(p) != "dct_bench.c"]   # the only file that reads a clock
     can = sorted(glob.glob(os.path.join(_CAN_CSRC, "*.c")))
-    generated = sorted(glob.glob(os.path.join(_CAN_GENERATED, "*.c")))
     loop = sorted(glob.glob(os.path.join(_RT_CSRC, "*.c")))
-    return [_rel(p) for p in plant + can + generated + loop]
+    return [_rel(p) for p in plant + can + loop]
 
 
 def make_builder():
@@ -68,7 +65,7 @@ def make_builder():
         "rt_loop._rt_loop",
         '#include "rt_loop.h"\n#include "rt_floor.h"\n#include "can_table.h"',
         sources=_sources(),
-        include_dirs=[_rel(d) for d in (_RT_CSRC, _CAN_CSRC, _CAN_GENERATED, _PLANT_CSRC)],
+        include_dirs=[_rel(d) for d in (_RT_CSRC, _CAN_CSRC, _PLANT_CSRC)],
         extra_compile_args=_COMPILE_ARGS,
         define_macros=[("_GNU_SOURCE", None)],   # recvmmsg, sendmmsg, CPU_SET
         libraries=["m", "pthread"],

@@ -6,9 +6,10 @@ lock); this thread drains the ring about 20 times per second and appends the
 rows to a CSV file. The columns are those of ``dct-hil simulate`` (every
 plant output, ``time_s`` first, in plant time), then ``maneuver_time_s``
 (plant time since the scripted maneuver started, ``nan`` before), ``tick``
-(the executed tick), and the commands the loop applied that the outputs do
-not already hold, as ``cmd_<name>`` (among them ``cmd_target_gear``, the
-TCU's TargetGear, which drives no input). Samples the loop could not put in the
+(the executed tick), and the received values the loop applied (the
+mapping's inputs and recorded names, ``command_names``) that the outputs do
+not already hold, as ``cmd_<name>`` (with the project's own contract among
+them ``cmd_target_gear``, the TCU's TargetGear, which drives no input). Samples the loop could not put in the
 ring because this thread fell behind are counted (``dropped``), never lost
 silently.
 """
@@ -33,8 +34,9 @@ class Recorder(RingDrain):
     ring, pop, entry, batch, poll_s, thread_name = (
         "rec", "rt_rec_pop_many", "rt_sample", _BATCH, 0.05, "recorder")
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, command_names: list[str] | tuple = ()) -> None:
         super().__init__(path)
+        self.command_names = list(command_names)
         folder = os.path.dirname(os.path.abspath(self.path))
         try:
             os.makedirs(folder, exist_ok=True)
@@ -44,7 +46,7 @@ class Recorder(RingDrain):
 
     def start(self, ffi: Any, lib: Any, loop: Any) -> None:
         outputs = [name for name, _ in ffi.typeof("dct_outputs").fields]
-        commands = _flat_doubles(ffi, "dct_tcu_commands")
+        commands = list(enumerate(self.command_names))
         sample = ffi.typeof("rt_sample")
         fields = dict(sample.fields)
         self._n_doubles = ffi.sizeof(sample) // 8
@@ -52,7 +54,7 @@ class Recorder(RingDrain):
             raise TypeError("rt_sample must be a uint64 tick followed by doubles")
         base_o = fields["outputs"].offset // 8
         base_c = fields["commands"].offset // 8
-        cmd_extra = [(k, n) for n, k in commands if n not in outputs]
+        cmd_extra = [(k, n) for k, n in commands if n not in outputs]
         # column order: outputs (time_s first), maneuver_time_s, tick, cmd_*
         self.columns = outputs + ["maneuver_time_s", "tick"] + [f"cmd_{n}" for _, n in cmd_extra]
         self._out_idx = np.arange(base_o, base_o + len(outputs))
@@ -80,20 +82,6 @@ class Recorder(RingDrain):
 
     def _close(self) -> None:
         self._file.close()
-
-def _flat_doubles(ffi: Any, cname: str) -> list[tuple[str, int]]:
-    """(name, index in doubles) of every double of a struct; an array field
-    ``fork_force_n[4]`` gives fork_force1_n .. fork_force4_n."""
-    out = []
-    for name, field in ffi.typeof(cname).fields:
-        first = field.offset // 8
-        if field.type.kind == "array":
-            base, _, unit = name.rpartition("_")
-            out.extend((f"{base}{i + 1}_{unit}", first + i) for i in range(field.type.length))
-        else:
-            out.append((name, first))
-    return out
-
 
 def read_recording(path: str | os.PathLike) -> dict:
     """A recording as {column: float array}; maneuver times before the start are NaN."""

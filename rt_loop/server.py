@@ -34,13 +34,14 @@ from typing import Any, Callable, TextIO
 
 from rt_loop import status as _status
 from rt_loop import verdict as _verdict
+from rt_loop.channels import ChannelError, LoopChannels
 from rt_loop.drain import RingDrain
 from rt_loop.drain import one_line as _one_line
 from rt_loop.pm_qos import DEFAULT_LATENCY_US as DEFAULT_PM_QOS_US
 from rt_loop.pm_qos import PmQos
 from rt_loop.recorder import Recorder
 from rt_loop.stats import StatsReader, machine_info
-from rt_loop.transport import Transport, TransportError, open_transport
+from rt_loop.transport import Transport, TransportError, default_interface, open_transport
 
 __all__ = [
     "LOG_FORMATS",
@@ -131,11 +132,13 @@ class TrafficLogger(RingDrain):
     ring, pop, entry, batch, poll_s, thread_name = (
         "log", "rt_log_pop_many", "rt_log_entry", _LOG_BATCH, 0.02, "can-log")
 
-    def __init__(self, path: str | os.PathLike, channel: str) -> None:
+    def __init__(self, path: str | os.PathLike, channel: str | list[str]) -> None:
         import can  # noqa: PLC0415
 
         super().__init__(path)
-        self.channel = channel
+        channels = [channel] if isinstance(channel, str) else list(channel)
+        self.channel = channels[0]
+        self.channels = channels
         suffix = os.path.splitext(self.path)[1].lower()
         self.format = LOG_FORMATS.get(suffix, suffix)
         try:
@@ -146,7 +149,7 @@ class TrafficLogger(RingDrain):
             raise ServerError(f"traffic log {self.path}: {cause}; known formats: {known}"
                               ) from None
         self._can = can
-        self._msg_channel = _log_channel(channel, suffix)
+        self._msg_channels = _log_channels(channels, suffix)
 
     def start(self, ffi: Any, lib: Any, loop: Any, wall0: float) -> None:
         self._wall0 = wall0
@@ -155,11 +158,13 @@ class TrafficLogger(RingDrain):
 
     def _write(self, buf: Any, n: int) -> None:
         ffi, can, rx = self._ffi, self._can, self._rx
+        fd_flag, brs_flag = self._lib.RT_FRAME_FD, self._lib.RT_FRAME_BRS
         for i in range(n):
             e = buf[i]
             f = e.frame
             ident = int(f.id)
-            length = min(int(f.len), 8)
+            length = min(int(f.len), 64)
+            index = int(f.channel)
             self.writer.on_message_received(can.Message(
                 timestamp=self._wall0 + e.time_s,
                 arbitration_id=ident & 0x1FFFFFFF,
@@ -168,7 +173,9 @@ class TrafficLogger(RingDrain):
                 dlc=length,
                 data=ffi.unpack(ffi.cast("char *", f.data), length),
                 is_rx=e.dir == rx,
-                channel=self._msg_channel,
+                is_fd=bool(int(f.flags) & fd_flag),
+                bitrate_switch=bool(int(f.flags) & brs_flag),
+                channel=self._msg_channels[index] if index < len(self._msg_channels) else None,
             ))
 
     def _close(self) -> None:
@@ -176,6 +183,16 @@ class TrafficLogger(RingDrain):
 
     def counters(self) -> dict:
         return {**super().counters(), "format": self.format}
+
+
+def _log_channels(channels: list[str], suffix: str) -> list:
+    """The channel written with the frames of each bus: ``_log_channel`` of its
+    name; for several buses whose names give no distinct numbers, 1, 2, ... in
+    the mapping's order."""
+    out = [_log_channel(c, suffix) for c in channels]
+    if len(channels) > 1 and suffix != ".log" and (None in out or len(set(out)) < len(out)):
+        out = list(range(1, len(channels) + 1))
+    return out
 
 
 def _log_channel(channel: str, suffix: str) -> str | int | None:
@@ -229,7 +246,15 @@ class Server:
     polling: in an emulated machine that takes CPU time from the busy ones).
     A request the kernel refuses is a warning, not an error (``pm_qos.error``).
 
-    Errors in the arguments, the parameters (``ParamError``) or the
+    ``mapping``: the CAN matrix the plant plays, a mapping file (path or the
+    name of a shipped one, ``can_dbc.mapping``; default the project's own
+    contract, ``dct_hil``) or a loaded ``Mapping``. Its first bus is served on
+    ``channel``, the others on the channels ``bus_channels`` names (bus name
+    -> channel), else, on interfaces other than SocketCAN, on
+    ``f"{channel}-{bus}"`` (``Mapping.channels``); each bus has a transport
+    of its own (``transports``; ``transport`` is the first).
+
+    Errors in the arguments, the mapping (``MappingError``), the parameters (``ParamError``) or the
     transport (``TransportError``) are raised with one-line messages.
     """
 
@@ -243,7 +268,9 @@ class Server:
                  record_path: str | os.PathLike | None = None,
                  record_every_s: float = 0.002,
                  pm_qos_us: int | str | None = "auto",
-                 pm_qos_path: str | None = None) -> None:
+                 pm_qos_path: str | None = None, mapping: Any = None,
+                 bus_channels: dict | None = None) -> None:
+        from can_dbc import mapping as _mapping  # noqa: PLC0415
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
         self.channel = _check_channel(channel)
@@ -307,14 +334,28 @@ class Server:
         self.bus_kwargs = dict(bus_kwargs or {})
 
         self._ffi, self._lib = ffi, lib = _extension()
+        if isinstance(mapping, _mapping.Mapping):
+            self.mapping = mapping
+        else:
+            path = _mapping.find_mapping(_mapping.DEFAULT_MAPPING if mapping is None else mapping)
+            self.mapping = _mapping.load(path, rate_hz=self.rate_hz)
+        iface = interface if interface is not None else default_interface(self.channel)[0]
+        #: bus name -> the CAN channel it is served on
+        self.bus_channels = self.mapping.channels(self.channel, bus_channels,
+                                                  derive=iface != "socketcan")
+        try:
+            self.channels = LoopChannels(self.mapping, ffi, lib)
+        except (ChannelError, ValueError) as e:
+            raise ServerError(_one_line(e)) from None
         overrides = {**HYDRAULICS, "solver": {"step_s": self.step_s}}
         self.params = load_params(self.params_path, ffi, overrides)
         self._l = ffi.new("rt_loop *")  # zeroed; lives as long as this object
         fill_params(ffi, self._l.plant.params, self.params)
-        self.stats = StatsReader(ffi, lib, self._l)
+        self.stats = StatsReader(ffi, lib, self._l, self.channels)
         self._read_lock = threading.Lock()   # one copy of the statistics, many readers
 
         self.transport: Transport | None = None
+        self.transports: list[Transport] = []
         self.logger: TrafficLogger | None = None
         self.recorder: Recorder | None = None
         self.warnings: list[str] = []
@@ -346,12 +387,18 @@ class Server:
         self._started = True
         ffi, lib, loop = self._ffi, self._lib, self._l
         try:
-            self.transport = open_transport(self.interface, self.channel, **self.bus_kwargs)
+            for bus in self.mapping.buses:
+                kwargs = dict(self.bus_kwargs)
+                if bus.fd:
+                    kwargs["fd"] = True
+                self.transports.append(open_transport(self.interface,
+                                                      self.bus_channels[bus.name], **kwargs))
+            self.transport = self.transports[0]
             if self.log_path is not None:
-                self.logger = TrafficLogger(self.log_path, self.channel)
+                self.logger = TrafficLogger(self.log_path, list(self.bus_channels.values()))
             if self.record_path is not None:
                 try:
-                    self.recorder = Recorder(self.record_path)
+                    self.recorder = Recorder(self.record_path, self.channels.command_names)
                 except OSError as e:
                     raise ServerError(str(e)) from None
 
@@ -373,7 +420,7 @@ class Server:
             cfg.spin_us = self.spin_us
             cfg.duration_s = 0.0 if self.duration_s is None else self.duration_s
             cfg.log_frames = int(self.logger is not None)
-            self.transport.configure(cfg, lib)
+            self.channels.install(loop, self.transports)
             rc = lib.rt_loop_prepare(loop)
             if rc == -errno.EDOM:
                 raise ServerError("the plant core rejected the parameter set (dct_plant_init "
@@ -386,7 +433,8 @@ class Server:
             if self.pm_qos is not None and not self.pm_qos.acquire():
                 self.warnings.append(f"PM QoS not held ({self.pm_qos.error}): idle CPUs may "
                                      "wake up late (tens to hundreds of us)")
-            self.transport.start(ffi, lib, loop)
+            for i, t in enumerate(self.transports):
+                t.start(ffi, lib, loop, i)
             self._t_start = time.monotonic()
             wall0 = time.time()
             if self.logger is not None:
@@ -527,8 +575,8 @@ class Server:
             self.pm_qos.release()
 
     def _stop_transport(self) -> None:
-        if self.transport is not None:
-            self.transport.stop()
+        for t in self.transports:
+            t.stop()
 
     def _stop_logger(self) -> None:
         if self.logger is not None:
@@ -539,8 +587,14 @@ class Server:
             self.recorder.stop()
 
     def _close_transport(self) -> None:
-        if self.transport is not None:
-            self.transport.close()
+        errors = []
+        for t in self.transports:
+            try:
+                t.close()
+            except Exception as e:  # noqa: BLE001 (every bus is closed; the first error raised)
+                errors.append(e)
+        if errors:
+            raise errors[0]
 
     def __enter__(self) -> Server:
         self.start()
@@ -588,11 +642,13 @@ class Server:
         counts = self.stats.counts()
         counts["log"] = {"written": 0 if self.logger is None else self.logger.written,
                          "dropped": int(self._l.log.dropped)}
-        bridge = {}
-        if self.transport is not None and not self.transport.hard_real_time:
-            bridge = {key: value for key, value in self.transport.counters.items()
-                      if key != "last_error"}
+        bridges = [t for t in self.transports if not t.hard_real_time]
+        bridge = _sum_counters([t.counters for t in bridges])
         counts["bridge"] = bridge
+        for t, (name, ch) in zip(self.transports, counts["channels"].items()):
+            ch["channel"] = t.channel
+            if not t.hard_real_time and len(self.transports) > 1:
+                ch["bridge"] = {k: v for k, v in t.counters.items() if k != "last_error"}
         # frames lost: those the loop counted (a full ring, or the kernel's drops of
         # the SocketCAN socket) and those lost below the bridge (the kernel's drops of
         # the bus's UDP socket); controller overflows are events of unknown size
@@ -607,27 +663,34 @@ class Server:
     def _sample_rings(self) -> None:
         """Notes how many frames wait in the bridge's rings now (rx: for the loop, tx:
         for the bridge thread): a frame waits there while the other side is late."""
-        if not self.running or self.transport is None or self.transport.hard_real_time:
+        if not self.running or all(t.hard_real_time for t in self.transports):
             return
         size = self._lib.RT_RING_SIZE
-        for name in ("rx", "tx"):
-            ring = getattr(self._l, name)
-            waiting = (int(ring.head) - int(ring.tail)) & 0xFFFFFFFF
-            if waiting <= size:              # head and tail are read one after the other
-                key = f"{name}_waiting_max"
-                self._rings[key] = max(self._rings[key], waiting)
+        for i, t in enumerate(self.transports):
+            if t.hard_real_time:
+                continue
+            for name in ("rx", "tx"):
+                ring = getattr(self._l, name)[i]
+                waiting = (int(ring.head) - int(ring.tail)) & 0xFFFFFFFF
+                if waiting <= size:              # head and tail are read one after the other
+                    key = f"{name}_waiting_max"
+                    self._rings[key] = max(self._rings[key], waiting)
         self._rings["samples"] += 1
 
     def rings_report(self) -> dict | None:
         """The most frames seen waiting in the bridge's rx and tx rings at a status read
         (``snapshot``), and how many reads there were; None without a bridge. A sampled
         figure: frames that waited between two reads are not seen."""
-        if self.transport is None or self.transport.hard_real_time:
+        if not self.transports or all(t.hard_real_time for t in self.transports):
             return None
         return {**self._rings, "size": int(self._lib.RT_RING_SIZE)}
 
     def transport_counters(self) -> dict:
-        return self.transport.counters if self.transport is not None else {}
+        """The transports' own counters: the first bus's, or with several buses
+        their sums (``counts.channels`` has each bus's)."""
+        if len(self.transports) == 1:
+            return self.transports[0].counters
+        return _sum_counters([t.counters for t in self.transports])
 
     def config(self) -> dict:
         s = self.stats.copy
@@ -649,6 +712,18 @@ class Server:
             "interface": None if t is None else t.interface,
             "interface_chosen_because": None if t is None else t.chosen_because,
             "channel": self.channel,
+            "mapping": self.mapping.path,
+            "buses": [{"name": b.name, "channel": self.bus_channels[b.name],
+                       "dbc": b.dbc, "bitrate": b.bitrate, "fd": b.fd,
+                       "transport": (None if i >= len(self.transports) else
+                                     "socketcan" if self.transports[i].hard_real_time
+                                     else "bridge"),
+                       "sends": [m.name for m in self.mapping.messages
+                                 if m.bus == b.name and m.direction == "send"],
+                       "receives": [m.name for m in self.mapping.messages
+                                    if m.bus == b.name and m.direction == "receive"]}
+                      for i, b in enumerate(self.mapping.buses)],
+            "commands": list(self.channels.command_names),
             "params": self.params_path,
             "hydraulics": "solenoid currents (pressure_commanded = 0)",
             "log": self.log_path,
@@ -720,6 +795,27 @@ class Server:
             f.write("\n")
         os.replace(tmp, path)
         return report
+
+
+def _sum_counters(counters: list[dict]) -> dict:
+    """Counters of several transports added up key by key (numbers and dicts of
+    numbers; anything else is the first's). ``last_error`` is left out."""
+    out: dict = {}
+    for c in counters:
+        for key, value in c.items():
+            if key == "last_error":
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float, dict)):
+                out.setdefault(key, value)
+            elif isinstance(value, dict):
+                d = out.setdefault(key, {})
+                for k, v in value.items():
+                    d[k] = d.get(k, 0) + v if isinstance(v, (int, float)) else v
+            elif key in out and isinstance(out[key], (int, float)):
+                out[key] += value
+            else:
+                out[key] = value
+    return out
 
 
 def _resident_mb() -> float:

@@ -35,7 +35,6 @@ __all__ = [
     "StatsReader",
     "hist_percentiles",
     "machine_info",
-    "rx_message_names",
 ]
 
 #: (percent, key) of the figures reported for every time
@@ -57,16 +56,6 @@ _RX_COUNTS = (("frames", "rx_frames"), ("accepted", "rx_accepted"),
               ("bad_crc", "rx_bad_crc"), ("bad_counter", "rx_bad_counter"),
               ("overflow", "rx_overflow"))
 _TX_COUNTS = (("frames", "tx_frames"), ("dropped", "tx_dropped"))
-
-
-def rx_message_names(lib: Any) -> list[str]:
-    """DBC names of the TCU messages, in the order of the rx tables (DCT_RX_*)."""
-    names = [""] * lib.DCT_CAN_N_RX
-    for const, name in (("DCT_RX_CLUTCH_CMD", "TCU_ClutchCmd"),
-                        ("DCT_RX_SHIFT_CMD", "TCU_ShiftCmd"),
-                        ("DCT_RX_ENGINE_CMD", "TCU_EngineCmd")):
-        names[getattr(lib, const)] = name
-    return [name or f"rx{i}" for i, name in enumerate(names)]
 
 
 def hist_percentiles(hist: np.ndarray, max_us: float) -> dict:
@@ -108,9 +97,11 @@ class StatsReader:
     returns it; when the loop kept writing through every retry of
     ``rt_stats_read`` the previous copy is kept and ``read_failures`` counts
     it. ``timing()``, ``counts()`` and ``plant()`` describe the last copy.
+    ``channels`` (``rt_loop.channels.LoopChannels``) names the buses,
+    messages and command values of the loop's numbering.
     """
 
-    def __init__(self, ffi: Any, lib: Any, loop: Any) -> None:
+    def __init__(self, ffi: Any, lib: Any, loop: Any, channels: Any) -> None:
         self._ffi, self._lib, self._loop = ffi, lib, loop
         self._work = ffi.new("rt_stats *")
         self.copy = ffi.new("rt_stats *")
@@ -119,7 +110,14 @@ class StatsReader:
             key: np.frombuffer(ffi.buffer(getattr(self.copy, field)), dtype=np.uint64)
             for key, field, _, _ in TIMES
         }
-        self.rx_names = rx_message_names(lib)
+        names = channels.message_names()
+        self.buses = list(channels.buses)
+        #: (index in rt_stats.msgs, name) of the received and of the sent messages
+        self.rx_messages = [(i, names[i]) for i, (_, m) in enumerate(channels.messages)
+                            if m.direction == "receive"]
+        self.tx_messages = [(i, names[i]) for i, (_, m) in enumerate(channels.messages)
+                            if m.direction == "send"]
+        self.command_names = list(channels.command_names)
         self.read_failures = 0
         self.reads = 0
 
@@ -153,12 +151,22 @@ class StatsReader:
         s = self.copy
         rx = {key: int(getattr(s, field)) for key, field in _RX_COUNTS}
         rx["rejected"] = rx["unknown_id"] + rx["bad_length"] + rx["bad_crc"] + rx["bad_counter"]
-        tcu = {
-            name: {"accepted": int(s.rx_per_msg[i]),
-                   "timeouts": int(s.timeout_events[i]),
-                   "timed_out": bool(s.timed_out[i])}
-            for i, name in enumerate(self.rx_names)
-        }
+        tcu = {}
+        for i, name in self.rx_messages:
+            m = s.msgs[i]
+            tcu[name] = {"accepted": int(m.frames), "bad_length": int(m.bad_length),
+                         "bad_crc": int(m.bad_crc), "bad_counter": int(m.bad_counter),
+                         "timeouts": int(m.timeouts), "timed_out": bool(m.timed_out)}
+        plant = {name: {"sent": int(s.msgs[i].frames), "dropped": int(s.msgs[i].dropped)}
+                 for i, name in self.tx_messages}
+        channels = {}
+        for k, bus in enumerate(self.buses):
+            c = s.chan[k]
+            crx = {key: int(getattr(c, field)) for key, field in _RX_COUNTS}
+            crx["rejected"] = (crx["unknown_id"] + crx["bad_length"] + crx["bad_crc"]
+                               + crx["bad_counter"])
+            channels[bus] = {"rx": crx,
+                             "tx": {key: int(getattr(c, field)) for key, field in _TX_COUNTS}}
         return {
             "ticks": int(s.ticks),
             "overruns": int(s.overruns),
@@ -166,12 +174,22 @@ class StatsReader:
             "rx": rx,
             "tx": {key: int(getattr(s, field)) for key, field in _TX_COUNTS},
             "tcu_messages": tcu,
+            "plant_messages": plant,
+            "channels": channels,
             "timeouts": sum(m["timeouts"] for m in tcu.values()),
         }
 
+    def commands(self) -> dict:
+        """{name: value} of the received values as applied in the last tick."""
+        c = self.copy.commands
+        return {name: float(c[i]) for i, name in enumerate(self.command_names)}
+
     def plant(self) -> dict:
-        """Key plant signals and the commands applied in the last tick."""
-        o, c = self.copy.outputs, self.copy.commands
+        """Key plant signals and the commands applied in the last tick (the
+        solenoid currents as the plant applied them; a torque request the
+        mapping does not carry is None)."""
+        o = self.copy.outputs
+        cmd = self.commands()
         syncs = [(int(round(getattr(o, f"sync{i}_state"))), int(round(getattr(o, f"sync{i}_gear"))))
                  for i in range(1, 5)]
         return {
@@ -185,11 +203,12 @@ class StatsReader:
             "line_pressure_bar": float(o.line_pressure_bar),
             "sync_state": [state for state, _ in syncs],
             "sync_gear": [gear for _, gear in syncs],
-            "solenoid_current1_a": float(c.solenoid_current1_a),
-            "solenoid_current2_a": float(c.solenoid_current2_a),
-            "line_solenoid_current_a": float(c.line_solenoid_current_a),
-            "engine_torque_request_nm": float(c.engine_torque_request_nm),
-            "torque_request_active": float(c.torque_request_active),
+            "solenoid_current1_a": float(o.solenoid_current1_a),
+            "solenoid_current2_a": float(o.solenoid_current2_a),
+            "line_solenoid_current_a": float(o.line_solenoid_current_a),
+            "engine_torque_request_nm": cmd.get("engine_torque_request_nm"),
+            "torque_request_active": cmd.get("torque_request_active"),
+            "commands": cmd,
         }
 
 

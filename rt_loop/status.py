@@ -78,6 +78,13 @@ def _short(name: str) -> str:
     return name.removeprefix("TCU_")
 
 
+def _torque_request(p: dict) -> str:
+    nm, active = p.get("engine_torque_request_nm"), p.get("torque_request_active")
+    if nm is None:
+        return "not in the mapping"
+    return f"{nm:.0f} Nm {'on' if active else 'off'}"
+
+
 def screen_lines(snap: dict, server: Any = None) -> list[str]:
     """The live status as a screen of lines (each under 80 columns for usual figures)."""
     c, p = snap["counts"], snap["plant"]
@@ -102,8 +109,7 @@ def screen_lines(snap: dict, server: Any = None) -> list[str]:
         "timeouts    " + "   ".join(
             f"{_short(name)} {m['timeouts']}{' TIMED OUT' if m['timed_out'] else ''}"
             for name, m in c["tcu_messages"].items()),
-        f"engine      {p['engine_speed_rpm']:.0f} rpm, torque request "
-        f"{p['engine_torque_request_nm']:.0f} Nm {'on' if p['torque_request_active'] else 'off'}"
+        f"engine      {p['engine_speed_rpm']:.0f} rpm, torque request {_torque_request(p)}"
         f"   vehicle {_z(p['vehicle_speed_kmh'], 1):.1f} km/h",
         f"clutches    K1 {_z(p['clutch1_pressure_bar']):.2f} bar "
         f"{p['solenoid_current1_a']:.2f} A   "

@@ -194,22 +194,24 @@ def open_transport(interface: str | None, channel: str, **bus_kwargs: Any) -> Tr
 
     ``"socketcan"`` gives a ``SocketCanTransport`` (hard real time); any
     other python-can interface a ``BridgeTransport`` (soft real time), with
-    ``bus_kwargs`` passed to ``can.Bus`` (e.g. ``bitrate``), except the
+    ``bus_kwargs`` passed to ``can.Bus`` (e.g. ``bitrate``, ``fd``), except the
     bridge's own ``poll_s`` and ``rcvbuf_bytes`` (the receive buffer asked
     for on the bus's UDP sockets, None: the kernel's default). ``None`` picks
     ``default_interface(channel)``; the choice and its reason are in the
-    transport's ``chosen_because`` (None when the caller chose).
+    transport's ``chosen_because`` (None when the caller chose). ``fd=True``
+    makes a SocketCAN socket carry CAN FD frames (CAN_RAW_FD_FRAMES).
     """
     because = None
     if interface is None:
         interface, because = default_interface(channel)
     check_interface(interface)
     if interface == "socketcan":
+        fd = bool(bus_kwargs.pop("fd", False))
         if bus_kwargs:
             names = ", ".join(sorted(bus_kwargs))
             raise TransportError(f"socketcan takes no bus options ({names}); set the bit rate "
                                  f"with 'ip link set {channel} type can bitrate ...'")
-        transport: Transport = SocketCanTransport(channel)
+        transport: Transport = SocketCanTransport(channel, fd=fd)
     else:
         transport = BridgeTransport(interface, channel, **bus_kwargs)
     transport.chosen_because = because
@@ -224,9 +226,11 @@ class Transport:
     """What the server needs from a transport.
 
     Life cycle: construct (opens the socket or bus, may raise
-    ``TransportError``) -> ``configure(cfg)`` (fills ``rt_config``) ->
-    ``rt_loop_prepare`` -> ``start(ffi, lib, loop)`` -> the loop runs ->
-    ``stop()`` after the loop has returned -> ``close()``.
+    ``TransportError``) -> ``configure(chan, lib)`` (fills the transport
+    fields of the loop's ``rt_channel``) -> ``rt_loop_prepare`` ->
+    ``start(ffi, lib, loop, index)`` (``index``: the channel's index in
+    ``rt_loop.chan``) -> the loop runs -> ``stop()`` after the loop has
+    returned -> ``close()``. ``fd``: the bus carries CAN FD frames.
     """
 
     #: "socketcan" or the python-can interface name
@@ -237,10 +241,13 @@ class Transport:
     #: why open_transport picked this interface (None: the caller chose it)
     chosen_because: str | None = None
 
-    def configure(self, cfg: Any, lib: Any) -> None:
+    #: the bus carries CAN FD frames
+    fd: bool = False
+
+    def configure(self, chan: Any, lib: Any) -> None:
         raise NotImplementedError
 
-    def start(self, ffi: Any, lib: Any, loop: Any) -> None:
+    def start(self, ffi: Any, lib: Any, loop: Any, index: int = 0) -> None:
         """Called after rt_loop_prepare, before the loop thread starts."""
 
     def stop(self) -> None:
@@ -284,9 +291,10 @@ class SocketCanTransport(Transport):
 
     hard_real_time = True
 
-    def __init__(self, channel: str, rcvbuf_bytes: int = RCVBUF_BYTES) -> None:
+    def __init__(self, channel: str, rcvbuf_bytes: int = RCVBUF_BYTES, fd: bool = False) -> None:
         self.interface = "socketcan"
         self.channel = channel
+        self.fd = bool(fd)
         self._sock: socket.socket | None = None
         af_can = getattr(socket, "AF_CAN", None)
         if af_can is None or not hasattr(socket, "CAN_RAW"):
@@ -313,6 +321,12 @@ class SocketCanTransport(Transport):
                     hint = e.strerror or str(e)
                 raise TransportError(f"SocketCAN {channel}: cannot bind: {hint}") from None
             sock.setblocking(False)
+            if self.fd:
+                try:
+                    sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FD_FRAMES, 1)
+                except (OSError, AttributeError) as e:
+                    raise TransportError(f"SocketCAN {channel}: CAN FD frames refused: "
+                                         f"{getattr(e, 'strerror', None) or e}") from None
             self.rcvbuf_bytes = self._raise_rcvbuf(sock, rcvbuf_bytes)
             try:
                 sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
@@ -339,11 +353,12 @@ class SocketCanTransport(Transport):
             raise TransportError(f"SocketCAN {self.channel}: the socket is closed")
         return self._sock.fileno()
 
-    def configure(self, cfg: Any, lib: Any) -> None:
-        cfg.transport = lib.RT_TRANSPORT_SOCKETCAN
-        cfg.fd = self.fileno()
+    def configure(self, chan: Any, lib: Any) -> None:
+        chan.transport = lib.RT_TRANSPORT_SOCKETCAN
+        chan.fd = self.fileno()
+        chan.fd_frames = 1 if self.fd else 0
 
-    def start(self, ffi: Any, lib: Any, loop: Any) -> None:
+    def start(self, ffi: Any, lib: Any, loop: Any, index: int = 0) -> None:
         # rt_loop_prepare has set the buffer sizes again: report what holds now
         if self._sock is not None:
             self.rcvbuf_bytes = self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
@@ -724,6 +739,7 @@ class BridgeTransport(Transport):
         self.interface = interface
         self.channel = channel
         self.poll_s = float(poll_s)
+        self.fd = bool(bus_kwargs.get("fd", False))
         if interface in _NOT_BRIDGED:
             raise TransportError(f"interface {interface}: {_NOT_BRIDGED[interface]}")
         check_interface(interface)
@@ -757,16 +773,18 @@ class BridgeTransport(Transport):
                                  f"the bus: {_one_line(e)}") from None
 
     # -- set-up
-    def configure(self, cfg: Any, lib: Any) -> None:
-        cfg.transport = lib.RT_TRANSPORT_RING
-        cfg.fd = -1
+    def configure(self, chan: Any, lib: Any) -> None:
+        chan.transport = lib.RT_TRANSPORT_RING
+        chan.fd = -1
+        chan.fd_frames = 1 if self.fd else 0
 
-    def start(self, ffi: Any, lib: Any, loop: Any) -> None:
+    def start(self, ffi: Any, lib: Any, loop: Any, index: int = 0) -> None:
         if self._thread is not None:
             raise TransportError("the bridge is already running")
         self._ffi, self._lib = ffi, lib
-        self._rx_ring = ffi.addressof(loop[0], "rx")
-        self._tx_ring = ffi.addressof(loop[0], "tx")
+        self._flag_fd, self._flag_brs = lib.RT_FRAME_FD, lib.RT_FRAME_BRS
+        self._rx_ring = ffi.addressof(loop[0].rx, index)
+        self._tx_ring = ffi.addressof(loop[0].tx, index)
         self._loop = loop  # keeps the rings alive while the thread runs
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="can-bridge", daemon=True)
@@ -864,7 +882,9 @@ class BridgeTransport(Transport):
             self._on_error_frame(msg)
         elif msg.is_remote_frame:
             self._count("rx_remote_frames")
-        elif msg.is_fd or msg.dlc > 8 or len(msg.data) > 8:
+        elif not self.fd and (msg.is_fd or msg.dlc > 8 or len(msg.data) > 8):
+            self._count("rx_fd_frames")
+        elif len(msg.data) > 64:
             self._count("rx_fd_frames")
         else:
             return False
@@ -872,8 +892,8 @@ class BridgeTransport(Transport):
 
     def _run(self) -> None:
         ffi = self._ffi
-        rxbuf = ffi.new("dct_can_frame[]", BRIDGE_BATCH)
-        txbuf = ffi.new("dct_can_frame[]", BRIDGE_BATCH)
+        rxbuf = ffi.new("rt_frame[]", BRIDGE_BATCH)
+        txbuf = ffi.new("rt_frame[]", BRIDGE_BATCH)
         stopping = False
         next_watch = time.monotonic() + BRIDGE_WATCH_S
         while True:
@@ -934,6 +954,8 @@ class BridgeTransport(Transport):
                     if msg.is_extended_id else msg.arbitration_id & 0x7FF
                 data = bytes(msg.data)
                 f.len = len(data)
+                f.flags = ((self._flag_fd if msg.is_fd else 0)
+                           | (self._flag_brs if msg.is_fd and msg.bitrate_switch else 0))
                 ffi.memmove(f.data, data, len(data))
                 n += 1
         except Exception as e:  # a python-can backend may raise anything
@@ -956,7 +978,8 @@ class BridgeTransport(Transport):
             n = lib.rt_ring_pop_many(self._tx_ring, buf, BRIDGE_BATCH)
             for i in range(n):
                 f = buf[i]
-                length = min(int(f.len), 8)
+                is_fd = bool(int(f.flags) & self._flag_fd)
+                length = min(int(f.len), 64 if is_fd else 8)
                 ident = int(f.id)
                 channel, seq = self.channel, None
                 if own is not None:
@@ -964,7 +987,8 @@ class BridgeTransport(Transport):
                 msg = can.Message(arbitration_id=ident & CAN_EFF_MASK,
                                   is_extended_id=bool(ident & CAN_EFF_FLAG),
                                   data=ffi.unpack(ffi.cast("char *", f.data), length),
-                                  dlc=length, is_rx=False, channel=channel)
+                                  dlc=length, is_rx=False, channel=channel, is_fd=is_fd,
+                                  bitrate_switch=bool(int(f.flags) & self._flag_brs))
                 try:
                     self.bus.send(msg, timeout=0.005)
                 except Exception as e:  # counted, the next frame is tried

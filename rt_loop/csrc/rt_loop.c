@@ -5,16 +5,22 @@
  *
  *   clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, deadline)  (EINTR: again)
  *   wake   = now                     latency    = wake - deadline
- *   drain the received frames        at most RT_RX_MAX_PER_TICK per tick, the
- *                                    rest stays queued for the next tick
- *     each: classify (unknown id, bad length), dct_e2e_check, count the
- *     outcome; an accepted frame is decoded into the commands, stamps
+ *   drain the received frames        channel by channel, at most
+ *                                    RT_RX_MAX_PER_TICK per channel and tick,
+ *                                    the rest stays queued for the next tick
+ *     each: classify (unknown id, bad length or frame format), ct_check
+ *     (checksum, counter), count the outcome per channel and message; an
+ *     accepted frame is decoded (ct_decode) and each signal with a target
+ *     sets its command value (scaled or looked up, limited), stamps
  *     last_rx_tick = n and ends a timeout of its message
  *   timeouts                         a message not accepted for more than
- *                                    RT_TIMEOUT_CYCLES of its cycle times is
- *                                    timed out: safe values, timeout_events++
- *   dct_can_apply_commands, dct_plant_step(plant, 1)
- *   encode, protect and send the frames due at executed tick k
+ *                                    its timeout_cycles (RT_TIMEOUT_CYCLES by
+ *                                    default) cycle times is timed out: its
+ *                                    commands take their safe values
+ *   command values -> plant inputs, dct_plant_step(plant, 1)
+ *   the frames due at executed tick k, channel by channel: each signal's
+ *     value from its source (plant output, status, fixed value, toggle,
+ *     counter), ct_encode, ct_protect (counter = frames made so far), send
  *   end    = now                     turnaround = end - deadline
  *                                    execution  = end - wake
  *   publish the statistics (sequence counter)
@@ -59,27 +65,44 @@
  * commands applied) goes into the rec ring; a Python thread writes it to a
  * file. A full ring drops the sample and counts it (rec.dropped).
  *
- * Offsets: computed once at the start of rt_loop_run, shortest cycle first;
- * each message takes the offset whose ticks it shares with the fewest frames
- * already planned (two messages of divisors a and b with offsets x and y
- * meet when x = y mod gcd(a, b)). At 2 kHz the three 2 ms messages go to
- * ticks 0, 1, 2 (mod 4), the three 10 ms ones to 3, 7, 11 (mod 20) and
- * SIM_Status to 15 (mod 200): at most one frame per tick.
+ * Offsets: computed once at the start of rt_loop_run over the sent messages
+ * of all channels, shortest cycle first; each message takes the offset whose
+ * ticks it shares with the fewest frames already planned (two messages of
+ * divisors a and b with offsets x and y meet when x = y mod gcd(a, b)). With
+ * the project's own contract at 2 kHz the three 2 ms messages go to ticks
+ * 0, 1, 2 (mod 4), the three 10 ms ones to 3, 7, 11 (mod 20) and SIM_Status
+ * to 15 (mod 200): at most one frame per tick.
  *
  * End-to-end: an accepted frame updates the message's counter state
- * (dct_e2e_check); when a message times out its counter state is reset to
- * -1, so the first frame after the TCU comes back is accepted whatever its
- * counter (as at start).
+ * (ct_check); when a message times out its counter state is reset to -1, so
+ * the first frame after the TCU comes back is accepted whatever its counter
+ * (as at start). A sent message's counter is the number of frames made so
+ * far (modulo 720720, a multiple of every counter range up to 16, then
+ * modulo the protection's range in ct_protect); toggles and counter sources
+ * count the same frames.
  *
- * SIM_Status.SimState: 0 until the first TCU frame is accepted, then 1; when
- * the loop ends, one last SIM_Status goes out with 2 (stopped by request or
- * duration) or 3 (overrun stop, plant error); none after a transport error.
+ * Status sources (RT_STATUS_*): sim_state is 0 until the first frame of a
+ * received message is accepted, then 1; when the loop ends, one last frame
+ * of every sent message with final_frame (those carrying sim_state) goes out
+ * with 2 (stopped by request or duration) or 3 (overrun stop, plant error);
+ * none after a transport error.
+ *
+ * Values: a received signal's command value is gain * signal + bias, or its
+ * value table's entry, limited to [minimum, maximum]; a NaN (a float signal)
+ * gives the safe value. A command value drives the plant input
+ * command_input[i] every tick (or only the recording, -1); at prepare and
+ * while its message is timed out it holds the target's safe value.
  *
  * Return codes: rt_loop_prepare gives -EINVAL (a cfg field out of range:
  * period outside 50 us .. 100 ms, a step outside 50 us .. 10 ms or longer
  * than the period, a negative record_every, a driver table with more than
- * RT_DRIVER_ROWS rows, times not increasing or pedals outside 0..100 %, unknown transport, priority outside 0..99,
- * cpu < -1, NaN duration), -EBADF (fd < 0), -ENOTSOCK / -EPROTOTYPE (fd not
+ * RT_DRIVER_ROWS rows, times not increasing or pedals outside 0..100 %,
+ * priority outside 0..99, cpu < -1, NaN duration; channel tables missing,
+ * too many messages or commands, an unknown transport, source, target,
+ * output, status or input index, a value table outside the ranges, a cycle
+ * time that is not a positive number, min above max, a CAN FD message on a
+ * SocketCAN channel without fd_frames), -EBADF (fd < 0), -ENOTSOCK /
+ * -EPROTOTYPE (fd not
  * a datagram socket), another -errno (SO_RXQ_OVFL refused) or -EDOM (the
  * plant rejected its parameters). rt_loop_run gives -EINVAL when the loop
  * was not prepared since its last run (stats.state is not RT_STATE_IDLE),
@@ -89,7 +112,8 @@
  * Lost frames: rx_overflow is, for SocketCAN, the kernel's drop count of the
  * socket (SO_RXQ_OVFL); the kernel reports it with the next frame received,
  * so drops show up when the next frame arrives. For the ring transport it is
- * rx.dropped (pushes the bridge could not make). tx_dropped counts sends
+ * the channel's rx ring's dropped (pushes the bridge could not make).
+ * tx_dropped counts sends
  * refused with EAGAIN / ENOBUFS or by a full tx ring; the loop never blocks
  * on a send, and the AliveCounter still advances, so the TCU sees the gap.
  *
@@ -98,12 +122,16 @@
  * (RT_STATE_ERROR either way); rt_loop_prepare also sets it to minus the
  * dct_plant_init status when it returns -EDOM.
  *
- * Frames are counted once each: rx_frames = rx_accepted + rx_unknown_id +
- * rx_bad_length + rx_bad_crc + rx_bad_counter. rx_per_msg counts accepted
- * frames. A frame is an unknown id if its id has the extended or error flag
- * (SocketCAN's CAN_EFF_FLAG, CAN_ERR_FLAG, also in the rings' frames) or is
- * not a TCU message; a TCU id with the RTR flag, more than 8 bytes or not
- * the DBC's length is a bad length.
+ * Frames are counted once each, per channel (stats.chan; the rt_stats
+ * totals are their sums): rx_frames = rx_accepted + rx_unknown_id +
+ * rx_bad_length + rx_bad_crc + rx_bad_counter; per received message
+ * (stats.msgs) accepted frames, rejections by reason, timeouts; per sent
+ * message frames sent and dropped. A frame is an unknown id if its id has
+ * the error flag (SocketCAN's CAN_ERR_FLAG, also in the rings' frames) or is
+ * not a message the channel receives (identifier and its 11/29-bit format);
+ * a received message's frame with the RTR flag, the wrong format (classic /
+ * CAN FD) or not the DBC's length is a bad length. stats.msgs is published
+ * only for the messages whose counts changed in a tick.
  *
  * Concurrency (C11 atomics on the plain fields of rt_loop.h, through
  * pointer casts to _Atomic types of the same size and alignment):
@@ -166,7 +194,6 @@
 #define RT_PRIORITY_MAX 99
 #define RT_RX_BATCH 64                  /* frames per recvmmsg / ring pop */
 #define RT_RX_MAX_PER_TICK 256          /* drained per tick at most */
-#define RT_TX_MAX (DCT_CAN_N_TX + 1)    /* frames sent in one tick at most */
 #define RT_STACK_PREFAULT (64 * 1024)
 #define RT_READ_RETRIES 1000
 #define RT_RCVBUF_BYTES (8 * 1024 * 1024)
@@ -206,7 +233,7 @@ static inline void count_dropped(uint64_t *dropped, uint64_t n)
     atomic_store_explicit(A64(dropped), atomic_load_explicit(A64(dropped), RELAXED) + n, RELAXED);
 }
 
-int rt_ring_push_many(rt_ring *r, const dct_can_frame *f, int n)
+int rt_ring_push_many(rt_ring *r, const rt_frame *f, int n)
 {
     if (n <= 0)
         return 0;
@@ -239,22 +266,22 @@ int rt_ring_push_many(rt_ring *r, const dct_can_frame *f, int n)
         return (int)k;                                                          \
     }
 
-RT_DEFINE_POP_MANY(rt_ring_pop_many, rt_ring, dct_can_frame, frames, RT_RING_SIZE)
+RT_DEFINE_POP_MANY(rt_ring_pop_many, rt_ring, rt_frame, frames, RT_RING_SIZE)
 RT_DEFINE_POP_MANY(rt_log_pop_many, rt_log_ring, rt_log_entry, entries, RT_LOG_SIZE)
 RT_DEFINE_POP_MANY(rt_rec_pop_many, rt_rec_ring, rt_sample, samples, RT_REC_SIZE)
 
-int rt_ring_push(rt_ring *r, const dct_can_frame *f)
+int rt_ring_push(rt_ring *r, const rt_frame *f)
 {
     return rt_ring_push_many(r, f, 1) == 1 ? 0 : -1;
 }
 
-int rt_ring_pop(rt_ring *r, dct_can_frame *f)
+int rt_ring_pop(rt_ring *r, rt_frame *f)
 {
     return rt_ring_pop_many(r, f, 1) == 1 ? 0 : -1;
 }
 
 /* the loop is the log's only producer */
-static inline void log_push(rt_log_ring *g, double time_s, uint32_t dir, const dct_can_frame *f)
+static inline void log_push(rt_log_ring *g, double time_s, uint32_t dir, const rt_frame *f)
 {
     uint32_t head = atomic_load_explicit(A32(&g->head), RELAXED);
     uint32_t tail = atomic_load_explicit(A32(&g->tail), ACQUIRE);
@@ -266,8 +293,8 @@ static inline void log_push(rt_log_ring *g, double time_s, uint32_t dir, const d
     e->time_s = time_s;
     e->dir = dir;
     e->frame = *f;
-    if (e->frame.len > 8)
-        e->frame.len = 8;
+    if (e->frame.len > CT_MAX_LENGTH)
+        e->frame.len = CT_MAX_LENGTH;
     atomic_store_explicit(A32(&g->head), head + 1, RELEASE);
 }
 
@@ -277,7 +304,7 @@ int rt_log_pop(rt_log_ring *r, rt_log_entry *e)
 }
 
 static inline void rec_push(rt_rec_ring *g, uint64_t tick, double time_s, double maneuver_time_s,
-                            const dct_outputs *o, const dct_tcu_commands *c)
+                            const dct_outputs *o, const double *commands, int n_commands)
 {
     uint32_t head = atomic_load_explicit(A32(&g->head), RELAXED);
     uint32_t tail = atomic_load_explicit(A32(&g->tail), ACQUIRE);
@@ -290,7 +317,7 @@ static inline void rec_push(rt_rec_ring *g, uint64_t tick, double time_s, double
     e->time_s = time_s;
     e->maneuver_time_s = maneuver_time_s;
     e->outputs = *o;
-    e->commands = *c;
+    memcpy(e->commands, commands, (size_t)n_commands * sizeof *commands);
     atomic_store_explicit(A32(&g->head), head + 1, RELEASE);
 }
 
@@ -345,6 +372,11 @@ static inline int stop_requested(rt_loop *l)
 /* Prepare                                                             */
 /* ------------------------------------------------------------------ */
 
+#define RT_N_OUTPUTS ((int)(sizeof(dct_outputs) / sizeof(double)))
+#define RT_N_INPUTS ((int)(sizeof(dct_inputs) / sizeof(double)))
+_Static_assert(sizeof(dct_outputs) % sizeof(double) == 0, "dct_outputs must be doubles only");
+_Static_assert(sizeof(dct_inputs) % sizeof(double) == 0, "dct_inputs must be doubles only");
+
 /* rows within 1..RT_DRIVER_ROWS (or 0), times finite and strictly
  * increasing, pedals within 0..100 %, end_s finite */
 static int check_driver(const rt_driver *d)
@@ -360,6 +392,78 @@ static int check_driver(const rt_driver *d)
             !(d->brake_pedal_pct[i] >= 0.0 && d->brake_pedal_pct[i] <= 100.0))
             return -1;
     }
+    return 0;
+}
+
+static int check_lookup(const rt_lookup *t, const rt_channel *ch)
+{
+    if (t->count == 0)
+        return 0;
+    if (!ch->ranges || ch->n_ranges < 0 || t->first > (uint32_t)ch->n_ranges ||
+        t->count > (uint32_t)ch->n_ranges - t->first)
+        return -1;
+    return 0;
+}
+
+/* the tables of every channel are complete and consistent; fills
+ * first_message and stats.n_messages */
+static int check_channels(rt_loop *l)
+{
+    if (l->n_channels < 1 || l->n_channels > RT_MAX_CHANNELS)
+        return -1;
+    if (l->n_commands < 0 || l->n_commands > RT_MAX_COMMANDS)
+        return -1;
+    for (int i = 0; i < l->n_commands; i++)
+        if (l->command_input[i] < -1 || l->command_input[i] >= RT_N_INPUTS)
+            return -1;
+    int total = 0;
+    for (int c = 0; c < l->n_channels; c++) {
+        rt_channel *ch = &l->chan[c];
+        const ct_table *t = &ch->table;
+        if (!t->messages || !t->signals || t->n_messages < 1 || !ch->msgs || !ch->sources ||
+            !ch->targets || t->n_messages > RT_MAX_MESSAGES - total)
+            return -1;
+        if (ch->transport != RT_TRANSPORT_SOCKETCAN && ch->transport != RT_TRANSPORT_RING)
+            return -1;
+        ch->first_message = total;
+        for (int m = 0; m < t->n_messages; m++) {
+            const ct_message *cm = &t->messages[m];
+            const rt_msg *mm = &ch->msgs[m];
+            if (cm->n_signals > RT_MAX_MSG_SIGNALS || cm->length > CT_MAX_LENGTH)
+                return -1;
+            if (mm->direction != RT_DIR_RX && mm->direction != RT_DIR_TX)
+                return -1;
+            if (!(isfinite(mm->cycle_s) && mm->cycle_s > 0.0))
+                return -1;
+            if (mm->direction == RT_DIR_TX && (mm->flags & RT_FRAME_FD) &&
+                ch->transport == RT_TRANSPORT_SOCKETCAN && !ch->fd_frames)
+                return -1; /* a CAN FD frame on a socket without CAN_RAW_FD_FRAMES */
+            for (uint32_t k = cm->first_signal; k < cm->first_signal + cm->n_signals; k++) {
+                const rt_source *src = &ch->sources[k];
+                const rt_target *tgt = &ch->targets[k];
+                if (mm->direction == RT_DIR_TX) {
+                    if (src->kind > RT_SRC_COUNTER || check_lookup(&src->table, ch) != 0)
+                        return -1;
+                    if (src->kind == RT_SRC_OUTPUT && src->field >= RT_N_OUTPUTS)
+                        return -1;
+                    if (src->kind == RT_SRC_STATUS && src->field >= RT_N_STATUS)
+                        return -1;
+                    if (src->kind == RT_SRC_COUNTER && src->modulus < 1)
+                        return -1;
+                } else {
+                    if (tgt->kind > RT_TGT_COMMAND || check_lookup(&tgt->table, ch) != 0)
+                        return -1;
+                    if (tgt->kind == RT_TGT_COMMAND && tgt->command >= l->n_commands)
+                        return -1;
+                    if (isnan(tgt->minimum) || isnan(tgt->maximum) || tgt->minimum > tgt->maximum)
+                        return -1;
+                }
+            }
+        }
+        total += t->n_messages;
+    }
+    l->stats.n_messages = total;
+    l->stats.n_channels = l->n_channels;
     return 0;
 }
 
@@ -384,6 +488,37 @@ static int prepare_socket(int fd)
     return 0;
 }
 
+/* the value table's entry for x (see rt_lookup) */
+static inline double lookup(const rt_lookup *t, const rt_range *ranges, double x)
+{
+    if (!isfinite(x))
+        return t->fallback;
+    double key = rint(x); /* half to even, as Python's round() */
+    const rt_range *g = ranges + t->first;
+    for (uint32_t i = 0; i < t->count; i++)
+        if (key >= g[i].lo && key <= g[i].hi)
+            return g[i].value;
+    return t->fallback;
+}
+
+/* the safe values of every command a received message drives */
+static void safe_values(const rt_loop *l, const rt_channel *ch, int m, double *cmd)
+{
+    const ct_message *cm = &ch->table.messages[m];
+    for (uint32_t k = cm->first_signal; k < cm->first_signal + cm->n_signals; k++)
+        if (ch->targets[k].kind == RT_TGT_COMMAND)
+            cmd[ch->targets[k].command] = ch->targets[k].safe;
+    (void)l;
+}
+
+static inline void apply_commands(rt_loop *l, const double *cmd)
+{
+    double *in = (double *)(void *)&l->plant.inputs;
+    for (int i = 0; i < l->n_commands; i++)
+        if (l->command_input[i] >= 0)
+            in[l->command_input[i]] = cmd[i];
+}
+
 int rt_loop_prepare(rt_loop *l)
 {
     if (!l)
@@ -398,8 +533,6 @@ int rt_loop_prepare(rt_loop *l)
         return -EINVAL;
     if (check_driver(&l->driver) != 0)
         return -EINVAL;
-    if (c->transport != RT_TRANSPORT_SOCKETCAN && c->transport != RT_TRANSPORT_RING)
-        return -EINVAL;
     if (c->priority < 0 || c->priority > RT_PRIORITY_MAX)
         return -EINVAL;
     if (c->cpu < -1 || c->cpu >= CPU_SETSIZE)
@@ -408,15 +541,25 @@ int rt_loop_prepare(rt_loop *l)
         return -EINVAL;
     if (!(c->spin_us >= 0.0 && c->spin_us * 1e-6 < c->period_s))
         return -EINVAL; /* the early wake-up must stay inside the period */
-    if (c->transport == RT_TRANSPORT_SOCKETCAN) {
-        if (c->fd < 0)
+    memset(&l->stats, 0, sizeof l->stats);
+    if (check_channels(l) != 0) {
+        memset(&l->stats, 0, sizeof l->stats);
+        return -EINVAL;
+    }
+    for (int ci = 0; ci < l->n_channels; ci++) {
+        if (l->chan[ci].transport != RT_TRANSPORT_SOCKETCAN)
+            continue;
+        if (l->chan[ci].fd < 0)
             return -EBADF;
-        int rc = prepare_socket(c->fd);
+        int rc = prepare_socket(l->chan[ci].fd);
         if (rc != 0)
             return rc;
     }
 
+    int n_messages = l->stats.n_messages, n_channels = l->stats.n_channels;
     memset(&l->stats, 0, sizeof l->stats);
+    l->stats.n_messages = n_messages;
+    l->stats.n_channels = n_channels;
     l->stats.state = RT_STATE_IDLE;
     l->plant.params.solver.step_s = step_s;
     int st = dct_plant_init(&l->plant);
@@ -424,21 +567,28 @@ int rt_loop_prepare(rt_loop *l)
         l->stats.error = -st;
         return -EDOM;
     }
-    memset(&l->stats.commands, 0, sizeof l->stats.commands);
-    for (int m = 0; m < DCT_CAN_N_RX; m++) {
-        l->stats.timed_out[m] = 1;
-        dct_can_safe_rx(m, &l->stats.commands);
-        l->e2e[m].last_counter = -1;
-        l->last_rx_tick[m] = 0;
+    /* every received message starts timed out: its commands at their safe values */
+    memset(l->stats.commands, 0, sizeof l->stats.commands);
+    for (int ci = 0; ci < l->n_channels; ci++) {
+        const rt_channel *ch = &l->chan[ci];
+        for (int m = 0; m < ch->table.n_messages; m++) {
+            int g = ch->first_message + m;
+            l->rx_state[g].last_counter = -1;
+            l->last_rx_tick[g] = 0;
+            l->tx_count[g] = 0;
+            if (ch->msgs[m].direction != RT_DIR_RX)
+                continue;
+            l->stats.msgs[g].timed_out = 1;
+            safe_values(l, ch, m, l->stats.commands);
+        }
     }
-    dct_can_apply_commands(&l->stats.commands, &l->plant.inputs);
+    apply_commands(l, l->stats.commands);
     dct_plant_update_outputs(&l->plant);
     l->stats.outputs = l->plant.outputs;
     l->stats.sim_time_s = l->plant.state.time_s;
-    memset(l->tx_counter, 0, sizeof l->tx_counter);
     /* resets the rings; writing them also faults their pages in */
-    memset(&l->rx, 0, sizeof l->rx);
-    memset(&l->tx, 0, sizeof l->tx);
+    memset(l->rx, 0, sizeof l->rx);
+    memset(l->tx, 0, sizeof l->tx);
     memset(&l->log, 0, sizeof l->log);
     memset(&l->rec, 0, sizeof l->rec);
     l->stats.maneuver_state = l->driver.rows > 0 ? RT_MANEUVER_WAITING : RT_MANEUVER_NONE;
@@ -458,13 +608,10 @@ int rt_loop_prepare(rt_loop *l)
 /* ------------------------------------------------------------------ */
 
 typedef struct {
-    uint64_t rx_frames, rx_accepted, rx_unknown_id, rx_bad_length, rx_bad_crc, rx_bad_counter;
-    uint64_t rx_overflow, tx_frames, tx_dropped;
-    uint64_t rx_per_msg[DCT_CAN_N_RX];
-    uint64_t timeout_events[DCT_CAN_N_RX];
-    int timed_out[DCT_CAN_N_RX];
     uint64_t ticks, overruns, skipped_ticks;
     double turnaround_max_us, exec_max_us, latency_max_us;
+    rt_chan_stats chan[RT_MAX_CHANNELS];
+    rt_msg_stats msgs[RT_MAX_MESSAGES];
 } rt_counts;
 
 typedef struct {
@@ -477,29 +624,44 @@ typedef struct {
     int64_t step_ns;                 /* simulated time per tick */
     int64_t spin_ns;                 /* early wake-up before each deadline */
     int64_t t0_ns;                   /* first deadline */
-    uint32_t tx_div[DCT_CAN_N_TX];
-    uint32_t tx_off[DCT_CAN_N_TX];
-    uint64_t rx_timeout_ticks[DCT_CAN_N_RX];
-    uint32_t ovfl_last;              /* last SO_RXQ_OVFL drop count seen */
-    uint64_t ovfl_total;
-    int tcu_heard;                   /* a TCU frame was accepted */
+    int n_tx;                        /* sent messages, in the order of tx_chan/tx_msg */
+    uint8_t tx_chan[RT_MAX_MESSAGES];
+    uint8_t tx_local[RT_MAX_MESSAGES];  /* index in its channel's table */
+    uint32_t tx_div[RT_MAX_MESSAGES];
+    uint32_t tx_off[RT_MAX_MESSAGES];
+    int n_rx;                        /* received messages */
+    uint8_t rx_chan[RT_MAX_MESSAGES];
+    uint8_t rx_local[RT_MAX_MESSAGES];
+    uint64_t rx_timeout_ticks[RT_MAX_MESSAGES];  /* by loop-wide message index */
+    uint32_t ovfl_last[RT_MAX_CHANNELS];  /* last SO_RXQ_OVFL drop count seen */
+    uint64_t ovfl_total[RT_MAX_CHANNELS];
+    int tcu_heard;                   /* a frame of a received message was accepted */
     int maneuver_state;              /* RT_MANEUVER_* */
     double maneuver_t0_s;            /* plant time at which the maneuver started */
     double maneuver_time_s;          /* after this tick's step; < 0 before the start */
     double time_s;                   /* deadline of this tick since t0 */
     rt_counts c;
-    dct_tcu_commands cmd;
-    /* SocketCAN batches */
-    struct can_frame rx_cf[RT_RX_BATCH];
+    double cmd[RT_MAX_COMMANDS];
+    double status[RT_N_STATUS];
+    /* messages whose counts changed since the last publication */
+    int n_dirty;
+    int32_t dirty[RT_MAX_MESSAGES];
+    uint8_t is_dirty[RT_MAX_MESSAGES];
+    /* one message's signal values */
+    double values[RT_MAX_MSG_SIGNALS];
+    uint8_t written[RT_MAX_MSG_SIGNALS];
+    /* SocketCAN batches (struct canfd_frame holds a classic frame too) */
+    struct canfd_frame rx_cf[RT_RX_BATCH];
     struct iovec rx_iov[RT_RX_BATCH];
     struct mmsghdr rx_msg[RT_RX_BATCH];
     rt_cmsg_buf rx_ctrl[RT_RX_BATCH];
-    struct can_frame tx_cf[RT_TX_MAX];
-    struct iovec tx_iov[RT_TX_MAX];
-    struct mmsghdr tx_msg[RT_TX_MAX];
+    struct canfd_frame tx_cf[RT_MAX_MESSAGES];
+    struct iovec tx_iov[RT_MAX_MESSAGES];
+    struct mmsghdr tx_msg[RT_MAX_MESSAGES];
     /* frames of this tick */
-    dct_can_frame rx_frames[RT_RX_BATCH];
-    dct_can_frame tx_frames[RT_TX_MAX];
+    rt_frame rx_frames[RT_RX_BATCH];
+    rt_frame tx_frames[RT_MAX_MESSAGES];
+    int32_t tx_frame_msg[RT_MAX_MESSAGES];  /* loop-wide message index of each tx frame */
 } rt_run;
 
 static inline int64_t now_ns(void)
@@ -526,112 +688,171 @@ static uint32_t gcd_u32(uint32_t a, uint32_t b)
     return a;
 }
 
-/* divisors and staggered offsets of the plant messages (see the top) */
+static inline void mark(rt_run *r, int g)
+{
+    if (!r->is_dirty[g]) {
+        r->is_dirty[g] = 1;
+        r->dirty[r->n_dirty++] = g;
+    }
+}
+
+static inline double tx_cycle_s(const rt_run *r, int i)
+{
+    return r->l->chan[r->tx_chan[i]].msgs[r->tx_local[i]].cycle_s;
+}
+
+/* divisors and staggered offsets of the sent messages of every channel (see the top) */
 static void plan_tx(rt_run *r)
 {
-    int order[DCT_CAN_N_TX];
-    for (int m = 0; m < DCT_CAN_N_TX; m++)
-        order[m] = m;
-    for (int i = 1; i < DCT_CAN_N_TX; i++) /* stable sort by cycle time */
-        for (int j = i; j > 0 && dct_can_tx_cycle_ms(order[j]) < dct_can_tx_cycle_ms(order[j - 1]); j--) {
-            int t = order[j];
-            order[j] = order[j - 1];
-            order[j - 1] = t;
+    rt_loop *l = r->l;
+    r->n_tx = 0;
+    for (int c = 0; c < l->n_channels; c++)
+        for (int m = 0; m < l->chan[c].table.n_messages; m++)
+            if (l->chan[c].msgs[m].direction == RT_DIR_TX) {
+                r->tx_chan[r->n_tx] = (uint8_t)c;
+                r->tx_local[r->n_tx] = (uint8_t)m;
+                r->n_tx++;
+            }
+    for (int i = 1; i < r->n_tx; i++) /* stable sort by cycle time */
+        for (int j = i; j > 0 && tx_cycle_s(r, j) < tx_cycle_s(r, j - 1); j--) {
+            uint8_t tc = r->tx_chan[j], tm = r->tx_local[j];
+            r->tx_chan[j] = r->tx_chan[j - 1];
+            r->tx_local[j] = r->tx_local[j - 1];
+            r->tx_chan[j - 1] = tc;
+            r->tx_local[j - 1] = tm;
         }
-    for (int i = 0; i < DCT_CAN_N_TX; i++) {
-        int m = order[i];
-        double ticks = dct_can_tx_cycle_ms(m) * 1e6 / (double)r->step_ns;
+    for (int i = 0; i < r->n_tx; i++) {
+        double ticks = tx_cycle_s(r, i) * 1e9 / (double)r->step_ns;
         uint32_t div = ticks < 1.5 ? 1u : (uint32_t)llround(ticks);
         uint32_t best = 0;
         double best_cost = INFINITY;
         for (uint32_t off = 0; off < div; off++) {
             double cost = 0.0;
             for (int j = 0; j < i; j++) {
-                int p = order[j];
-                uint32_t g = gcd_u32(div, r->tx_div[p]);
-                if (off % g == r->tx_off[p] % g)
-                    cost += 1.0 / r->tx_div[p];
+                uint32_t g = gcd_u32(div, r->tx_div[j]);
+                if (off % g == r->tx_off[j] % g)
+                    cost += 1.0 / r->tx_div[j];
             }
             if (cost < best_cost - 1e-12) {
                 best_cost = cost;
                 best = off;
             }
         }
-        r->tx_div[m] = div;
-        r->tx_off[m] = best;
+        r->tx_div[i] = div;
+        r->tx_off[i] = best;
     }
 }
 
 static void plan_rx(rt_run *r)
 {
-    for (int m = 0; m < DCT_CAN_N_RX; m++) {
-        double ticks = RT_TIMEOUT_CYCLES * dct_can_rx_cycle_ms(m) * 1e6 / (double)r->step_ns;
-        r->rx_timeout_ticks[m] = (uint64_t)ceil(ticks - 1e-9);
-    }
+    rt_loop *l = r->l;
+    r->n_rx = 0;
+    for (int c = 0; c < l->n_channels; c++)
+        for (int m = 0; m < l->chan[c].table.n_messages; m++) {
+            const rt_msg *mm = &l->chan[c].msgs[m];
+            if (mm->direction != RT_DIR_RX)
+                continue;
+            r->rx_chan[r->n_rx] = (uint8_t)c;
+            r->rx_local[r->n_rx] = (uint8_t)m;
+            r->n_rx++;
+            uint32_t cycles = mm->timeout_cycles ? mm->timeout_cycles : RT_TIMEOUT_CYCLES;
+            double ticks = (double)cycles * mm->cycle_s * 1e9 / (double)r->step_ns;
+            r->rx_timeout_ticks[l->chan[c].first_message + m] = (uint64_t)ceil(ticks - 1e-9);
+        }
 }
 
-/* one received frame; well_formed: the transport delivered a whole classic frame */
-static inline void rx_one(rt_run *r, const dct_can_frame *f, int well_formed, uint64_t n)
+/* a received signal's value turned into its command value */
+static inline double target_value(const rt_target *t, const rt_range *ranges, double x)
+{
+    double v = t->table.count ? lookup(&t->table, ranges, x) : t->gain * x + t->bias;
+    if (isnan(v))
+        return t->safe;
+    if (v < t->minimum)
+        v = t->minimum;
+    if (v > t->maximum)
+        v = t->maximum;
+    return v;
+}
+
+/* one received frame of channel c; well_formed: the transport delivered a whole frame */
+static inline void rx_one(rt_run *r, int c, rt_frame *f, int well_formed, uint64_t n)
 {
     rt_loop *l = r->l;
-    r->c.rx_frames++;
+    const rt_channel *ch = &l->chan[c];
+    rt_chan_stats *cs = &r->c.chan[c];
+    f->channel = (uint8_t)c;
+    cs->rx_frames++;
     if (l->cfg.log_frames)
         log_push(&l->log, r->time_s, RT_DIR_RX, f);
 
     uint32_t id = f->id;
-    uint32_t base = id & ~(uint32_t)CAN_RTR_FLAG;
+    int extended = (id & CAN_EFF_FLAG) != 0;
+    uint32_t base = id & (extended ? CAN_EFF_MASK : CAN_SFF_MASK);
     int m = -1;
-    if (!(id & (CAN_EFF_FLAG | CAN_ERR_FLAG)) && base <= CAN_SFF_MASK)
-        m = dct_can_rx_index(base);
-    if (m < 0 || m >= DCT_CAN_N_RX) {
-        r->c.rx_unknown_id++;
+    if (!(id & CAN_ERR_FLAG) && (extended || (id & ~(uint32_t)CAN_RTR_FLAG) <= CAN_SFF_MASK))
+        m = ct_find(&ch->table, base, extended);
+    if (m < 0 || ch->msgs[m].direction != RT_DIR_RX) {
+        cs->rx_unknown_id++;
         return;
     }
-    if (!well_formed || (id & CAN_RTR_FLAG) || f->len > 8) {
-        r->c.rx_bad_length++;
+    int g = ch->first_message + m;
+    rt_msg_stats *ms = &r->c.msgs[g];
+    mark(r, g);
+    const ct_message *cm = &ch->table.messages[m];
+    if (!well_formed || (id & CAN_RTR_FLAG) || f->len > CT_MAX_LENGTH ||
+        ((f->flags & RT_FRAME_FD) != 0) != (cm->fd != 0)) {
+        cs->rx_bad_length++;
+        ms->bad_length++;
         return;
     }
-    switch (dct_e2e_check(m, f, &l->e2e[m])) {
-    case DCT_RX_OK:
-        r->c.rx_accepted++;
-        r->c.rx_per_msg[m]++;
-        dct_can_decode_rx(m, f, &r->cmd);
-        l->last_rx_tick[m] = n;
-        r->c.timed_out[m] = 0;
+    switch (ct_check(&ch->table, m, f->data, f->len, &l->rx_state[g])) {
+    case CT_RX_OK: {
+        cs->rx_accepted++;
+        ms->frames++;
+        (void)ct_decode(&ch->table, m, f->data, f->len, r->values, r->written);
+        for (uint32_t k = 0; k < cm->n_signals; k++) {
+            const rt_target *t = &ch->targets[cm->first_signal + k];
+            if (t->kind == RT_TGT_COMMAND && r->written[k])
+                r->cmd[t->command] = target_value(t, ch->ranges, r->values[k]);
+        }
+        l->last_rx_tick[g] = n;
+        ms->timed_out = 0;
         r->tcu_heard = 1;
         break;
-    case DCT_RX_UNKNOWN_ID:
-        r->c.rx_unknown_id++;
+    }
+    case CT_RX_BAD_CRC:
+        cs->rx_bad_crc++;
+        ms->bad_crc++;
         break;
-    case DCT_RX_BAD_CRC:
-        r->c.rx_bad_crc++;
+    case CT_RX_BAD_COUNTER:
+        cs->rx_bad_counter++;
+        ms->bad_counter++;
         break;
-    case DCT_RX_BAD_COUNTER:
-        r->c.rx_bad_counter++;
-        break;
-    case DCT_RX_BAD_LENGTH:
+    case CT_RX_BAD_LENGTH:
     default:
-        r->c.rx_bad_length++;
+        cs->rx_bad_length++;
+        ms->bad_length++;
         break;
     }
 }
 
-/* returns 0, or the errno of a fatal transport error */
-static int rx_drain(rt_run *r, uint64_t n)
+/* drains channel c's received frames; returns 0, or the errno of a fatal transport error */
+static int rx_drain(rt_run *r, int c, uint64_t n)
 {
     rt_loop *l = r->l;
+    const rt_channel *ch = &l->chan[c];
     int budget = RT_RX_MAX_PER_TICK;
-    if (l->cfg.transport == RT_TRANSPORT_RING) {
+    if (ch->transport == RT_TRANSPORT_RING) {
         while (budget > 0) {
             int want = budget < RT_RX_BATCH ? budget : RT_RX_BATCH;
-            int got = rt_ring_pop_many(&l->rx, r->rx_frames, want);
+            int got = rt_ring_pop_many(&l->rx[c], r->rx_frames, want);
             for (int i = 0; i < got; i++)
-                rx_one(r, &r->rx_frames[i], 1, n);
+                rx_one(r, c, &r->rx_frames[i], 1, n);
             budget -= got;
             if (got < want)
                 break;
         }
-        r->c.rx_overflow = atomic_load_explicit(A64(&l->rx.dropped), RELAXED);
+        r->c.chan[c].rx_overflow = atomic_load_explicit(A64(&l->rx[c].dropped), RELAXED);
         return 0;
     }
 
@@ -647,7 +868,7 @@ static int rx_drain(rt_run *r, uint64_t n)
             r->rx_msg[i].msg_hdr.msg_control = r->rx_ctrl[i].bytes;
             r->rx_msg[i].msg_hdr.msg_controllen = sizeof r->rx_ctrl[i].bytes;
         }
-        int got = recvmmsg(l->cfg.fd, r->rx_msg, (unsigned)want, MSG_DONTWAIT, NULL);
+        int got = recvmmsg(ch->fd, r->rx_msg, (unsigned)want, MSG_DONTWAIT, NULL);
         if (got < 0) {
             if (errno == EAGAIN || errno == EWOULDBLOCK)
                 break;
@@ -662,64 +883,81 @@ static int rx_drain(rt_run *r, uint64_t n)
                     cm->cmsg_len >= CMSG_LEN(sizeof(uint32_t))) {
                     uint32_t drops;
                     memcpy(&drops, CMSG_DATA(cm), sizeof drops);
-                    r->ovfl_total += (uint32_t)(drops - r->ovfl_last);
-                    r->ovfl_last = drops;
+                    r->ovfl_total[c] += (uint32_t)(drops - r->ovfl_last[c]);
+                    r->ovfl_last[c] = drops;
                 }
             }
-            const struct can_frame *cf = &r->rx_cf[i];
-            int well_formed = r->rx_msg[i].msg_len == sizeof *cf && !(h->msg_flags & MSG_TRUNC);
-            dct_can_frame f;
+            const struct canfd_frame *cf = &r->rx_cf[i];
+            unsigned size = r->rx_msg[i].msg_len;
+            int fd_frame = size == CANFD_MTU;
+            int well_formed = !(h->msg_flags & MSG_TRUNC) &&
+                              (size == CAN_MTU || (fd_frame && ch->fd_frames)) &&
+                              cf->len <= (fd_frame ? CANFD_MAX_DLEN : CAN_MAX_DLEN);
+            rt_frame f;
             f.id = cf->can_id;
-            f.len = cf->len;
-            memcpy(f.data, cf->data, sizeof f.data);
-            rx_one(r, &f, well_formed, n);
+            f.len = cf->len <= CT_MAX_LENGTH ? cf->len : CT_MAX_LENGTH;
+            f.flags = (uint8_t)((fd_frame ? RT_FRAME_FD : 0) |
+                                (fd_frame && (cf->flags & CANFD_BRS) ? RT_FRAME_BRS : 0));
+            f.reserved = 0;
+            memcpy(f.data, cf->data, f.len);
+            rx_one(r, c, &f, well_formed, n);
         }
         budget -= got;
         if (got < want)
             break;
     }
-    r->c.rx_overflow = r->ovfl_total;
+    r->c.chan[c].rx_overflow = r->ovfl_total[c];
     return 0;
 }
 
 static void check_timeouts(rt_run *r, uint64_t n)
 {
     rt_loop *l = r->l;
-    for (int m = 0; m < DCT_CAN_N_RX; m++) {
-        if (r->c.timed_out[m] || n - l->last_rx_tick[m] <= r->rx_timeout_ticks[m])
+    for (int i = 0; i < r->n_rx; i++) {
+        const rt_channel *ch = &l->chan[r->rx_chan[i]];
+        int m = r->rx_local[i];
+        int g = ch->first_message + m;
+        rt_msg_stats *ms = &r->c.msgs[g];
+        if (ms->timed_out || n - l->last_rx_tick[g] <= r->rx_timeout_ticks[g])
             continue;
-        r->c.timed_out[m] = 1;
-        r->c.timeout_events[m]++;
-        dct_can_safe_rx(m, &r->cmd);
-        l->e2e[m].last_counter = -1;
+        ms->timed_out = 1;
+        ms->timeouts++;
+        mark(r, g);
+        safe_values(l, ch, m, r->cmd);
+        l->rx_state[g].last_counter = -1;
     }
 }
 
-/* sends tx_frames[0 .. nf); returns 0 or the errno of a fatal error */
-static int tx_send(rt_run *r, int nf)
+/* sends tx_frames[0 .. nf) on channel c; returns 0 or the errno of a fatal error */
+static int tx_send(rt_run *r, int c, int nf)
 {
     rt_loop *l = r->l;
-    int sent = 0;
+    const rt_channel *ch = &l->chan[c];
+    int sent = 0, err = 0;
     if (nf <= 0)
         return 0;
-    if (l->cfg.transport == RT_TRANSPORT_RING) {
-        sent = rt_ring_push_many(&l->tx, r->tx_frames, nf);
+    if (ch->transport == RT_TRANSPORT_RING) {
+        sent = rt_ring_push_many(&l->tx[c], r->tx_frames, nf);
     } else {
         for (int i = 0; i < nf; i++) {
-            struct can_frame *cf = &r->tx_cf[i];
+            struct canfd_frame *cf = &r->tx_cf[i];
+            const rt_frame *f = &r->tx_frames[i];
+            int fd_frame = (f->flags & RT_FRAME_FD) != 0;
             memset(cf, 0, sizeof *cf);
-            cf->can_id = r->tx_frames[i].id & CAN_SFF_MASK;
-            cf->len = r->tx_frames[i].len;
-            memcpy(cf->data, r->tx_frames[i].data, sizeof cf->data);
+            cf->can_id = f->id;
+            cf->len = f->len;
+            if (fd_frame && (f->flags & RT_FRAME_BRS))
+                cf->flags = CANFD_BRS;
+            memcpy(cf->data, f->data, f->len);
             r->tx_iov[i].iov_base = cf;
-            r->tx_iov[i].iov_len = sizeof *cf;
+            r->tx_iov[i].iov_len = fd_frame ? CANFD_MTU : CAN_MTU;
             memset(&r->tx_msg[i], 0, sizeof r->tx_msg[i]);
             r->tx_msg[i].msg_hdr.msg_iov = &r->tx_iov[i];
             r->tx_msg[i].msg_hdr.msg_iovlen = 1;
         }
         int interrupted = 0;
         while (sent < nf) {
-            int rc = sendmmsg(l->cfg.fd, r->tx_msg + sent, (unsigned)(nf - sent), MSG_DONTWAIT);
+            int rc = sendmmsg(ch->fd, r->tx_msg + sent, (unsigned)(nf - sent), MSG_DONTWAIT);
             if (rc > 0) {
                 sent += rc;
                 continue;
@@ -728,57 +966,113 @@ static int tx_send(rt_run *r, int nf)
                 continue;
             if (rc == 0 || errno == EAGAIN || errno == EWOULDBLOCK || errno == ENOBUFS || errno == EINTR)
                 break; /* never block: the rest is dropped */
-            int err = errno;
-            r->c.tx_frames += (uint64_t)sent;
-            r->c.tx_dropped += (uint64_t)(nf - sent);
-            return err;
+            err = errno;
+            break;
         }
     }
-    r->c.tx_frames += (uint64_t)sent;
-    r->c.tx_dropped += (uint64_t)(nf - sent);
+    r->c.chan[c].tx_frames += (uint64_t)sent;
+    r->c.chan[c].tx_dropped += (uint64_t)(nf - sent);
+    for (int i = 0; i < nf; i++) {
+        int g = r->tx_frame_msg[i];
+        if (i < sent)
+            r->c.msgs[g].frames++;
+        else
+            r->c.msgs[g].dropped++;
+        mark(r, g);
+    }
     if (l->cfg.log_frames)
         for (int i = 0; i < sent; i++)
             log_push(&l->log, r->time_s, RT_DIR_TX, &r->tx_frames[i]);
-    return 0;
+    return err;
 }
 
-static void sim_status(const rt_run *r, double state, dct_sim_status *st)
+static void sim_status(rt_run *r, double state)
 {
-    st->sim_time_s = r->l->plant.state.time_s;
-    st->overrun_count = (double)r->c.overruns;
-    st->turnaround_max_us = r->c.turnaround_max_us;
-    st->sim_state = state;
+    r->status[RT_STATUS_SIM_TIME_S] = r->l->plant.state.time_s;
+    r->status[RT_STATUS_OVERRUN_COUNT] = (double)r->c.overruns;
+    r->status[RT_STATUS_TURNAROUND_MAX_US] = r->c.turnaround_max_us;
+    r->status[RT_STATUS_SIM_STATE] = state;
 }
 
-/* encodes and sends the frames due at executed tick k */
+/* a sent signal's value */
+static inline double source_value(const rt_run *r, const rt_source *s, const rt_range *ranges,
+                                  uint64_t seq)
+{
+    double x;
+    switch (s->kind) {
+    case RT_SRC_OUTPUT:
+        x = ((const double *)(const void *)&r->l->plant.outputs)[s->field];
+        break;
+    case RT_SRC_STATUS:
+        x = r->status[s->field];
+        break;
+    case RT_SRC_TOGGLE:
+        return (double)(seq & 1u);
+    case RT_SRC_COUNTER:
+        return (double)(seq % s->modulus);
+    case RT_SRC_VALUE:
+    default:
+        return s->value;
+    }
+    if (s->absolute)
+        x = fabs(x);
+    return s->table.count ? lookup(&s->table, ranges, x) : s->gain * x + s->bias;
+}
+
+/* the next frame of sent message m of channel c, into tx_frames[nf] */
+static void make_frame(rt_run *r, int c, int m, int nf)
+{
+    rt_loop *l = r->l;
+    const rt_channel *ch = &l->chan[c];
+    const ct_message *cm = &ch->table.messages[m];
+    int g = ch->first_message + m;
+    uint64_t seq = l->tx_count[g];
+    const rt_source *src = ch->sources + cm->first_signal;
+    for (uint32_t k = 0; k < cm->n_signals; k++)
+        r->values[k] = source_value(r, &src[k], ch->ranges, seq);
+    rt_frame *f = &r->tx_frames[nf];
+    f->id = cm->id | (cm->extended ? CAN_EFF_FLAG : 0u);
+    f->flags = ch->msgs[m].flags;
+    f->channel = (uint8_t)c;
+    f->reserved = 0;
+    f->len = cm->length;
+    (void)ct_encode(&ch->table, m, r->values, f->data);
+    (void)ct_protect(&ch->table, m, f->data, (uint32_t)(seq % 720720u)); /* lcm(1..16): counters
+                                                                            wrap cleanly */
+    l->tx_count[g] = seq + 1;
+    r->tx_frame_msg[nf] = g;
+}
+
+/* encodes and sends the frames due at executed tick k, channel by channel */
 static int tx_tick(rt_run *r, uint64_t k)
 {
     rt_loop *l = r->l;
-    dct_sim_status st;
-    sim_status(r, r->tcu_heard ? RT_SIM_RUNNING : RT_SIM_STARTING, &st);
-    int nf = 0;
-    for (int m = 0; m < DCT_CAN_N_TX; m++) {
-        if (k % r->tx_div[m] != r->tx_off[m])
-            continue;
-        dct_can_frame *f = &r->tx_frames[nf++];
-        dct_can_encode_tx(m, &l->plant.outputs, &st, l->tx_counter[m], f);
-        dct_e2e_protect(f, l->tx_counter[m]);
-        l->tx_counter[m] = (uint8_t)((l->tx_counter[m] + 1u) & 0x0Fu);
+    sim_status(r, r->tcu_heard ? RT_SIM_RUNNING : RT_SIM_STARTING);
+    for (int c = 0; c < l->n_channels; c++) {
+        int nf = 0;
+        for (int i = 0; i < r->n_tx; i++)
+            if (r->tx_chan[i] == c && k % r->tx_div[i] == r->tx_off[i])
+                make_frame(r, c, r->tx_local[i], nf++);
+        int err = tx_send(r, c, nf);
+        if (err)
+            return err;
     }
-    return tx_send(r, nf);
+    return 0;
 }
 
-/* the last SIM_Status, with the state the loop ends in */
+/* one last frame of each message carrying the simulator's state, with the
+ * state the loop ends in */
 static void tx_final(rt_run *r, double state)
 {
     rt_loop *l = r->l;
-    dct_sim_status st;
-    sim_status(r, state, &st);
-    dct_can_frame *f = &r->tx_frames[0];
-    dct_can_encode_tx(DCT_TX_SIM_STATUS, &l->plant.outputs, &st, l->tx_counter[DCT_TX_SIM_STATUS], f);
-    dct_e2e_protect(f, l->tx_counter[DCT_TX_SIM_STATUS]);
-    l->tx_counter[DCT_TX_SIM_STATUS] = (uint8_t)((l->tx_counter[DCT_TX_SIM_STATUS] + 1u) & 0x0Fu);
-    (void)tx_send(r, 1);
+    sim_status(r, state);
+    for (int c = 0; c < l->n_channels; c++) {
+        int nf = 0;
+        for (int i = 0; i < r->n_tx; i++)
+            if (r->tx_chan[i] == c && l->chan[c].msgs[r->tx_local[i]].final_frame)
+                make_frame(r, c, r->tx_local[i], nf++);
+        (void)tx_send(r, c, nf);
+    }
 }
 
 /* the scripted driver: starts the maneuver when due, writes the pedals of
@@ -819,32 +1113,50 @@ static inline int hist_bin(double us)
     return (int)us;
 }
 
-static void copy_counts(rt_stats *s, const rt_run *r)
+/* inside a write section: the counts, the messages whose counts changed, the plant */
+static void copy_counts(rt_stats *s, rt_run *r)
 {
     const rt_counts *c = &r->c;
+    rt_loop *l = r->l;
     s->ticks = c->ticks;
     s->overruns = c->overruns;
     s->skipped_ticks = c->skipped_ticks;
     s->turnaround_max_us = c->turnaround_max_us;
     s->exec_max_us = c->exec_max_us;
     s->latency_max_us = c->latency_max_us;
-    s->rx_frames = c->rx_frames;
-    s->rx_accepted = c->rx_accepted;
-    s->rx_unknown_id = c->rx_unknown_id;
-    s->rx_bad_length = c->rx_bad_length;
-    s->rx_bad_crc = c->rx_bad_crc;
-    s->rx_bad_counter = c->rx_bad_counter;
-    s->rx_overflow = c->rx_overflow;
-    s->tx_frames = c->tx_frames;
-    s->tx_dropped = c->tx_dropped;
-    for (int m = 0; m < DCT_CAN_N_RX; m++) {
-        s->rx_per_msg[m] = c->rx_per_msg[m];
-        s->timeout_events[m] = c->timeout_events[m];
-        s->timed_out[m] = c->timed_out[m];
+    rt_chan_stats sum;
+    memset(&sum, 0, sizeof sum);
+    for (int ch = 0; ch < l->n_channels; ch++) {
+        const rt_chan_stats *x = &c->chan[ch];
+        s->chan[ch] = *x;
+        sum.rx_frames += x->rx_frames;
+        sum.rx_accepted += x->rx_accepted;
+        sum.rx_unknown_id += x->rx_unknown_id;
+        sum.rx_bad_length += x->rx_bad_length;
+        sum.rx_bad_crc += x->rx_bad_crc;
+        sum.rx_bad_counter += x->rx_bad_counter;
+        sum.rx_overflow += x->rx_overflow;
+        sum.tx_frames += x->tx_frames;
+        sum.tx_dropped += x->tx_dropped;
     }
-    s->commands = r->cmd;
-    s->outputs = r->l->plant.outputs;
-    s->sim_time_s = r->l->plant.state.time_s;
+    s->rx_frames = sum.rx_frames;
+    s->rx_accepted = sum.rx_accepted;
+    s->rx_unknown_id = sum.rx_unknown_id;
+    s->rx_bad_length = sum.rx_bad_length;
+    s->rx_bad_crc = sum.rx_bad_crc;
+    s->rx_bad_counter = sum.rx_bad_counter;
+    s->rx_overflow = sum.rx_overflow;
+    s->tx_frames = sum.tx_frames;
+    s->tx_dropped = sum.tx_dropped;
+    for (int i = 0; i < r->n_dirty; i++) {
+        int g = r->dirty[i];
+        s->msgs[g] = c->msgs[g];
+        r->is_dirty[g] = 0;
+    }
+    r->n_dirty = 0;
+    memcpy(s->commands, r->cmd, (size_t)l->n_commands * sizeof r->cmd[0]);
+    s->outputs = l->plant.outputs;
+    s->sim_time_s = l->plant.state.time_s;
     s->maneuver_state = r->maneuver_state;
     s->maneuver_time_s = r->maneuver_time_s;
 }
@@ -951,9 +1263,8 @@ int rt_loop_run(rt_loop *l)
     r.spin_ns = llround(l->cfg.spin_us * 1e3);
     plan_tx(&r);
     plan_rx(&r);
-    r.cmd = l->stats.commands;
-    for (int m = 0; m < DCT_CAN_N_RX; m++)
-        r.c.timed_out[m] = l->stats.timed_out[m];
+    memcpy(r.cmd, l->stats.commands, sizeof r.cmd);
+    memcpy(r.c.msgs, l->stats.msgs, sizeof r.c.msgs);
 
     uint64_t limit = 0; /* deadlines to run, 0: until stopped */
     if (l->cfg.duration_s > 0.0 && isfinite(l->cfg.duration_s)) {
@@ -992,7 +1303,9 @@ int rt_loop_run(rt_loop *l)
             break;
         r.time_s = (double)(deadline - r.t0_ns) / 1e9;
 
-        int err = rx_drain(&r, n);
+        int err = 0;
+        for (int c = 0; c < l->n_channels && !err; c++)
+            err = rx_drain(&r, c, n);
         if (err) {
             state = RT_STATE_ERROR;
             error = err;
@@ -1001,7 +1314,7 @@ int rt_loop_run(rt_loop *l)
         }
         check_timeouts(&r, n);
         drive(&r);
-        dct_can_apply_commands(&r.cmd, &l->plant.inputs);
+        apply_commands(l, r.cmd);
         int st = dct_plant_step(&l->plant, 1);
         if (st != DCT_OK) {
             state = RT_STATE_ERROR;
@@ -1013,7 +1326,7 @@ int rt_loop_run(rt_loop *l)
             r.maneuver_time_s = l->plant.state.time_s - r.maneuver_t0_s;
         if (l->cfg.record_every > 0 && r.c.ticks % (uint64_t)l->cfg.record_every == 0)
             rec_push(&l->rec, r.c.ticks, l->plant.state.time_s, r.maneuver_time_s,
-                     &l->plant.outputs, &r.cmd);
+                     &l->plant.outputs, r.cmd, l->n_commands);
         err = tx_tick(&r, r.c.ticks);
         r.c.ticks++;
         if (err) {

@@ -5,14 +5,20 @@
  * clock_nanosleep TIMER_ABSTIME), in a thread of its own under SCHED_FIFO:
  *   wait for the deadline                       -> wake-up latency
  *     (sleep to deadline - spin_us, then busy-wait to the deadline)
- *   drain received frames, E2E check, decode    -> TCU commands
- *   timeouts: a TCU message missing for 10 of its cycles -> safe values
+ *   on every channel: drain received frames, check their protection,
+ *     decode them and turn their signals into command values
+ *   timeouts: a received message missing for its timeout -> safe values
  *   scripted driver (optional): pedals from a table over maneuver time
- *   plant step (one step = step_s of simulated time)
- *   encode and send the frames due this tick
+ *   command values -> plant inputs, plant step (step_s of simulated time)
+ *   on every channel: the frames due this tick, each signal from its source
+ *     (plant output, status, constant, counter), encoded and protected
  *   recorder (optional): a copy of the plant outputs every record_every ticks
  *   statistics: turnaround = end - deadline, execution = end - wake-up,
  *               overrun = the tick ends after the next deadline
+ * What goes on the buses is data, not code: per channel a table-driven codec
+ * (can_table.h: any DBC's layouts and protections) and per signal where its
+ * value comes from or what it drives (rt_source, rt_target), built by Python
+ * from a DBC and a mapping file (rt_loop/channels.py) before the loop starts.
  * No Python, no allocation, no locks, no logging per tick. Python starts
  * rt_loop_run() in a thread of its own (cffi releases the GIL for the call),
  * reads the statistics with rt_stats_read() (a sequence counter: the loop
@@ -26,18 +32,22 @@
 
 #include <stdint.h>
 
-#include "dct_can.h"
+#include "can_table.h"
 #include "dct_plant.h"
 
-#define RT_TRANSPORT_SOCKETCAN 0      /* cfg.fd is a bound, non-blocking CAN_RAW socket */
-#define RT_TRANSPORT_RING 1           /* frames through rx/tx rings (bridge to python-can) */
+#define RT_TRANSPORT_SOCKETCAN 0      /* the channel's fd is a bound, non-blocking CAN_RAW socket */
+#define RT_TRANSPORT_RING 1           /* frames through the channel's rx/tx rings (bridge to python-can) */
 
+#define RT_MAX_CHANNELS 4             /* CAN buses served by one loop */
+#define RT_MAX_MESSAGES 128           /* messages of all channels together */
+#define RT_MAX_COMMANDS 32            /* values the received signals drive (inputs) or record */
+#define RT_MAX_MSG_SIGNALS 512        /* signals of one message (64 bytes of 1-bit signals) */
 #define RT_RING_SIZE 8192             /* frames, a power of two */
 #define RT_LOG_SIZE 65536             /* log entries, a power of two */
 #define RT_REC_SIZE 4096              /* recorder samples, a power of two */
 #define RT_DRIVER_ROWS 64             /* rows of the in-loop pedal table */
 #define RT_HIST_BINS 5000             /* 1 us bins, 0 .. 4.999 ms; the last bin holds everything above */
-#define RT_TIMEOUT_CYCLES 10
+#define RT_TIMEOUT_CYCLES 10          /* the default timeout of a received message, in its cycles */
 
 #define RT_STATE_IDLE 0
 #define RT_STATE_RUNNING 1
@@ -62,6 +72,113 @@
 #define RT_DIR_RX 0
 #define RT_DIR_TX 1
 
+/* rt_frame.flags */
+#define RT_FRAME_FD 1                 /* a CAN FD frame */
+#define RT_FRAME_BRS 2                /* CAN FD bit rate switch */
+
+/* where a sent signal's value comes from (rt_source.kind) */
+/* RT_SRC_VALUE: a fixed value (a constant, the DBC start value; 0 for the
+ * protection's fields, which ct_protect writes) */
+#define RT_SRC_VALUE 0
+#define RT_SRC_OUTPUT 1               /* a plant output (the field-th double of dct_outputs) */
+#define RT_SRC_STATUS 2               /* the simulator's status (RT_STATUS_*) */
+#define RT_SRC_TOGGLE 3               /* 0, 1, 0, ... per frame of the message */
+#define RT_SRC_COUNTER 4              /* 0 .. modulus-1 per frame of the message */
+
+/* status sources (rt_source.field with RT_SRC_STATUS), as can_dbc.mapping.STATUS_FIELDS */
+#define RT_STATUS_SIM_TIME_S 0
+#define RT_STATUS_OVERRUN_COUNT 1
+#define RT_STATUS_TURNAROUND_MAX_US 2
+#define RT_STATUS_SIM_STATE 3         /* 0 starting, 1 running, 2 stopping, 3 fault */
+#define RT_N_STATUS 4
+
+/* what a received signal drives (rt_target.kind) */
+#define RT_TGT_NONE 0                 /* nothing */
+#define RT_TGT_COMMAND 1              /* the command value rt_target.command */
+
+/* one CAN or CAN FD frame as the loop moves it */
+typedef struct {
+    uint32_t id;                      /* identifier with SocketCAN's flags: CAN_EFF_FLAG (29-bit),
+                                         CAN_RTR_FLAG, CAN_ERR_FLAG */
+    uint8_t len;                      /* data bytes: 0..8, CAN FD up to 64 */
+    uint8_t flags;                    /* RT_FRAME_* */
+    uint8_t channel;                  /* the bus (index of rt_loop.chan) it was received on or
+                                         sent to */
+    uint8_t reserved;
+    uint8_t data[CT_MAX_LENGTH];
+} rt_frame;
+
+/* a whole number key lo..hi (inclusive; +-inf: open) of a value table */
+typedef struct {
+    double lo;
+    double hi;
+    double value;
+} rt_range;
+
+/* a value table: the key (the value rounded half to even to a whole number)
+ * picks the first of ranges[first .. first + count - 1] that holds it, else
+ * (or for a non-finite key) the default */
+typedef struct {
+    uint32_t first;
+    uint32_t count;                   /* 0: no table */
+    double fallback;
+} rt_lookup;
+
+/* where a sent signal's value comes from: one per signal of the channel's table */
+typedef struct {
+    uint8_t kind;                     /* RT_SRC_* */
+    uint8_t absolute;                 /* take the magnitude of the output or status first */
+    uint16_t field;                   /* RT_SRC_OUTPUT: index of the dct_outputs double;
+                                         RT_SRC_STATUS: RT_STATUS_* */
+    uint32_t modulus;                 /* RT_SRC_COUNTER: the counter's values 0 .. modulus-1 */
+    double gain;                      /* signal = gain * source + bias (without a table) */
+    double bias;
+    double value;                     /* RT_SRC_VALUE */
+    rt_lookup table;                  /* with a table: signal = the table's value for the source */
+} rt_source;
+
+/* what a received signal drives: one per signal of the channel's table */
+typedef struct {
+    uint8_t kind;                     /* RT_TGT_* */
+    uint8_t reserved;
+    uint16_t command;                 /* RT_TGT_COMMAND: index of rt_loop.commands */
+    double gain;                      /* value = gain * signal + bias (without a table), */
+    double bias;
+    double minimum;                   /* then limited to [minimum, maximum] (+-inf: no limit) */
+    double maximum;
+    double safe;                      /* the value while the message is timed out (and at start) */
+    rt_lookup table;
+} rt_target;
+
+/* the loop's side of one message of a channel's table */
+typedef struct {
+    uint8_t direction;                /* RT_DIR_TX: the plant sends it; RT_DIR_RX: it receives it */
+    uint8_t final_frame;              /* sent: it carries RT_STATUS_SIM_STATE, so one more frame
+                                         goes out when the loop ends (with the state it ends in) */
+    uint8_t flags;                    /* sent: RT_FRAME_* of its frames */
+    uint8_t reserved;
+    uint32_t timeout_cycles;          /* received: timed out after this many cycles without an
+                                         accepted frame (0: RT_TIMEOUT_CYCLES) */
+    double cycle_s;                   /* cycle time in simulated time */
+} rt_msg;
+
+/* one CAN bus the loop serves: filled by Python (rt_loop/channels.py) before
+ * rt_loop_prepare; the arrays belong to Python and live as long as the loop */
+typedef struct {
+    int transport;                    /* RT_TRANSPORT_* */
+    int fd;                           /* the CAN_RAW socket (RT_TRANSPORT_SOCKETCAN) */
+    int fd_frames;                    /* 1: the socket carries CAN FD frames (CAN_RAW_FD_FRAMES
+                                         is on): frames are read and sent as struct canfd_frame */
+    int first_message;                /* set by rt_loop_prepare: index of the channel's first
+                                         message in the loop-wide numbering (stats.msgs) */
+    ct_table table;                   /* the bus's messages (can_dbc/table.py CodecTable) */
+    const rt_msg *msgs;               /* one per message of table */
+    const rt_source *sources;         /* one per signal of table (used for sent messages) */
+    const rt_target *targets;         /* one per signal of table (used for received messages) */
+    const rt_range *ranges;           /* the value tables' ranges */
+    int32_t n_ranges;
+} rt_channel;
+
 typedef struct {
     double period_s;                  /* wall-clock time between deadlines: 0.0005 for 2 kHz */
     double step_s;                    /* simulated time per tick (the plant step; the CAN
@@ -73,8 +190,6 @@ typedef struct {
     int lock_memory;                  /* 1: mlockall(MCL_CURRENT | MCL_FUTURE) */
     int overrun_stop;                 /* 1: stop at the first overrun; 0: count, skip ahead */
     double duration_s;                /* <= 0: until rt_loop_request_stop() */
-    int transport;                    /* RT_TRANSPORT_* */
-    int fd;                           /* the CAN_RAW socket (RT_TRANSPORT_SOCKETCAN) */
     int log_frames;                   /* 1: copy every received and sent frame to the log ring */
     double spin_us;                   /* wake this long before each deadline and busy-wait to it:
                                          hides the OS wake-up latency up to spin_us (0: sleep only) */
@@ -102,7 +217,7 @@ typedef struct {
     double time_s;                    /* plant time after the step */
     double maneuver_time_s;           /* plant time since the maneuver started (< 0: not yet) */
     dct_outputs outputs;
-    dct_tcu_commands commands;        /* as applied in this tick */
+    double commands[RT_MAX_COMMANDS]; /* the received values as applied in this tick */
 } rt_sample;
 
 typedef struct {
@@ -117,13 +232,13 @@ typedef struct {
     uint32_t head;                    /* written by the producer only */
     uint32_t tail;                    /* written by the consumer only */
     uint64_t dropped;                 /* pushes refused because the ring was full */
-    dct_can_frame frames[RT_RING_SIZE];
+    rt_frame frames[RT_RING_SIZE];
 } rt_ring;
 
 typedef struct {
     double time_s;                    /* loop time since start (tick deadline) */
     uint32_t dir;                     /* RT_DIR_* */
-    dct_can_frame frame;
+    rt_frame frame;
 } rt_log_entry;
 
 typedef struct {
@@ -132,6 +247,31 @@ typedef struct {
     uint64_t dropped;                 /* entries lost because the reader fell behind */
     rt_log_entry entries[RT_LOG_SIZE];
 } rt_log_ring;
+
+/* counts of one message (stats.msgs) */
+typedef struct {
+    uint64_t frames;                  /* received: accepted; sent: sent */
+    uint64_t bad_length;              /* received: rejected, by reason */
+    uint64_t bad_crc;
+    uint64_t bad_counter;
+    uint64_t timeouts;                /* received: times it timed out */
+    uint64_t dropped;                 /* sent: refused by a full socket buffer or ring */
+    int32_t timed_out;                /* received: 1 while timed out (all are at start) */
+    int32_t reserved;
+} rt_msg_stats;
+
+/* counts of one channel (stats.chan); the totals in rt_stats are their sums */
+typedef struct {
+    uint64_t rx_frames;
+    uint64_t rx_accepted;
+    uint64_t rx_unknown_id;
+    uint64_t rx_bad_length;
+    uint64_t rx_bad_crc;
+    uint64_t rx_bad_counter;
+    uint64_t rx_overflow;
+    uint64_t tx_frames;
+    uint64_t tx_dropped;
+} rt_chan_stats;
 
 typedef struct {
     uint32_t seq;                     /* odd while the loop is writing */
@@ -165,10 +305,11 @@ typedef struct {
     uint64_t rx_overflow;             /* frames the kernel dropped (SO_RXQ_OVFL) or ring drops */
     uint64_t tx_frames;
     uint64_t tx_dropped;              /* sends refused (full socket buffer or ring) */
-    uint64_t rx_per_msg[DCT_CAN_N_RX];
-    uint64_t timeout_events[DCT_CAN_N_RX];
-    int timed_out[DCT_CAN_N_RX];      /* 1 while the message is timed out (all are at start) */
-    dct_tcu_commands commands;        /* as applied this tick */
+    int32_t n_channels;
+    int32_t n_messages;               /* of all channels, channel by channel in table order */
+    rt_chan_stats chan[RT_MAX_CHANNELS];
+    rt_msg_stats msgs[RT_MAX_MESSAGES];
+    double commands[RT_MAX_COMMANDS]; /* the received values as applied this tick */
     dct_outputs outputs;              /* the plant's outputs after this tick */
 } rt_stats;
 
@@ -177,11 +318,17 @@ typedef struct {
     dct_plant plant;                  /* params filled by Python before rt_loop_prepare() */
     rt_stats stats;
     int stop_request;                 /* set by rt_loop_request_stop() */
-    dct_e2e_rx e2e[DCT_CAN_N_RX];
-    uint64_t last_rx_tick[DCT_CAN_N_RX];
-    uint8_t tx_counter[DCT_CAN_N_TX];
-    rt_ring rx;                       /* bridge: python-can -> loop */
-    rt_ring tx;                       /* bridge: loop -> python-can */
+    int n_channels;                   /* 1 .. RT_MAX_CHANNELS, filled by Python */
+    rt_channel chan[RT_MAX_CHANNELS];
+    int n_commands;                   /* 0 .. RT_MAX_COMMANDS, filled by Python */
+    int32_t command_input[RT_MAX_COMMANDS];  /* the dct_inputs double each command value
+                                                drives, -1: recorded only */
+    /* per message (loop-wide numbering), the loop's own */
+    ct_rx_state rx_state[RT_MAX_MESSAGES];
+    uint64_t last_rx_tick[RT_MAX_MESSAGES];
+    uint64_t tx_count[RT_MAX_MESSAGES];      /* frames made so far (counters, toggles) */
+    rt_ring rx[RT_MAX_CHANNELS];      /* bridge: python-can -> loop, per channel */
+    rt_ring tx[RT_MAX_CHANNELS];      /* bridge: loop -> python-can, per channel */
     rt_log_ring log;                  /* loop -> traffic log writer */
     rt_driver driver;                 /* filled by Python before rt_loop_prepare() */
     rt_rec_ring rec;                  /* loop -> recorder */
@@ -198,12 +345,12 @@ void rt_loop_request_stop(rt_loop *l);
  * -1 if the loop kept writing through every retry */
 int rt_stats_read(rt_loop *l, rt_stats *copy);
 
-int rt_ring_push(rt_ring *r, const dct_can_frame *f);   /* 0, or -1 full (counted) */
-int rt_ring_pop(rt_ring *r, dct_can_frame *f);          /* 0, or -1 empty */
+int rt_ring_push(rt_ring *r, const rt_frame *f);   /* 0, or -1 full (counted) */
+int rt_ring_pop(rt_ring *r, rt_frame *f);              /* 0, or -1 empty */
 int rt_log_pop(rt_log_ring *r, rt_log_entry *e);        /* 0, or -1 empty */
 /* up to n frames at once (bridge thread): returns how many */
-int rt_ring_push_many(rt_ring *r, const dct_can_frame *f, int n);
-int rt_ring_pop_many(rt_ring *r, dct_can_frame *f, int n);
+int rt_ring_push_many(rt_ring *r, const rt_frame *f, int n);
+int rt_ring_pop_many(rt_ring *r, rt_frame *f, int n);
 int rt_log_pop_many(rt_log_ring *r, rt_log_entry *e, int n);
 int rt_rec_pop_many(rt_rec_ring *r, rt_sample *s, int n);
 
