@@ -97,8 +97,8 @@ __all__ = [
     "DEFAULT_MAPPING", "DEFAULT_RATE_HZ", "DEFAULT_TIMEOUT_CYCLES", "LOAD_WARNING", "MAPPINGS_DIR",
     "STATUS_FIELDS", "SUFFIX_UNITS", "UNITS", "Bus", "BusLoad", "MappedMessage", "MappedSignal",
     "Mapping", "MappingError", "Source", "Target", "bus_load", "check_report", "classic_frame_bits",
-    "conversion", "fd_frame_bits", "find_mapping", "frame_time_s", "load", "show", "template",
-    "unit_of_name",
+    "conversion", "fd_frame_bits", "find_mapping", "frame_time_s", "load", "load_options",
+    "parse_pairs", "show", "template", "unit_of_name",
 ]
 
 MAPPINGS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "mappings")
@@ -398,13 +398,15 @@ def find_mapping(name_or_path):
     return shipped if os.path.exists(shipped) else p
 
 
-def load(path=DEFAULT_MAPPING, rate_hz=DEFAULT_RATE_HZ, *, outputs=None, inputs=None):
+def load(path=DEFAULT_MAPPING, rate_hz=DEFAULT_RATE_HZ, *, outputs=None, inputs=None, dbc=None):
     """The checked :class:`Mapping` of a mapping file, or MappingError (one line:
     file: key: cause); nothing is returned half-loaded.
 
     ``rate_hz``: the loop's rate; every cycle time must be a whole number of its
     ticks. ``outputs``/``inputs``: the plant's field names (default: those of
-    dct_outputs/dct_inputs as plant.model sees them).
+    dct_outputs/dct_inputs as plant.model sees them). ``dbc``: DBC files used
+    instead of those the mapping names (``--dbc``), bus name -> path (a path
+    relative to the working directory); an unknown bus name is an error.
 
     Used messages are those the plant sends (every message of a plant node, or
     direction = "send") and receives (every message of a TCU node, or
@@ -434,7 +436,43 @@ def load(path=DEFAULT_MAPPING, rate_hz=DEFAULT_RATE_HZ, *, outputs=None, inputs=
         from plant.model import INPUT_NAMES, OUTPUT_NAMES
         outputs = OUTPUT_NAMES if outputs is None else outputs
         inputs = INPUT_NAMES if inputs is None else inputs
-    return _Loader(str(path), float(rate_hz), tuple(outputs), tuple(inputs)).load()
+    return _Loader(str(path), float(rate_hz), tuple(outputs), tuple(inputs), dict(dbc or {})).load()
+
+
+def parse_pairs(values, option):
+    """``["io=vcan1", ...]`` (a repeated command-line option) as {name: value};
+    a value without ``=``, an empty side or a name given twice is a MappingError
+    naming ``option``."""
+    out = {}
+    for text in values or ():
+        name, sep, value = str(text).partition("=")
+        name, value = name.strip(), value.strip()
+        if not sep or not name or not value:
+            raise MappingError(f"{option} {text!r}: give NAME=VALUE")
+        if name in out:
+            raise MappingError(f"{option}: {name!r} given twice")
+        out[name] = value
+    return out
+
+
+def load_options(mapping=None, dbc=(), rate_hz=DEFAULT_RATE_HZ):
+    """The Mapping the command line's ``--mapping`` and ``--dbc`` options name:
+    ``mapping`` a file or a shipped mapping's name (default: the project's own
+    contract), each ``dbc`` value ``FILE`` (the mapping's first bus) or
+    ``BUS=FILE``, read instead of the DBC the mapping names. MappingError (one
+    line) for anything wrong."""
+    overrides = {}
+    for text in dbc or ():
+        name, sep, value = str(text).partition("=")
+        key = name.strip() if sep else None
+        path = value.strip() if sep else str(text).strip()
+        if not path or (sep and not key):
+            raise MappingError(f"--dbc {text!r}: give FILE or BUS=FILE")
+        if key in overrides:
+            raise MappingError(f"--dbc: {'the first bus' if key is None else repr(key)} given twice")
+        overrides[key] = path
+    path = find_mapping(DEFAULT_MAPPING if mapping is None else mapping)
+    return load(path, rate_hz=rate_hz, dbc=overrides)
 
 
 @contextmanager
@@ -520,8 +558,9 @@ def _dbc_is_fd(db):
 
 
 class _Loader:
-    def __init__(self, path, rate_hz, outputs, inputs):
+    def __init__(self, path, rate_hz, outputs, inputs, dbc_overrides=None):
         self.path = path
+        self.dbc_overrides = dict(dbc_overrides or {})
         self.rate_hz = rate_hz
         self.outputs = outputs
         self.inputs = inputs
@@ -563,6 +602,13 @@ class _Loader:
             self.fail("bus", "no [[bus]]: name at least one bus with its DBC")
         if not isinstance(raw, list) or not all(isinstance(b, dict) for b in raw):
             self.fail("bus", "must be an array of tables ([[bus]])")
+        names = [b.get("name") for b in raw]
+        if None in self.dbc_overrides:                 # --dbc FILE: the first bus
+            self.dbc_overrides[names[0]] = self.dbc_overrides.pop(None)
+        for name in self.dbc_overrides:
+            if name not in names:
+                raise MappingError(f"{self.path}: --dbc {name}=...: the mapping has no bus {name!r} "
+                                   f"(its buses: {', '.join(str(n) for n in names)})")
         buses = []
         for i, b in enumerate(raw):
             key = f"bus[{i}]"
@@ -576,6 +622,9 @@ class _Loader:
             if not isinstance(dbc, str) or not dbc:
                 self.fail(f"{key}.dbc", "the bus's DBC file (relative to this file) is missing")
             dbc_path = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(self.path)), dbc))
+            if name in self.dbc_overrides:
+                dbc = str(self.dbc_overrides[name])
+                dbc_path = os.path.abspath(dbc)
             try:
                 db = read_dbc(dbc_path)
             except ValueError as e:

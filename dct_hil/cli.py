@@ -175,6 +175,7 @@ def build_parser():
                        help="exit 3 when the run's timing verdict is INVALID (without it the "
                             "verdict is printed with a warning and the exit status stays)")
     _add_pm_qos_options(serve)
+    _add_mapping_options(serve, "the plant")
     serve.set_defaults(func=cmd_serve)
 
     from tcu_stub import can_tcu
@@ -224,6 +225,7 @@ def build_parser():
                       help="exit 3 when the run's timing verdict is INVALID (without it the "
                            "verdict is printed with a warning and the exit status stays)")
     _add_pm_qos_options(demo)
+    _add_mapping_options(demo, "the plant and the TCU stub")
     demo.set_defaults(func=cmd_demo)
 
     doctor = sub.add_parser(
@@ -274,6 +276,21 @@ def build_parser():
                        help="the loop's rate: cycle times must be whole ticks (default 2000)")
     mapping.set_defaults(func=cmd_mapping)
     return parser
+
+
+def _add_mapping_options(p, what):
+    p.add_argument("--mapping", metavar="FILE_OR_NAME",
+                   help=f"the CAN matrix {what} plays: a mapping file (DBC per bus, what is sent "
+                        "and received, sources and targets) or a shipped one: dct_hil (the "
+                        "project's own contract, the default) or vehicle (an example powertrain "
+                        "CAN at 500 kbit/s and an I/O bus)")
+    p.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
+                   help="read this DBC instead of the one the mapping names for BUS (without "
+                        "BUS=: the first bus); repeatable")
+    p.add_argument("--bus", action="append", default=[], metavar="NAME=CHANNEL",
+                   help="the CAN channel of a bus of the mapping other than the first (which is "
+                        "on --channel); repeatable. Default on interfaces other than socketcan: "
+                        "CHANNEL-NAME")
 
 
 def _add_pm_qos_options(parser):
@@ -764,10 +781,22 @@ def _serve_priority(text):
 
 
 
+def _mapping_from_args(args, rate_hz):
+    """(Mapping, {bus: channel}) of --mapping, --dbc and --bus."""
+    from can_dbc.mapping import MappingError, load_options, parse_pairs
+
+    try:
+        return (load_options(args.mapping, args.dbc, rate_hz=rate_hz),
+                parse_pairs(args.bus, "--bus"))
+    except MappingError as e:
+        raise UserError(str(e)) from None
+
+
 def cmd_serve(args):
     from rt_loop.server import Server, ServerError, run_console
     from rt_loop.transport import TransportError, check_interface
 
+    mapping, bus_channels = _mapping_from_args(args, args.rate)
     try:
         if args.interface is not None:
             check_interface(args.interface)
@@ -789,7 +818,7 @@ def cmd_serve(args):
             bus_kwargs={"bitrate": args.bitrate} if args.bitrate else None,
             spin_us=args.spin_us, time_scale=args.time_scale, driver=driver,
             maneuver_end_s=end, record_path=args.record, record_every_s=args.record_every,
-            pm_qos_us=args.pm_qos_us,
+            pm_qos_us=args.pm_qos_us, mapping=mapping, bus_channels=bus_channels,
         )
         return run_console(server, args.stats, quiet=args.quiet, strict=args.strict)
     except (ServerError, TransportError) as e:
@@ -809,11 +838,13 @@ def cmd_demo(args):
     from rt_loop.transport import TransportError
 
     _check_writable(os.path.join(args.out, "summary.json"), "--out")
+    mapping, bus_channels = _mapping_from_args(args, 2000.0)
     try:
         return run_demo(args.maneuver, args.out, channel=args.channel, interface=args.interface,
                         time_scale=args.time_scale, priority=args.priority, quiet=args.quiet,
                         duration_s=args.duration, tcu_clock=args.tcu_clock,
-                        pm_qos_us=args.pm_qos_us, strict=args.strict)
+                        pm_qos_us=args.pm_qos_us, strict=args.strict, mapping=mapping,
+                        bus_channels=bus_channels)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 

@@ -123,12 +123,19 @@ class _TcuProcess:
     """The TCU stub as a second process on the same CAN channel."""
 
     def __init__(self, interface: str, channel: str, time_scale: float, report: Path,
-                 log: Path, clock: str) -> None:
+                 log: Path, clock: str, mapping=None, bus_channels=None) -> None:
         self.report_path = report
         self.log_path = log
         cmd = [sys.executable, "-m", "tcu_stub.can_tcu", "--channel", channel,
                "--interface", interface, "--time-scale", repr(time_scale), "--clock", clock,
                "--report", str(report), "--quiet"]
+        if mapping is not None:                   # the same matrix, DBCs and channels
+            cmd += ["--mapping", mapping.path]
+            for b in mapping.buses:
+                cmd += ["--dbc", f"{b.name}={b.dbc}"]
+            for name, ch in (bus_channels or {}).items():
+                if ch != channel:
+                    cmd += ["--bus", f"{name}={ch}"]
         self._log = open(log, "w", encoding="utf-8")  # noqa: SIM115
         self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT,
                                      start_new_session=True)
@@ -160,11 +167,14 @@ class _TcuProcess:
 class _TcuThread:
     """The TCU stub in a thread of this process, on the in-process bus."""
 
-    def __init__(self, channel: str, time_scale: float, report: Path, clock: str) -> None:
+    def __init__(self, channel: str, time_scale: float, report: Path, clock: str,
+                 mapping=None, bus_channels=None) -> None:
         from tcu_stub.can_tcu import CanTcu  # noqa: PLC0415
 
         self.report_path = report
-        self.tcu = CanTcu.open("virtual", channel, time_scale=time_scale, clock=clock)
+        self.tcu = CanTcu.open("virtual", channel, time_scale=time_scale, clock=clock,
+                               **({} if mapping is None else
+                                  {"mapping": mapping, "bus_channels": bus_channels}))
         self.tcu.start()
 
     def alive(self) -> bool:
@@ -201,14 +211,19 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
              channel: str | None = None, interface: str | None = None,
              time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
              duration_s: float | None = None, tcu_clock: str | None = None,
-             pm_qos_us: int | str | None = "auto", strict: bool = False, out=None, err=None) -> int:
+             pm_qos_us: int | str | None = "auto", strict: bool = False, out=None, err=None,
+             mapping=None, bus_channels: dict | None = None) -> int:
     """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C; with
     ``strict``, 3 for a run that would exit 0 but whose timing verdict is INVALID).
 
     ``duration_s`` plays only the first seconds of the maneuver. ``tcu_clock``
     (``tcu_stub.can_tcu.CLOCKS``): the TCU's task clock; default "wall" in real
     time and "bus" in slow motion (a TCU tick per 2 ms of plant time, so plant
-    and TCU stay in step even when the machine cannot keep the slowed pace)."""
+    and TCU stay in step even when the machine cannot keep the slowed pace).
+    ``mapping`` (a ``can_dbc.mapping.Mapping``, default the project's own
+    contract) is the CAN matrix both the server and the TCU stub use, its
+    buses on the channels ``bus_channels`` names (``Server``); the shifts are
+    compared with the offline run over the project's own contract."""
     from plant import maneuvers as mv  # noqa: PLC0415
     from plant.plots import write_plots  # noqa: PLC0415
     from rt_loop.recorder import read_recording  # noqa: PLC0415
@@ -235,16 +250,23 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     server = Server(chan, interface=iface, priority=priority, driver=m.driver,
                     maneuver_start="tcu", maneuver_end_s=end_s,
                     record_path=paths["recording"], record_every_s=RECORD_EVERY_S,
-                    log_path=paths["can_log"], time_scale=time_scale, pm_qos_us=pm_qos_us)
+                    log_path=paths["can_log"], time_scale=time_scale, pm_qos_us=pm_qos_us,
+                    mapping=mapping, bus_channels=bus_channels)
+    tcu_mapping = None if mapping is None else server.mapping
     print(f"dct-hil demo      {maneuver}: {m.description} ({end_s:g} s"
           + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
           file=out)
     print(f"transport         {iface} on {chan}: {why}", file=out)
+    if mapping is not None:
+        buses = ", ".join(f"{b.name} ({os.path.basename(b.dbc)}, {b.bitrate // 1000} kbit/s) on "
+                          f"{server.bus_channels[b.name]}" for b in server.mapping.buses)
+        print(f"CAN matrix        {server.mapping.path}: {buses}", file=out)
     print("PM QoS            " + (f"off ({server.pm_qos_off_because})" if server.pm_qos is None
                                 else f"{server.pm_qos.path} at {server.pm_qos.latency_us} us "
                                      "for the run"), file=out)
     if tcu_clock == "bus":
-        print("TCU clock         bus: a TCU tick per DCT_ShaftSpeeds frame (follows plant time)",
+        print("TCU clock         bus: a TCU tick per frame of its fastest plant message (follows "
+              "plant time)",
               file=out)
 
     signals = StopSignals()
@@ -259,9 +281,10 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
             print(f"dct-hil: warning: {w}", file=err)
         if two:
             tcu = _TcuProcess(iface, chan, time_scale, paths["tcu_report"],
-                              folder / "tcu.out", tcu_clock)
+                              folder / "tcu.out", tcu_clock, tcu_mapping, server.bus_channels)
         else:
-            tcu = _TcuThread(chan, time_scale, paths["tcu_report"], tcu_clock)
+            tcu = _TcuThread(chan, time_scale, paths["tcu_report"], tcu_clock, tcu_mapping,
+                             server.bus_channels)
         started = time.monotonic()
         last = 0.0
         while not stop.is_set() and server.running:
@@ -330,6 +353,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         "maneuver_time_s": run["maneuver_time_s"],
         "transport": {"interface": iface, "channel": chan, "why": why,
                       "tcu": "second process" if two else "thread"},
+        "mapping": server.mapping.path,
+        "buses": dict(server.bus_channels),
         "time_scale": time_scale,
         "tcu_clock": tcu_clock,
         "figures": figures,

@@ -334,15 +334,22 @@ class Server:
         self.bus_kwargs = dict(bus_kwargs or {})
 
         self._ffi, self._lib = ffi, lib = _extension()
-        if isinstance(mapping, _mapping.Mapping):
-            self.mapping = mapping
-        else:
-            path = _mapping.find_mapping(_mapping.DEFAULT_MAPPING if mapping is None else mapping)
-            self.mapping = _mapping.load(path, rate_hz=self.rate_hz)
-        iface = interface if interface is not None else default_interface(self.channel)[0]
-        #: bus name -> the CAN channel it is served on
-        self.bus_channels = self.mapping.channels(self.channel, bus_channels,
-                                                  derive=iface != "socketcan")
+        try:
+            if isinstance(mapping, _mapping.Mapping):
+                self.mapping = mapping
+            else:
+                path = _mapping.find_mapping(_mapping.DEFAULT_MAPPING if mapping is None
+                                             else mapping)
+                self.mapping = _mapping.load(path, rate_hz=self.rate_hz)
+            if abs(self.mapping.rate_hz - self.rate_hz) > 1e-9 * self.rate_hz:
+                self.mapping = _mapping.load(self.mapping.path, rate_hz=self.rate_hz,
+                                             dbc=self._dbc_of(self.mapping))
+            iface = interface if interface is not None else default_interface(self.channel)[0]
+            #: bus name -> the CAN channel it is served on
+            self.bus_channels = self.mapping.channels(self.channel, bus_channels,
+                                                      derive=iface != "socketcan")
+        except _mapping.MappingError as e:
+            raise ServerError(str(e)) from None
         try:
             self.channels = LoopChannels(self.mapping, ffi, lib)
         except (ChannelError, ValueError) as e:
@@ -367,6 +374,10 @@ class Server:
         self._loop_error: str | None = None
         self._started = self._stopped = False
         self._t_start = self._t_end = None
+
+    @staticmethod
+    def _dbc_of(mapping: Any) -> dict:
+        return {b.name: b.dbc for b in mapping.buses}
 
     # ------------------------------------------------------------ life cycle
     def start(self, progress: Callable[[str], None] | None = None,
