@@ -3,9 +3,11 @@
 No CAN needed: the loop runs in a Python thread (cffi releases the GIL for
 rt_loop_run) and exchanges frames through its rings (the bridge transport),
 or through an AF_UNIX datagram socket pair standing in for a CAN_RAW socket
-(the same recvmmsg/sendmmsg path; the host kernel has no CAN). TCU frames are
-packed with cantools from the DBC and protected with the C E2E functions;
-the plant's frames are checked against the DBC and an independent CRC.
+(the same recvmmsg/sendmmsg path; the host kernel has no CAN). The loop
+serves the default mapping (can_dbc/mappings/dct_hil.toml: the project's own
+contract, one bus), its tables built once by rt_loop.channels.LoopChannels.
+TCU frames are packed and protected by that mapping's CodecTable; the
+plant's frames are checked against the DBC (cantools) and a CRC written here.
 
 Every assertion is about behaviour: counts, values, ordering. Waits poll the
 statistics with a generous limit and never judge how long something took.
@@ -24,8 +26,10 @@ import cantools
 import numpy as np
 import pytest
 
+from can_dbc import mapping as can_mapping
 from plant.params import fill_params, load_params
 from rt_loop._rt_loop import ffi, lib
+from rt_loop.channels import LoopChannels
 
 DBC_PATH = Path(__file__).resolve().parents[1] / "can_dbc" / "dct_hil.dbc"
 DB = cantools.database.load_file(str(DBC_PATH))
@@ -34,10 +38,20 @@ TCU_MESSAGES = {m.name: m for m in DB.messages if "TCU" in m.senders}
 CLUTCH_CMD = TCU_MESSAGES["TCU_ClutchCmd"]
 ENGINE_CMD = TCU_MESSAGES["TCU_EngineCmd"]
 
+# the default mapping's tables, built once and installed into every loop
+MAPPING = can_mapping.load(can_mapping.DEFAULT_MAPPING)
+CHANNELS = LoopChannels(MAPPING, ffi, lib)
+TABLE = CHANNELS.table(0)
+MSG = {m.name: g for g, (_, m) in enumerate(CHANNELS.messages)}      # stats.msgs index
+RX_MSGS = [g for g, (_, m) in enumerate(CHANNELS.messages) if m.direction == "receive"]
+TX_MSGS = [g for g, (_, m) in enumerate(CHANNELS.messages) if m.direction == "send"]
+CMD = {name: k for k, name in enumerate(CHANNELS.command_names)}   # stats.commands index
+CLUTCH, SHIFT, ENGINE = MSG["TCU_ClutchCmd"], MSG["TCU_ShiftCmd"], MSG["TCU_EngineCmd"]
+
 WAIT_S = 30.0                   # limit of a wait for behaviour (never a timing check)
 CAN_EFF_FLAG = 0x80000000
 CAN_RTR_FLAG = 0x40000000
-CAN_FRAME = struct.Struct("<IBxxx8s")   # struct can_frame: id, len, pad, res0, len8_dlc, data
+CAN_FRAME = struct.Struct("<IBxxx8s")   # struct can_frame (CAN_MTU, 16 bytes): id, len, pad, res0, len8_dlc, data
 
 _PARAMS = load_params(None, ffi, None)
 
@@ -56,28 +70,24 @@ def e2e_ok(frame_id, data):
     return data[0] == crc8_j1850(bytes([frame_id & 0xFF, (frame_id >> 8) & 0xFF]) + bytes(data[1:]))
 
 
-def protect(frame_id, data, counter):
-    """(id, len, data) with AliveCounter and CRC written by the C E2E code."""
-    f = ffi.new("dct_can_frame *")
-    f.id = frame_id
-    f.len = len(data)
-    ffi.memmove(f.data, bytes(data), len(data))
-    lib.dct_e2e_protect(f, counter)
-    return (frame_id, len(data), bytes(ffi.buffer(f.data, 8)))
-
-
 def tcu_frame(message, counter, **signals):
-    values = {s.name: 0 for s in message.signals}
-    values.update(signals)
-    return protect(message.frame_id, message.encode(values), counter)
+    """(id, len, data) of a TCU frame: the signals packed, AliveCounter and CRC
+    written by the default mapping's table codec."""
+    data = TABLE.encode(message.name, signals, counter=counter)
+    return (message.frame_id, len(data), data)
 
 
-def ring_addr(loop, name):
-    return ffi.addressof(loop.c[0], name)
+def ring_addr(loop, name, channel=0):
+    return ffi.addressof(loop.c[0], name, channel)
+
+
+def frames_of(buf, n):
+    """(id, len, data) of rt_frames, data as long as the frame."""
+    return [(buf[i].id, buf[i].len, bytes(ffi.buffer(buf[i].data, buf[i].len))) for i in range(n)]
 
 
 class Loop:
-    """One rt_loop: prepared on creation, run in a thread of its own."""
+    """One rt_loop serving the default mapping: prepared on creation, run in a thread of its own."""
 
     def __init__(self, period_s=0.0005, duration_s=0.0, transport=lib.RT_TRANSPORT_RING, fd=-1,
                  log_frames=0, overrun_stop=0, tweak=None, step_s=0.0, record_every=0,
@@ -93,11 +103,12 @@ class Loop:
         cfg.lock_memory = 0
         cfg.overrun_stop = overrun_stop
         cfg.duration_s = duration_s
-        cfg.transport = transport
-        cfg.fd = fd
         cfg.log_frames = log_frames
         cfg.step_s = step_s
         cfg.record_every = record_every
+        CHANNELS.install(self.c)
+        self.c.chan[0].transport = transport
+        self.c.chan[0].fd = fd
         if driver is not None:      # dict: rows [(t_s, accel, brake)], linear, start_on_tcu, end_s
             d = self.c.driver
             d.rows = len(driver["rows"])
@@ -152,19 +163,20 @@ class Loop:
             time.sleep(0.0005)
 
     def push(self, frames):
-        arr = ffi.new("dct_can_frame[]", len(frames))
+        arr = ffi.new("rt_frame[]", len(frames))
         for i, (fid, length, data) in enumerate(frames):
             arr[i].id = fid
             arr[i].len = length
-            ffi.memmove(arr[i].data, data[:8].ljust(8, b"\0"), 8)
+            data = bytes(data)[:lib.CT_MAX_LENGTH]
+            ffi.memmove(arr[i].data, data, len(data))
         return lib.rt_ring_push_many(ring_addr(self, "rx"), arr, len(frames))
 
     def pop_tx(self):
         out = []
-        buf = ffi.new("dct_can_frame[1024]")
+        buf = ffi.new("rt_frame[1024]")
         while True:
             n = lib.rt_ring_pop_many(ring_addr(self, "tx"), buf, 1024)
-            out.extend((buf[i].id, buf[i].len, bytes(ffi.buffer(buf[i].data, 8))) for i in range(n))
+            out.extend(frames_of(buf, n))
             if n < 1024:
                 return out
 
@@ -172,21 +184,20 @@ class Loop:
         out = []
         buf = ffi.new("rt_log_entry[4096]")
         while True:
-            n = lib.rt_log_pop_many(ring_addr(self, "log"), buf, 4096)
+            n = lib.rt_log_pop_many(ffi.addressof(self.c[0], "log"), buf, 4096)
             out.extend((buf[i].time_s, buf[i].dir, buf[i].frame.id, buf[i].frame.len,
-                        bytes(ffi.buffer(buf[i].frame.data, 8))) for i in range(n))
+                        bytes(ffi.buffer(buf[i].frame.data, buf[i].frame.len))) for i in range(n))
             if n < 4096:
                 return out
-
 
     def pop_rec(self):
         out = []
         buf = ffi.new("rt_sample[512]")
         while True:
-            n = lib.rt_rec_pop_many(ring_addr(self, "rec"), buf, 512)
+            n = lib.rt_rec_pop_many(ffi.addressof(self.c[0], "rec"), buf, 512)
             out.extend((buf[i].tick, buf[i].time_s, buf[i].maneuver_time_s,
                         buf[i].outputs.accel_pedal_pct, buf[i].outputs.brake_pedal_pct,
-                        buf[i].commands.solenoid_current1_a) for i in range(n))
+                        buf[i].commands[CMD["solenoid_current1_a"]]) for i in range(n))
             if n < 512:
                 return out
 
@@ -199,6 +210,10 @@ def rejected(s):
     return s.rx_unknown_id + s.rx_bad_length + s.rx_bad_crc + s.rx_bad_counter
 
 
+def command(s, name):
+    return s.commands[CMD[name]]
+
+
 def divisor(cycle_ms, period_s):
     return max(1, round(cycle_ms * 1e-3 / period_s))
 
@@ -206,7 +221,7 @@ def divisor(cycle_ms, period_s):
 # --------------------------------------------------------------------- set-up
 def test_prepare_rejects_bad_configurations():
     assert Loop(period_s=40e-6).prepare_rc == -errno.EINVAL
-    assert Loop(period_s=0.02).prepare_rc == -errno.EINVAL
+    assert Loop(period_s=0.02).prepare_rc == -errno.EINVAL     # the step (the period) above 10 ms
     assert Loop(period_s=float("nan")).prepare_rc == -errno.EINVAL
     assert Loop(transport=7).prepare_rc == -errno.EINVAL
     assert Loop(duration_s=float("nan")).prepare_rc == -errno.EINVAL
@@ -226,11 +241,15 @@ def test_prepare_starts_timed_out_on_safe_values():
     assert loop.prepare_rc == 0
     s = loop.stats()
     assert s.state == lib.RT_STATE_IDLE and s.seq % 2 == 0 and s.ticks == 0
-    assert list(s.timed_out) == [1] * lib.DCT_CAN_N_RX
-    assert list(s.timeout_events) == [0] * lib.DCT_CAN_N_RX
-    assert s.commands.solenoid_current1_a == 0 and s.commands.torque_request_active == 0
-    assert list(s.commands.fork_force_n) == [0.0] * 4
-    assert [e.last_counter for e in loop.c.e2e] == [-1] * lib.DCT_CAN_N_RX
+    assert s.n_channels == 1 and s.n_messages == len(CHANNELS.messages) == len(TABLE)
+    assert loop.c.chan[0].first_message == 0
+    assert [s.msgs[g].timed_out for g in RX_MSGS] == [1] * len(RX_MSGS) == [1] * 3
+    assert [s.msgs[g].timed_out for g in TX_MSGS] == [0] * len(TX_MSGS)
+    assert [s.msgs[g].timeouts for g in RX_MSGS] == [0] * len(RX_MSGS)
+    assert command(s, "solenoid_current1_a") == 0 and command(s, "torque_request_active") == 0
+    assert [command(s, f"fork_force{i}_n") for i in range(1, 5)] == [0.0] * 4
+    assert command(s, "target_gear") == 0
+    assert [loop.c.rx_state[g].last_counter for g in range(len(TABLE))] == [-1] * len(TABLE)
     assert loop.c.plant.params.solver.step_s == 0.001
     assert loop.c.plant.inputs.engine_on == 1.0
 
@@ -245,21 +264,25 @@ def test_run_needs_prepare():
     assert loop.join() == lib.RT_STATE_STOPPED
     fresh = ffi.new("rt_loop *")
     assert lib.rt_loop_run(fresh) == -errno.EINVAL          # never prepared
+    assert lib.rt_loop_prepare(fresh) == -errno.EINVAL      # no configuration, no channel tables
 
 
 # ---------------------------------------------------------------------- rings
 def test_ring_refuses_when_full_and_keeps_order_across_the_index_wrap():
     r = ffi.new("rt_ring *")
-    frames = ffi.new("dct_can_frame[]", lib.RT_RING_SIZE + 5)
+    frames = ffi.new("rt_frame[]", lib.RT_RING_SIZE + 5)
     for i in range(lib.RT_RING_SIZE + 5):
         frames[i].id = i
+        frames[i].len = 64
+        frames[i].data[63] = i & 0xFF
     assert lib.rt_ring_push_many(r, frames, lib.RT_RING_SIZE + 5) == lib.RT_RING_SIZE
     assert r.dropped == 5
     assert lib.rt_ring_push(r, frames) == -1 and r.dropped == 6
-    out = ffi.new("dct_can_frame[]", lib.RT_RING_SIZE)
+    out = ffi.new("rt_frame[]", lib.RT_RING_SIZE)
     assert lib.rt_ring_pop_many(r, out, lib.RT_RING_SIZE) == lib.RT_RING_SIZE
     assert [out[i].id for i in range(lib.RT_RING_SIZE)] == list(range(lib.RT_RING_SIZE))
-    one = ffi.new("dct_can_frame *")
+    assert [out[i].data[63] for i in range(lib.RT_RING_SIZE)] == [i & 0xFF for i in range(lib.RT_RING_SIZE)]
+    one = ffi.new("rt_frame *")
     assert lib.rt_ring_pop(r, one) == -1
 
     r.head = r.tail = 0xFFFFFFF0                  # the free-running indices wrap
@@ -280,6 +303,7 @@ def test_plant_frames_ids_lengths_counters_crc_and_rates():
     ticks = s.ticks
     assert ticks > 0 and ticks + s.skipped_ticks == round(0.5 / period)
     assert s.tx_frames == len(frames) and s.tx_dropped == 0
+    assert s.chan[0].tx_frames == s.tx_frames and s.chan[0].tx_dropped == 0
     assert s.sim_time_s == pytest.approx(ticks * period, abs=1e-9)
 
     by_id = defaultdict(list)
@@ -295,6 +319,8 @@ def test_plant_frames_ids_lengths_counters_crc_and_rates():
         assert all((b - a) % 16 == 1 for a, b in zip(counters, counters[1:])), m.name
         for _, data in got:
             m.decode(data)              # every frame decodes against the DBC
+        # counted per message
+        assert s.msgs[MSG[m.name]].frames == len(got) and s.msgs[MSG[m.name]].dropped == 0
         # rates: one frame per cycle time of executed ticks (+ the final SIM_Status)
         extra = 1 if m.name == "SIM_Status" else 0
         expected = ticks / divisor(m.cycle_time, period)
@@ -349,7 +375,7 @@ def test_commanded_solenoid_current_raises_clutch_pressure():
         s = loop.stats()
     assert seen["current"] == pytest.approx(0.8, abs=1e-3)
     assert seen["pressure"] > 5.0 > base.outputs.clutch1_pressure_bar
-    assert s.rx_per_msg[lib.DCT_RX_CLUTCH_CMD] == s.rx_accepted > 0
+    assert s.msgs[CLUTCH].frames == s.rx_accepted == s.chan[0].rx_accepted > 0
     assert rejected(s) == 0
     # the pressure reaches the TCU in DCT_Clutch; SIM_Status says when the TCU was heard
     frames = loop.pop_tx()
@@ -367,12 +393,12 @@ def test_bad_frames_are_counted_and_change_nothing():
     good = tcu_frame(CLUTCH_CMD, 0, SolenoidCurrent1=0.5)
     bad_crc = tcu_frame(CLUTCH_CMD, 1, SolenoidCurrent1=1.5)
     bad_crc = (bad_crc[0], bad_crc[1], bytes([bad_crc[2][0] ^ 0x5A]) + bad_crc[2][1:])
-    short = protect(CLUTCH_CMD.frame_id, CLUTCH_CMD.encode(
-        {s.name: (1.5 if s.name == "SolenoidCurrent1" else 0) for s in CLUTCH_CMD.signals})[:7], 1)
+    short = tcu_frame(CLUTCH_CMD, 1, SolenoidCurrent1=1.5)
+    short = (short[0], 7, short[2][:7])
     remote = (CLUTCH_CMD.frame_id | CAN_RTR_FLAG, 8, tcu_frame(CLUTCH_CMD, 1, SolenoidCurrent1=1.5)[2])
     repeated = tcu_frame(CLUTCH_CMD, 0, SolenoidCurrent1=1.5)
     jumped = tcu_frame(CLUTCH_CMD, 3, SolenoidCurrent1=1.5)
-    unknown = protect(0x555, bytes(8), 1)
+    unknown = (0x555, 8, bytes(8))
     extended = (CLUTCH_CMD.frame_id | CAN_EFF_FLAG, 8, tcu_frame(CLUTCH_CMD, 1, SolenoidCurrent1=1.5)[2])
     batch = [good, bad_crc, short, remote, repeated, jumped, unknown, extended]
     with Loop(log_frames=1) as loop:
@@ -381,13 +407,22 @@ def test_bad_frames_are_counted_and_change_nothing():
         s = loop.wait(lambda s: s.rx_frames == len(batch), "the batch")
         assert s.rx_accepted == 1 and s.rx_bad_crc == 1 and s.rx_bad_length == 2
         assert s.rx_bad_counter == 2 and s.rx_unknown_id == 2
+        # per message and per channel: the rejections of TCU_ClutchCmd by reason,
+        # the unknown ids on the channel only
+        m = s.msgs[CLUTCH]
+        assert (m.frames, m.bad_crc, m.bad_length, m.bad_counter) == (1, 1, 2, 2)
+        c = s.chan[0]
+        assert (c.rx_frames, c.rx_accepted, c.rx_unknown_id, c.rx_bad_crc, c.rx_bad_length,
+                c.rx_bad_counter) == (8, 1, 2, 1, 2, 2)
+        assert all(s.msgs[g].frames == s.msgs[g].bad_crc == s.msgs[g].bad_length
+                   == s.msgs[g].bad_counter == 0 for g in (SHIFT, ENGINE))
         # only the good frame was decoded: 0.5 A (or the safe 0 A if the
         # message timed out since), never the rejected frames' 1.5 A
-        if s.timed_out[lib.DCT_RX_CLUTCH_CMD]:
-            assert s.commands.solenoid_current1_a == 0.0
+        if s.msgs[CLUTCH].timed_out:
+            assert command(s, "solenoid_current1_a") == 0.0
         else:
-            assert s.commands.solenoid_current1_a == pytest.approx(0.5, abs=1e-4)
-        assert loop.c.e2e[lib.DCT_RX_CLUTCH_CMD].last_counter in (0, -1)
+            assert command(s, "solenoid_current1_a") == pytest.approx(0.5, abs=1e-4)
+        assert loop.c.rx_state[CLUTCH].last_counter in (0, -1)
         ticks = s.ticks
         loop.wait(lambda s: s.ticks > ticks + 10, "ticks after the bad frames")
     rx_log = [e for e in loop.pop_log() if e[1] == lib.RT_DIR_RX]
@@ -402,7 +437,7 @@ def test_burst_of_frames_is_counted_while_the_loop_goes_on():
     assert loop.push([junk] * (lib.RT_RING_SIZE + 100)) == lib.RT_RING_SIZE
     pushed = lib.RT_RING_SIZE
     with loop:
-        chunk = ffi.new("dct_can_frame[]", 4096)
+        chunk = ffi.new("rt_frame[]", 4096)
         for i in range(4096):
             chunk[i].id, chunk[i].len = junk[0], junk[1]
         end = time.monotonic() + WAIT_S
@@ -414,10 +449,11 @@ def test_burst_of_frames_is_counted_while_the_loop_goes_on():
         ticks = s.ticks
         loop.wait(lambda s: s.ticks > ticks + 10, "ticks after the burst")
     s = loop.stats()
-    dropped_by_ring = loop.c.rx.dropped
+    dropped_by_ring = loop.c.rx[0].dropped
     assert s.state == lib.RT_STATE_STOPPED
     assert s.rx_frames == s.rx_unknown_id == n_total
-    assert dropped_by_ring >= 100 and s.rx_overflow == dropped_by_ring
+    assert s.chan[0].rx_frames == s.chan[0].rx_unknown_id == n_total
+    assert dropped_by_ring >= 100 and s.rx_overflow == s.chan[0].rx_overflow == dropped_by_ring
     # the log (never read here) kept its first RT_LOG_SIZE entries and counted the rest
     assert loop.c.log.head - loop.c.log.tail == lib.RT_LOG_SIZE
     assert loop.c.log.dropped == s.rx_frames + s.tx_frames - lib.RT_LOG_SIZE
@@ -429,27 +465,27 @@ def test_timeout_falls_back_to_safe_values_and_recovers():
         loop.push([tcu_frame(CLUTCH_CMD, 5, SolenoidCurrent1=0.8),
                    tcu_frame(ENGINE_CMD, 0, EngineTorqueRequest=40.0, TorqueRequestActive=1)])
         s = loop.wait(lambda s: s.rx_accepted == 2, "the first frames")
-        assert s.timeout_events[lib.DCT_RX_CLUTCH_CMD] == 1 or (
-            s.commands.solenoid_current1_a == pytest.approx(0.8, abs=1e-4)
-            and s.timed_out[lib.DCT_RX_CLUTCH_CMD] == 0)
+        assert s.msgs[CLUTCH].timeouts == 1 or (
+            command(s, "solenoid_current1_a") == pytest.approx(0.8, abs=1e-4)
+            and s.msgs[CLUTCH].timed_out == 0)
         # the TCU falls silent: 10 cycles later each message is timed out
-        s = loop.wait(lambda s: s.timed_out[lib.DCT_RX_CLUTCH_CMD]
-                      and s.timed_out[lib.DCT_RX_ENGINE_CMD], "the timeouts")
-        assert s.timeout_events[lib.DCT_RX_CLUTCH_CMD] == 1
-        assert s.timeout_events[lib.DCT_RX_ENGINE_CMD] == 1
-        assert s.timeout_events[lib.DCT_RX_SHIFT_CMD] == 0     # never heard: timed out from the start
-        assert s.timed_out[lib.DCT_RX_SHIFT_CMD] == 1
-        assert s.commands.solenoid_current1_a == 0.0 and s.outputs.solenoid_current1_a == 0.0
-        assert s.commands.torque_request_active == 0.0 and s.commands.engine_torque_request_nm == 0.0
+        s = loop.wait(lambda s: s.msgs[CLUTCH].timed_out
+                      and s.msgs[ENGINE].timed_out, "the timeouts")
+        assert s.msgs[CLUTCH].timeouts == 1
+        assert s.msgs[ENGINE].timeouts == 1
+        assert s.msgs[SHIFT].timeouts == 0     # never heard: timed out from the start
+        assert s.msgs[SHIFT].timed_out == 1
+        assert command(s, "solenoid_current1_a") == 0.0 and s.outputs.solenoid_current1_a == 0.0
+        assert command(s, "torque_request_active") == 0.0 and command(s, "engine_torque_request_nm") == 0.0
         assert loop.c.plant.inputs.solenoid_current1_a == 0.0
         # it comes back: the first frame after a timeout is accepted whatever its counter
         loop.push([tcu_frame(CLUTCH_CMD, 12, SolenoidCurrent1=0.6)])
         s = loop.wait(lambda s: s.rx_accepted == 3, "the recovery frame")
         assert s.rx_bad_counter == 0
-        assert (s.timed_out[lib.DCT_RX_CLUTCH_CMD] == 0
-                and s.commands.solenoid_current1_a == pytest.approx(0.6, abs=1e-4)
-                ) or s.timeout_events[lib.DCT_RX_CLUTCH_CMD] == 2
-        loop.wait(lambda s: s.timeout_events[lib.DCT_RX_CLUTCH_CMD] == 2, "the second timeout")
+        assert (s.msgs[CLUTCH].timed_out == 0
+                and command(s, "solenoid_current1_a") == pytest.approx(0.6, abs=1e-4)
+                ) or s.msgs[CLUTCH].timeouts == 2
+        loop.wait(lambda s: s.msgs[CLUTCH].timeouts == 2, "the second timeout")
 
 
 # ----------------------------------------------------------------- overruns
@@ -557,7 +593,9 @@ def test_stats_read_gives_consistent_copies_while_running():
                 assert s.state == lib.RT_STATE_RUNNING
                 assert hist(s, "turnaround_hist").sum() == s.ticks == hist(s, "latency_hist").sum()
                 assert s.rx_frames == s.rx_accepted + rejected(s)
-                assert s.rx_accepted == sum(s.rx_per_msg)
+                assert s.rx_accepted == sum(s.msgs[g].frames for g in RX_MSGS)
+                assert s.rx_unknown_id == s.chan[0].rx_unknown_id
+                assert s.tx_frames == sum(s.msgs[g].frames for g in TX_MSGS)
                 last_seq, last_ticks = s.seq, s.ticks
         finally:
             stop.set()
@@ -566,6 +604,7 @@ def test_stats_read_gives_consistent_copies_while_running():
 
 # ------------------------------------------ the socket path (recvmmsg, sendmmsg)
 def can_bytes(fid, length, data):
+    """A struct can_frame datagram (CAN_MTU bytes) as a CAN_RAW socket carries it."""
     return CAN_FRAME.pack(fid, length, data[:8].ljust(8, b"\0"))
 
 
@@ -578,8 +617,8 @@ def test_socket_transport_exchanges_frames_and_never_blocks():
             peer.settimeout(WAIT_S)
             received = []
             while len(received) < 200:                    # the plant's frames arrive
-                raw = peer.recv(64)
-                assert len(raw) == CAN_FRAME.size
+                raw = peer.recv(256)
+                assert len(raw) == CAN_FRAME.size            # classic frames: CAN_MTU, 16 bytes
                 received.append(CAN_FRAME.unpack(raw))
             peer.send(can_bytes(*tcu_frame(CLUTCH_CMD, 0, SolenoidCurrent1=0.7)))
             peer.send(can_bytes(*tcu_frame(ENGINE_CMD, 0, EngineTorqueRequest=10.0)))
@@ -589,7 +628,8 @@ def test_socket_transport_exchanges_frames_and_never_blocks():
             peer.send(can_bytes(long[0] | CAN_EFF_FLAG, 8, long[2]))
             s = loop.wait(lambda s: s.rx_frames == 5, "the TCU frames")
             assert s.rx_accepted == 2 and s.rx_bad_length == 2 and s.rx_unknown_id == 1
-            assert s.rx_per_msg[lib.DCT_RX_CLUTCH_CMD] == 1 and s.rx_per_msg[lib.DCT_RX_ENGINE_CMD] == 1
+            assert s.msgs[CLUTCH].frames == 1 and s.msgs[ENGINE].frames == 1
+            assert s.msgs[CLUTCH].bad_length == 2 and s.chan[0].rx_unknown_id == 1
             # the peer stops reading: its queue fills, sends are refused and
             # counted, the loop does not block
             ticks = s.ticks
@@ -600,10 +640,15 @@ def test_socket_transport_exchanges_frames_and_never_blocks():
         peer.setblocking(False)
         try:
             while True:
-                received.append(CAN_FRAME.unpack(peer.recv(64)))
+                raw = peer.recv(256)
+                assert len(raw) == CAN_FRAME.size
+                received.append(CAN_FRAME.unpack(raw))
         except BlockingIOError:
             pass
-    assert len(received) == s.tx_frames
+    assert len(received) == s.tx_frames == s.chan[0].tx_frames
+    assert s.tx_dropped == s.chan[0].tx_dropped == sum(s.msgs[g].dropped for g in TX_MSGS) > 0
+    for m in PLANT_MESSAGES:
+        assert s.msgs[MSG[m.name]].frames == sum(1 for f in received if f[0] == m.frame_id), m.name
     ids = {m.frame_id: m for m in PLANT_MESSAGES}
     last = {}
     for fid, length, data in received:
