@@ -156,9 +156,12 @@ def _rt_timeout_cycles():
 
 
 def _sim_status_fields():
-    text = open(os.path.join(ROOT, "can_dbc", "csrc", "dct_can.h")).read()
-    body = re.search(r"typedef struct \{([^}]*)\} dct_sim_status;", text).group(1)
-    return tuple(re.findall(r"double (\w+);", body))
+    """The loop's status sources (RT_STATUS_* of rt_loop.h) in their index order, as names."""
+    text = open(os.path.join(ROOT, "rt_loop", "csrc", "rt_loop.h")).read()
+    fields = {int(v): name.lower() for name, v in re.findall(r"#define RT_STATUS_(\w+) (\d+)", text)}
+    count = int(re.search(r"#define RT_N_STATUS (\d+)", text).group(1))
+    assert sorted(fields) == list(range(count))
+    return tuple(fields[i] for i in range(count))
 
 
 def test_the_shipped_mapping_says_exactly_what_the_hard_wired_contract_says():
