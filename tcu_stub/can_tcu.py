@@ -13,7 +13,48 @@ From Python::
     tcu.report()                                # JSON-ready dict
 
 The node reads and writes only the DBC signals of the CAN contract
-(``can_dbc/dct_hil.dbc``); there is no back door into the plant.
+(``can_dbc/dct_hil.dbc``), or of a vehicle matrix through a mapping file
+(below); there is no back door into the plant.
+
+Vehicle matrices (mapping files)
+--------------------------------
+::
+
+    dct-hil tcu --interface virtual --channel demo --mapping vehicle       # pt on demo, io on demo-io
+    dct-hil tcu --channel can0 --mapping vehicle --bus io=can1             # SocketCAN: each bus named
+    tcu = CanTcu.open("virtual", "demo", mapping=can_dbc.mapping.load(...), bus_channels={"io": "x"})
+
+With a mapping (``can_dbc.mapping``) the node plays the other side of what
+the plant server serves from the same file: it receives the mapping's
+``direction == "send"`` messages and sends its ``"receive"`` ones, one
+python-can bus per mapping bus, on the channels ``Mapping.channels`` gives
+(the first bus on ``--channel``, the others on ``--bus NAME=CHANNEL`` or, on
+the ``DERIVE_INTERFACES``, on ``<channel>-<bus>``), each at the mapping's
+bit rate. Messages are named ``bus:Message`` in counts, stale causes,
+reports and the summary.
+
+The TCU's quantities are found through the mapping by
+``tcu_stub.mapped_link.TcuMatrix`` (the search the offline
+``MappedLink`` uses too): each sensor from the signal that carries the plant
+output, with the mapping's scaling undone (a magnitude gets its sign back
+from its direction signal); each command into the signal that drives the
+plant input it means, scaled so the plant gets the value asked for; a
+recorded command (``TargetGear``) through its table; every other signal of
+a TCU message at its start value. A matrix without what the TCU needs is
+refused with one line (``MissingSignalError``) before any bus is opened.
+
+Every frame goes through the table codec (``can_dbc.table.CodecTable``,
+one per bus, the codec of the server's loop): received frames are found by
+bus and identifier and checked with the protection the mapping gives them
+(``check``: bad_length, bad_crc, bad_counter, counted per message;
+identifiers the plant does not send on that bus count as unknown, per bus);
+sent frames are packed and protected with a counter that advances per frame.
+Each TCU message is sent at its mapping cycle time from the task; the
+messages the logic needs (``needed``: those that carry a quantity it reads)
+make it stale as on the contract, with TIMEOUT_CYCLES of their mapping cycle
+time; the final frames on stop carry every target's ``safe`` value, scaled
+back to the signal. The bus clock (``clock="bus"``) follows the fastest
+needed message (on ``vehicle.toml``: ``io:IO_ShaftSpeeds``).
 
 Task
 ----
@@ -101,10 +142,14 @@ import time
 
 from can_dbc import codec
 from dct_hil import argtypes
+from can_dbc.own_frames import OwnFrames, is_echoing_bus
 from can_dbc.peer import CanPeer
 from tcu_stub.logic import PERIOD_S, TcuLogic
+from tcu_stub.mapped_link import MissingSignalError, TcuMatrix, cycle_ticks, message_key
 
-__all__ = ["CanTcu", "RCVBUF_BYTES", "TIMEOUT_CYCLES", "add_arguments", "run", "main"]
+__all__ = ["CanTcu", "DERIVE_INTERFACES", "MappedPeer", "MappedSetup", "MissingSignalError",
+           "RCVBUF_BYTES", "TIMEOUT_CYCLES", "add_arguments", "load_mapping", "main", "parse_bus_channels",
+           "run"]
 
 #: a plant message not accepted for this many of its cycle times is timed out
 TIMEOUT_CYCLES = 10
@@ -123,6 +168,11 @@ REJECTS_TO_STALE = 3
 PLANT_NEEDED = tuple(m.name for m in codec.messages("PLANT")
                      if any(src.startswith("o.") for src in codec.PLANT_SIGNAL_SOURCES.get(m.name, {}).values()))
 TCU_MESSAGES = tuple(codec.TCU_SIGNAL_TARGETS)
+#: python-can interfaces on which the buses of a mapping get derived channel
+#: names (``<channel>-<bus>``) unless ``--bus`` names them (in-process and
+#: host-local buses); on any other interface each bus after the first needs
+#: ``--bus NAME=CHANNEL``
+DERIVE_INTERFACES = ("virtual", "udp_multicast")
 
 
 def _one_line(text):
@@ -155,6 +205,41 @@ def raise_rcvbuf(sock, want_bytes=RCVBUF_BYTES):
 
 
 CLOCKS = ("wall", "bus")
+
+
+def _raise_bus_rcvbuf(bus, rcvbuf_bytes):
+    """The receive buffer granted on a bus's SocketCAN socket (None: not a socket, or refused)."""
+    sock = getattr(bus, "socket", None)
+    if isinstance(sock, socket.socket) and rcvbuf_bytes:
+        try:
+            return raise_rcvbuf(sock, rcvbuf_bytes)
+        except OSError:
+            return None
+    return None
+
+
+def _bus_dict(bus, mapping):
+    """{mapping bus name: python-can bus} from a dict, a list in the mapping's
+    bus order, or one bus for a mapping of one bus; ValueError (one line) else."""
+    names = [b.name for b in mapping.buses]
+    if isinstance(bus, dict):
+        buses = dict(bus)
+    elif isinstance(bus, (list, tuple)):
+        if len(bus) != len(names):
+            raise ValueError(f"{mapping.path}: {len(names)} buses ({', '.join(names)}), "
+                             f"{len(bus)} python-can buses given")
+        buses = dict(zip(names, bus))
+    elif len(names) == 1:
+        buses = {names[0]: bus}
+    else:
+        raise ValueError(f"{mapping.path}: the mapping has {len(names)} buses ({', '.join(names)}): "
+                         "give one python-can bus per mapping bus ({name: bus})")
+    missing = [n for n in names if n not in buses]
+    extra = [n for n in buses if n not in names]
+    if missing or extra:
+        raise ValueError(f"{mapping.path}: buses given {', '.join(map(str, buses)) or 'none'}; "
+                         f"the mapping's buses are {', '.join(names)}")
+    return {n: buses[n] for n in names}
 
 
 class _Histogram:
@@ -192,11 +277,281 @@ class _Histogram:
                 "p99": self.percentile(99), "p99_9": self.percentile(99.9), "max": round(self.max, 1)}
 
 
+class _MappedRx:
+    """Reception of one message the plant sends on a mapped bus."""
+    __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last",
+                 "rejects_in_row", "state")
+
+    def __init__(self, state):
+        self.received = 0
+        self.accepted = 0
+        self.rejected = {r: 0 for r in codec.REJECTS}
+        self.first_t = None
+        self.last_t = None
+        self.max_interval_s = 0.0
+        self.last = None
+        self.rejects_in_row = 0
+        self.state = state            # the table codec's receive state (last counter)
+
+
+class MappedSetup:
+    """Everything a mapped TCU node needs before a bus is opened: the mapping,
+    the TCU's signals in it (``TcuMatrix``: ``MissingSignalError`` when one is
+    missing) and one ``can_dbc.table.CodecTable`` per bus (``TableError`` for
+    a layout the codec cannot take)."""
+
+    def __init__(self, mapping):
+        from can_dbc.table import CodecTable
+
+        self.matrix = mapping if isinstance(mapping, TcuMatrix) else TcuMatrix(mapping)
+        self.mapping = self.matrix.mapping
+        self.bus_names = tuple(b.name for b in self.mapping.buses)
+        self.tables = {}
+        for b in self.mapping.buses:
+            msgs = tuple(self.mapping.codec_order(b.name))
+            if msgs:
+                self.tables[b.name] = (CodecTable([(m.message, m.protection) for m in msgs]), msgs)
+
+
+class MappedPeer:
+    """The reference TCU's side of a mapping file on one python-can bus per
+    mapping bus: receives the messages the plant sends (``direction ==
+    "send"``), checks each frame with the table codec (``CodecTable.check``,
+    the protection the mapping gives it: CRC, counter) and keeps the last
+    decoded values and per-message counts; sends the messages the plant
+    receives (``send_now``), protected, with a counter advancing per frame.
+
+    Messages are named ``bus:Message`` (``tcu_stub.mapped_link.message_key``).
+    One receive thread per bus; the counts, the last values and the send
+    counters are under one lock (``_lock``), as in ``can_dbc.peer.CanPeer``,
+    whose interface ``CanTcu`` uses (``rx_snapshot``, ``send_now``,
+    ``counts``, ``sent``, ``wait_for``, ``report``)."""
+
+    def __init__(self, buses, setup, start=True):
+        self.setup = setup
+        self.matrix = setup.matrix
+        self.buses = dict(buses)
+        self._owns_buses = False
+        self._where = {}                           # key -> (bus name, table index)
+        for bus_name, (_, msgs) in setup.tables.items():
+            for i, m in enumerate(msgs):
+                self._where[message_key(m)] = (bus_name, i)
+        self.rx_messages = {message_key(m): m for m in self.matrix.sent}
+        self.tx_messages = {message_key(m): m for m in self.matrix.received}
+        self._fd_brs = {b.name: bool(b.fd and b.data_bitrate) for b in setup.mapping.buses}
+        self._rx = {k: _MappedRx(setup.tables[m.bus][0].new_state()) for k, m in self.rx_messages.items()}
+        self._counter = {k: 0 for k in self.tx_messages}
+        self.sent = {k: 0 for k in self.tx_messages}
+        self.send_errors = {k: 0 for k in self.tx_messages}
+        self.unknown = {name: 0 for name in self.buses}
+        self.error_frames_by_bus = {name: 0 for name in self.buses}
+        self.last_send_error = None
+        self._own = {name: (OwnFrames(f"{getattr(bus, 'channel_info', '') or name}")
+                            if is_echoing_bus(bus) else None) for name, bus in self.buses.items()}
+        self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._stop = threading.Event()
+        self._threads = []
+        self.started_at = None
+        self.stopped_at = None
+        if start:
+            self.start()
+
+    @property
+    def names(self):
+        """The keys of the messages received."""
+        return tuple(self._rx)
+
+    # -- control ------------------------------------------------------------
+    def start(self):
+        if self._threads:
+            return
+        self.started_at = time.monotonic()
+        for name in self.buses:
+            t = threading.Thread(target=self._recv_loop, args=(name,), name=f"tcu-recv-{name}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def close(self):
+        """Stops the receive threads; shuts the buses down if the peer owns them."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self._threads = []
+        if self.stopped_at is None and self.started_at is not None:
+            self.stopped_at = time.monotonic()
+        if self._owns_buses:
+            self._owns_buses = False
+            for bus in self.buses.values():
+                bus.shutdown()
+
+    # -- sending ------------------------------------------------------------
+    def send_now(self, key, values):
+        """Sends one frame of the TCU message ``key`` now with ``values``
+        ({signal: physical value}, protection fields left out): packed and
+        protected by the table codec with the message's next counter. True
+        when the bus took it; a refused send is counted in ``send_errors``
+        and the counter does not move."""
+        import can
+
+        m = self.tx_messages.get(key)
+        if m is None:
+            raise ValueError(f"{key} is not a message the TCU sends")
+        bus_name, i = self._where[key]
+        table = self.setup.tables[bus_name][0]
+        bus = self.buses[bus_name]
+        own = self._own[bus_name]
+        with self._send_lock:
+            with self._lock:
+                counter = self._counter[key]
+            data = table.encode(i, values, counter=counter)
+            kw = {"arbitration_id": m.frame_id, "data": data, "is_extended_id": m.is_extended,
+                  "is_fd": m.is_fd, "bitrate_switch": m.is_fd and self._fd_brs[bus_name]}
+            n = None
+            if own is not None:
+                with self._lock:
+                    kw["channel"], n = own.stamp()
+            try:
+                bus.send(can.Message(**kw))
+            except Exception as e:  # a full tx queue or a bus error: counted, the next cycle tries again
+                with self._lock:
+                    if own is not None and n is not None:
+                        own.unsent(n)
+                    self.send_errors[key] += 1
+                    self.last_send_error = f"{key}: {_one_line(e) or type(e).__name__}"
+                return False
+            with self._lock:
+                self._counter[key] = (counter + 1) & 0xFFFFFFFF
+                self.sent[key] += 1
+        return True
+
+    # -- what was received --------------------------------------------------
+    def rx_snapshot(self):
+        """{key: (decoded values of the last accepted frame or None, monotonic
+        time it was received or None, frames rejected since then)}."""
+        with self._lock:
+            return {k: (st.last, st.last_t, st.rejects_in_row) for k, st in self._rx.items()}
+
+    def counts(self, key):
+        """{received, accepted, bad_length, bad_crc, bad_counter} of a received message."""
+        with self._lock:
+            st = self._rx.get(key)
+            if st is None:
+                raise ValueError(f"{key} is not a message the TCU receives")
+            return {"received": st.received, "accepted": st.accepted, **st.rejected}
+
+    @property
+    def unknown_frames(self):
+        with self._lock:
+            return sum(self.unknown.values())
+
+    @property
+    def error_frames(self):
+        with self._lock:
+            return sum(self.error_frames_by_bus.values())
+
+    @property
+    def own_echoes(self):
+        return sum(o.echoes for o in self._own.values() if o is not None)
+
+    def wait_for(self, predicate, timeout=5.0):
+        """Waits until ``predicate(self)`` is true (checked after every received
+        frame) or ``timeout`` seconds passed; returns the predicate's value."""
+        deadline = time.monotonic() + timeout
+        while True:
+            ok = predicate(self)
+            left = deadline - time.monotonic()
+            if ok or left <= 0:
+                return ok
+            with self._changed:
+                self._changed.wait(min(left, 0.05))
+
+    def report(self):
+        """Everything counted so far, as JSON-ready data."""
+        with self._lock:
+            received = {}
+            for k, st in self._rx.items():
+                m = self.rx_messages[k]
+                mean = None
+                if st.accepted >= 2 and st.last_t is not None:
+                    mean = (st.last_t - st.first_t) / (st.accepted - 1) * 1000.0
+                received[k] = {
+                    "bus": m.bus, "message": m.name, "frame_id": m.frame_id, "cycle_ms": m.cycle_ms,
+                    "received": st.received, "accepted": st.accepted, "rejected": dict(st.rejected),
+                    "mean_interval_ms": mean,
+                    "max_interval_ms": st.max_interval_s * 1000.0 if st.accepted >= 2 else None,
+                    "last": dict(st.last) if st.last is not None else None,
+                }
+            sent = {k: {"bus": m.bus, "message": m.name, "frame_id": m.frame_id, "cycle_ms": m.cycle_ms,
+                        "frames": self.sent[k], "errors": self.send_errors[k]}
+                    for k, m in self.tx_messages.items()}
+            return {
+                "received": received,
+                "unknown_frames": sum(self.unknown.values()),
+                "unknown_frames_by_bus": dict(self.unknown),
+                "own_echoes_dropped": self.own_echoes,
+                "error_frames": sum(self.error_frames_by_bus.values()),
+                "sent": sent,
+                "last_send_error": self.last_send_error,
+            }
+
+    # -- threads ------------------------------------------------------------
+    def _recv_loop(self, bus_name):
+        bus = self.buses[bus_name]
+        own = self._own[bus_name]
+        table, msgs = self.setup.tables.get(bus_name, (None, ()))
+        keys = [message_key(m) if m.direction == "send" else None for m in msgs]
+        while not self._stop.is_set():
+            try:
+                msg = bus.recv(timeout=0.05)
+            except Exception:  # noqa: BLE001 (a bus going down while stopping)
+                if self._stop.is_set():
+                    return
+                time.sleep(0.01)
+                continue
+            if msg is None:
+                continue
+            t = time.monotonic()
+            with self._lock:
+                if own is not None and own.is_echo(msg):
+                    continue                          # our own frame, looped back
+                if msg.is_error_frame:
+                    self.error_frames_by_bus[bus_name] += 1
+                    self._changed.notify_all()
+                    continue
+                i = table.find(msg.arbitration_id, msg.is_extended_id) if table is not None else -1
+                key = keys[i] if i >= 0 else None
+                if key is None:                       # not a message the plant sends on this bus
+                    self.unknown[bus_name] += 1
+                    self._changed.notify_all()
+                    continue
+                data = b"" if msg.is_remote_frame else bytes(msg.data)
+                st = self._rx[key]
+                status = table.check(i, data, st.state)
+                st.received += 1
+                if status == codec.OK:
+                    st.rejects_in_row = 0
+                    st.accepted += 1
+                    if st.last_t is not None:
+                        st.max_interval_s = max(st.max_interval_s, t - st.last_t)
+                    else:
+                        st.first_t = t
+                    st.last_t = t
+                    st.last = table.decode(i, data)
+                else:
+                    st.rejects_in_row += 1
+                    st.rejected[status] += 1
+                self._changed.notify_all()
+
+
 class CanTcu:
     """The reference TCU on an open python-can bus (``CanTcu.open`` makes one).
 
     bus         an open python-can Bus; shut down by ``close()`` only if
-                ``open`` made it
+                ``open`` made it. With ``mapping``: one bus per mapping bus,
+                as {bus name: Bus} or a list in the mapping's bus order (a
+                single Bus for a mapping of one bus)
     time_scale  0 < s <= 1: the task period is PERIOD_S / s of wall time
                 (slow-motion HiL; the plant server must run at the same scale)
     logic       a TcuLogic (default: a new one)
@@ -207,37 +562,68 @@ class CanTcu:
                 frame (one per 2 ms of plant time), so the TCU follows the plant's
                 time exactly, however slowly the plant runs (a slow-motion run on a
                 machine that cannot keep even the slowed schedule). Without that
-                frame for its timeout the bus clock ticks anyway, stale.
+                frame for its timeout the bus clock ticks anyway, stale. With a
+                mapping the clock message is the fastest of the needed messages
+                (the first of them in mapping order), a tick per PERIOD_S of
+                its cycle time.
+    mapping     None: the project's own contract (``can_dbc/dct_hil.dbc``).
+                A ``can_dbc.mapping.Mapping`` (or a ``MappedSetup``): the
+                vehicle matrix it describes; the TCU receives its
+                ``direction == "send"`` messages and sends its ``"receive"``
+                ones (``MappedPeer``). A matrix without a signal the TCU needs
+                raises ``MissingSignalError`` (one line) before anything starts.
     """
 
     def __init__(self, bus, time_scale=1.0, logic=None, start=True, rcvbuf_bytes=RCVBUF_BYTES,
-                 clock="wall"):
+                 clock="wall", mapping=None):
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
         self.clock = clock
         self.time_scale = check_time_scale(time_scale)
         self.period_wall_s = PERIOD_S / self.time_scale
+        setup = None
+        if mapping is not None:
+            setup = mapping if isinstance(mapping, MappedSetup) else MappedSetup(mapping)
+            buses = _bus_dict(bus, setup.mapping)
         self.logic = logic if logic is not None else TcuLogic()
-        self.bus = bus
         self._owns_bus = False
         self.interface = None
         self.channel = None
+        self.channels = None
         self.rcvbuf_bytes = None
-        sock = getattr(bus, "socket", None)
-        if isinstance(sock, socket.socket) and rcvbuf_bytes:
-            try:
-                self.rcvbuf_bytes = raise_rcvbuf(sock, rcvbuf_bytes)
-            except OSError:
-                self.rcvbuf_bytes = None
-        self.peer = CanPeer(bus, side="tcu", start=False, send_thread=False)
-        self._timeout_s = {name: TIMEOUT_CYCLES * codec.message(name).cycle_time / 1000.0 / self.time_scale
-                           for name in PLANT_NEEDED}
-        self._signals = {name: tuple(s.name for s in codec.payload_signals(codec.message(name)))
-                         for name in PLANT_NEEDED}
-        self._tx_signals = {name: tuple(targets) for name, targets in codec.TCU_SIGNAL_TARGETS.items()}
-        self._every_ticks = {name: max(1, int(round(codec.message(name).cycle_time / 1000.0 / PERIOD_S)))
-                             for name in TCU_MESSAGES}
-        self._next_due = {name: 0 for name in TCU_MESSAGES}
+        self.setup = setup
+        self.mapping = None if setup is None else setup.mapping
+        self.matrix = None if setup is None else setup.matrix
+        if setup is None:
+            self.bus = bus
+            self.buses = None
+            self.rcvbuf_bytes = _raise_bus_rcvbuf(bus, rcvbuf_bytes)
+            self.peer = CanPeer(bus, side="tcu", start=False, send_thread=False)
+            self._needed = PLANT_NEEDED
+            self._tx_names = TCU_MESSAGES
+            self._cycle_ms = {name: codec.message(name).cycle_time for name in PLANT_NEEDED + TCU_MESSAGES}
+            self._signals = {name: tuple(s.name for s in codec.payload_signals(codec.message(name)))
+                             for name in PLANT_NEEDED}
+            self._tx_signals = {name: tuple(targets) for name, targets in codec.TCU_SIGNAL_TARGETS.items()}
+            self._clock_message, self._clock_ticks = "DCT_ShaftSpeeds", 1
+        else:
+            self.buses = buses
+            self.bus = next(iter(buses.values()))
+            granted = {name: _raise_bus_rcvbuf(b, rcvbuf_bytes) for name, b in buses.items()}
+            self.rcvbuf_by_bus = granted
+            known = [g for g in granted.values() if g]
+            self.rcvbuf_bytes = min(known) if known else None
+            self.peer = MappedPeer(buses, setup, start=False)
+            self._needed = tuple(message_key(m) for m in self.matrix.needed)
+            self._tx_names = tuple(message_key(m) for m in self.matrix.received)
+            self._cycle_ms = {message_key(m): m.cycle_ms for m in self.matrix.sent + self.matrix.received}
+            fastest = min(self.matrix.needed, key=lambda m: m.cycle_ms)
+            self._clock_message, self._clock_ticks = message_key(fastest), cycle_ticks(fastest.cycle_ms)
+        self._timeout_s = {name: TIMEOUT_CYCLES * self._cycle_ms[name] / 1000.0 / self.time_scale
+                           for name in self._needed}
+        self._every_ticks = {name: max(1, int(round(self._cycle_ms[name] / 1000.0 / PERIOD_S)))
+                             for name in self._tx_names}
+        self._next_due = {name: 0 for name in self._tx_names}
 
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -253,7 +639,7 @@ class CanTcu:
         self.stale_episodes = []          # {"start_s", "end_s" (None while stale), "causes": {msg: why}}
         self.stale_episode_count = 0
         self.sim_time_s = None
-        self.commands = {sig: 0.0 for sigs in self._tx_signals.values() for sig in sigs}
+        self.commands = {sig: 0.0 for targets in codec.TCU_SIGNAL_TARGETS.values() for sig in targets}
         self.sensors = {}
         self.error = None                 # one line, when the task stopped on an exception
         self._pause_s = 0.0               # a pause asked for by pause(), taken at the next tick
@@ -269,14 +655,56 @@ class CanTcu:
 
     @classmethod
     def open(cls, interface="socketcan", channel="vcan0", bitrate=None, time_scale=1.0, logic=None,
-             start=True, rcvbuf_bytes=RCVBUF_BYTES, clock="wall", **bus_kwargs):
+             start=True, rcvbuf_bytes=RCVBUF_BYTES, clock="wall", mapping=None, bus_channels=None,
+             **bus_kwargs):
         """A CanTcu on a new python-can Bus (shut down again by ``close()``).
         A bus that cannot be opened raises ConnectionError, one line naming the
-        interface and the channel."""
+        interface and the channel.
+
+        With ``mapping`` (a ``Mapping``): one bus per mapping bus, on the
+        channels ``mapping.channels(channel, bus_channels, derive)`` gives
+        (``derive`` on the ``DERIVE_INTERFACES``), each at the mapping's bit
+        rate (``bitrate`` must then be None). The matrix is checked (a missing
+        signal: ``MissingSignalError``), the channels too (``MappingError``),
+        before any bus is opened; a bus that cannot be opened closes the ones
+        opened before it."""
         import can
 
         time_scale = check_time_scale(time_scale)
+        if clock not in CLOCKS:
+            raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
         kwargs = dict(bus_kwargs)
+        if mapping is not None:
+            if bitrate:
+                raise ValueError("bitrate: with a mapping each bus runs at the mapping's bit rate")
+            setup = mapping if isinstance(mapping, MappedSetup) else MappedSetup(mapping)
+            channels = setup.mapping.channels(channel, bus_channels, derive=interface in DERIVE_INTERFACES)
+            buses = {}
+            try:
+                for b in setup.mapping.buses:
+                    extra = dict(kwargs, bitrate=b.bitrate)
+                    if b.fd:
+                        extra["fd"] = True
+                        if b.data_bitrate:
+                            extra["data_bitrate"] = b.data_bitrate
+                    ch = channels[b.name]
+                    try:
+                        buses[b.name] = can.Bus(interface=interface, channel=ch, **extra)
+                    except Exception as e:  # python-can raises many kinds
+                        msg = _one_line(e) or type(e).__name__
+                        raise ConnectionError(f"cannot open {interface} bus on channel {ch} (mapping bus "
+                                              f"{b.name}): {msg}") from None
+                tcu = cls(buses, time_scale=time_scale, logic=logic, start=False, rcvbuf_bytes=rcvbuf_bytes,
+                          clock=clock, mapping=setup)
+            except BaseException:
+                for opened in buses.values():
+                    opened.shutdown()
+                raise
+            tcu._owns_bus = True
+            tcu.interface, tcu.channel, tcu.channels = interface, channel, channels
+            if start:
+                tcu.start()
+            return tcu
         if bitrate:
             kwargs["bitrate"] = bitrate
         try:
@@ -324,25 +752,35 @@ class CanTcu:
             self._send_safe()
 
     def _send_safe(self):
-        """One frame of each TCU message with the contract's safe values."""
+        """One frame of each TCU message with safe values: the contract's
+        (``codec.TCU_SAFE_VALUES``), or through a mapping each target's
+        ``safe`` value (the signal value that gives it)."""
         ok = True
-        for name in TCU_MESSAGES:
+        for name in self._tx_names:
             try:
-                ok = self.peer.send_now(name, codec.TCU_SAFE_VALUES[name]) and ok
+                if self.matrix is None:
+                    values = codec.TCU_SAFE_VALUES[name]
+                else:
+                    values = self.matrix.safe_values(self.peer.tx_messages[name])
+                ok = self.peer.send_now(name, values) and ok
             except Exception as e:  # noqa: BLE001 (a closed bus): reported
                 ok = False
                 self.peer.last_send_error = f"{name}: {_one_line(e) or type(e).__name__}"
         with self._lock:
             self.final_safe_frames = ok
-            self.commands = {k: v for vals in codec.TCU_SAFE_VALUES.values() for k, v in vals.items()}
+            if self.matrix is None:
+                self.commands = {k: v for vals in codec.TCU_SAFE_VALUES.values() for k, v in vals.items()}
+            else:
+                self.commands = self.matrix.safe_commands()
 
     def close(self):
-        """``stop()``, then ends reception; shuts the bus down if ``open`` made it."""
+        """``stop()``, then ends reception; shuts the bus (the buses) down if ``open`` made it."""
         self.stop()
         self.peer.close()
         if self._owns_bus:
             self._owns_bus = False
-            self.bus.shutdown()
+            for bus in (self.buses.values() if self.buses is not None else (self.bus,)):
+                bus.shutdown()
 
     def __enter__(self):
         return self
@@ -431,8 +869,11 @@ class CanTcu:
 
     def _task_bus(self):
         """One tick per accepted DCT_ShaftSpeeds frame (2 ms of plant time each);
-        frames missed in between advance the TCU time and count as skipped."""
-        name = "DCT_ShaftSpeeds"
+        frames missed in between advance the TCU time and count as skipped.
+        Through a mapping: the clock message's frames, each as many ticks in a
+        row as its cycle time holds TCU periods."""
+        name = self._clock_message
+        per_frame = self._clock_ticks
         seen = self.peer.counts(name)["accepted"]
         wait_s = self._timeout_s[name]
         k = 0
@@ -447,12 +888,13 @@ class CanTcu:
                 accepted = self.peer.counts(name)["accepted"]
                 if accepted > seen + 1 and k > 0:       # frames this task did not get to
                     with self._lock:
-                        self.skipped_ticks += accepted - seen - 1
-                    k += accepted - seen - 1
+                        self.skipped_ticks += (accepted - seen - 1) * per_frame
+                    k += (accepted - seen - 1) * per_frame
                 seen = max(seen, accepted)
-                self._tick(k, now, snap)
-                self._exec_us.add((time.monotonic() - now) * 1e6)
-                k += 1
+                for _ in range(per_frame):
+                    self._tick(k, now, snap)
+                    self._exec_us.add((time.monotonic() - now) * 1e6)
+                    k += 1
         except Exception as e:  # noqa: BLE001 (the task stops; stop() sends the safe frames)
             self.error = f"TCU task stopped at {k * PERIOD_S:.3f} s: {type(e).__name__}: {_one_line(e)}"
             self._send_safe()
@@ -466,7 +908,7 @@ class CanTcu:
             snap = self.peer.rx_snapshot()
         sensors = {}
         causes = {}
-        for name in PLANT_NEEDED:
+        for name in self._needed:
             values, t_ok, rejects_in_row = snap[name]
             if values is None:
                 causes[name] = "missing"
@@ -475,10 +917,16 @@ class CanTcu:
                 causes[name] = "rejected"
             elif now - t_ok > self._timeout_s[name]:
                 causes[name] = "timeout"
-            for sig in self._signals[name]:
-                sensors[sig] = values[sig]
-        status = snap.get("SIM_Status")
-        sim_time = status[0]["SimTime"] if status is not None and status[0] is not None else None
+            if self.matrix is None:
+                for sig in self._signals[name]:
+                    sensors[sig] = values[sig]
+        if self.matrix is None:
+            status = snap.get("SIM_Status")
+            sim_time = status[0]["SimTime"] if status is not None and status[0] is not None else None
+        else:
+            decoded = {key: v[0] for key, v in snap.items() if v[0] is not None}
+            sensors = self.matrix.view(decoded)
+            sim_time = self.matrix.status_value(decoded, "sim_time_s")
         sensors["stale"] = bool(causes)
         return sensors, causes, sim_time
 
@@ -486,10 +934,13 @@ class CanTcu:
         t_s = k * PERIOD_S
         sensors, causes, sim_time = self._read_sensors(now, snap)
         cmd = self.logic.step(t_s, sensors)
-        for name in TCU_MESSAGES:
+        for name in self._tx_names:
             if k >= self._next_due[name]:
                 every = self._every_ticks[name]
-                self.peer.send_now(name, {sig: cmd[sig] for sig in self._tx_signals[name]})
+                if self.matrix is None:
+                    self.peer.send_now(name, {sig: cmd[sig] for sig in self._tx_signals[name]})
+                else:
+                    self.peer.send_now(name, self.matrix.command_values(self.peer.tx_messages[name], cmd))
                 self._next_due[name] = (k // every + 1) * every
         with self._lock:
             self.tick_index = k
@@ -519,20 +970,38 @@ class CanTcu:
         """The shifts the logic started: [(TCU time s, from gear, to gear)]."""
         return list(self.logic.events)
 
+    def message_name(self, message):
+        """The name the node counts a message under: the DBC name on the
+        contract; through a mapping ``bus:Message`` (a bare message name
+        when only one bus has it). ValueError for a message it neither
+        receives nor sends."""
+        if self.matrix is None:
+            return codec.message(message).name
+        known = tuple(self.peer.rx_messages) + tuple(self.peer.tx_messages)
+        if message in known:
+            return message
+        hits = [k for k in known if k.split(":", 1)[1] == message]
+        if len(hits) == 1:
+            return hits[0]
+        if hits:
+            raise ValueError(f"{message} is on more than one bus: name it as {' or '.join(hits)}")
+        raise ValueError(f"{message} is not a message of {self.mapping.path} the TCU receives or sends")
+
     def counts(self, message):
         """{received, accepted, bad_length, bad_crc, bad_counter} of a plant message."""
-        return self.peer.counts(message)
+        return self.peer.counts(self.message_name(message))
 
     def sent(self, message):
         """Frames of a TCU message put on the bus."""
-        return self.peer.sent[codec.message(message).name]
+        return self.peer.sent[self.message_name(message)]
 
     def status_line(self):
         """One line: TCU time, phase, gear -> target gear, stale or not, speeds, frames rx/tx."""
         with self._lock:
             t_s, stale, s, skipped = self.t_s, self.stale, self.sensors, self.skipped_ticks
         logic = self.logic
-        rx = sum(self.peer.counts(m)["accepted"] for m in self.peer.rx.names)
+        names = self.peer.rx.names if self.matrix is None else self.peer.names
+        rx = sum(self.peer.counts(m)["accepted"] for m in names)
         tx = sum(self.peer.sent.values())
         v = s.get("VehicleSpeed")
         n = s.get("EngineSpeed")
@@ -546,14 +1015,17 @@ class CanTcu:
         peer = self.peer.report()
         with self._lock:
             end = self.stopped_at if self.stopped_at is not None else time.monotonic()
-            received = {name: {"frame_id": r["frame_id"], "cycle_ms": r["cycle_ms"], "received": r["received"],
+            where = ("bus", "message") if self.matrix is not None else ()
+            received = {name: {**{k: r[k] for k in where},
+                               "frame_id": r["frame_id"], "cycle_ms": r["cycle_ms"], "received": r["received"],
                                "accepted": r["accepted"], "rejected": r["rejected"],
                                "mean_interval_ms": r["mean_interval_ms"], "max_interval_ms": r["max_interval_ms"]}
                         for name, r in peer["received"].items()}
-            sent = {name: {"frame_id": s["frame_id"], "cycle_ms": codec.message(name).cycle_time,
+            sent = {name: {**{k: s[k] for k in where},
+                           "frame_id": s["frame_id"], "cycle_ms": self._cycle_ms[name],
                            "frames": s["frames"], "errors": s["errors"]}
                     for name, s in peer["sent"].items()}
-            return {
+            rep = {
                 "node": "TCU",
                 "interface": self.interface,
                 "channel": self.channel,
@@ -591,6 +1063,14 @@ class CanTcu:
                 "error": self.error,
                 "pauses": {"count": self.pauses, "total_s": round(self.paused_s, 6)},
             }
+            if self.matrix is not None:
+                rep["mapping"] = self.mapping.path
+                rep["buses"] = {b.name: {"channel": (self.channels or {}).get(b.name), "bitrate": b.bitrate,
+                                         "fd": b.fd, "socket_rcvbuf_bytes": self.rcvbuf_by_bus.get(b.name),
+                                         "unknown_frames": peer["unknown_frames_by_bus"].get(b.name, 0)}
+                                for b in self.mapping.buses}
+                rep["stale"]["needed"] = list(self._needed)
+            return rep
 
     def write_report(self, path):
         """Writes ``report()`` as JSON to ``path`` (its folder is created); returns the report."""
@@ -635,9 +1115,48 @@ def add_arguments(parser):
                         help="wall: a task tick every 2 ms (/ time scale) of wall time, as a TCU "
                              "(default); bus: a tick per DCT_ShaftSpeeds frame, following the "
                              "plant's time exactly (slow-motion runs on slow machines)")
+    parser.add_argument("--mapping", metavar="FILE_OR_NAME",
+                        help="speak a vehicle CAN matrix through this mapping file (or a shipped one: "
+                             "dct_hil, vehicle) instead of the project's own contract: receive the "
+                             "messages the plant sends, send the ones it receives, one CAN channel "
+                             "per bus of the mapping")
+    parser.add_argument("--bus", action="append", default=[], metavar="NAME=CHANNEL",
+                        help="with --mapping: the CAN channel of the mapping's bus NAME (repeatable); "
+                             "the first bus defaults to --channel, the others on virtual and "
+                             "udp_multicast to CHANNEL-NAME, elsewhere each needs --bus")
     parser.add_argument("--report", metavar="FILE.json", help="write the JSON report here at the end")
     parser.add_argument("--quiet", action="store_true", help="no live status and no summary")
     return parser
+
+
+def parse_bus_channels(items):
+    """{bus name: channel} from ``--bus NAME=CHANNEL`` items; ValueError (one line) for
+    an item without both parts or a bus named twice."""
+    out = {}
+    for item in items or ():
+        name, sep, channel = str(item).partition("=")
+        name, channel = name.strip(), channel.strip()
+        if not sep or not name or not channel:
+            raise ValueError(f"--bus {item!r}: expected NAME=CHANNEL")
+        if name in out:
+            raise ValueError(f"--bus {name}: given twice ({out[name]}, {channel})")
+        out[name] = channel
+    return out
+
+
+def load_mapping(name_or_path):
+    """``(MappedSetup, None)`` for a mapping file or shipped name, or ``(None,
+    one-line error)`` when it cannot be loaded, lacks what the TCU needs, or
+    has a layout the table codec cannot take. Opens no bus."""
+    from can_dbc.mapping import MappingError, find_mapping, load
+    from can_dbc.table import TableError
+
+    try:
+        return MappedSetup(load(find_mapping(name_or_path))), None
+    except (MappingError, MissingSignalError, TableError) as e:
+        return None, _one_line(e)
+    except OSError as e:
+        return None, f"{name_or_path}: {e.strerror or e}"
 
 
 def _check_report_path(path):
@@ -658,23 +1177,37 @@ def _check_report_path(path):
 
 def summary_lines(rep):
     """The exit summary of a run, from ``report()``."""
-    lines = [f"TCU on {rep['interface']}:{rep['channel']}: {rep['tcu_time_s']:.2f} s of TCU time "
+    lines = [f"TCU on {_where(rep)}: {rep['tcu_time_s']:.2f} s of TCU time "
              f"(time scale {rep['time_scale']:g}), {rep['ticks']} ticks, {rep['skipped_ticks']} skipped; "
              f"tick cost p99 {rep['tick_exec_us']['p99']} us"]
+    w = max([17] + [len(name) for name in list(rep["received"]) + list(rep["sent"])])
     for name, r in rep["received"].items():
         rej = ", ".join(f"{k} {v}" for k, v in r["rejected"].items() if v)
-        lines.append(f"  rx {name:<17} {r['accepted']:>8} accepted of {r['received']:>8}"
+        lines.append(f"  rx {name:<{w}} {r['accepted']:>8} accepted of {r['received']:>8}"
                      + (f"  rejected: {rej}" if rej else ""))
     for name, s in rep["sent"].items():
-        lines.append(f"  tx {name:<17} {s['frames']:>8} sent" + (f"  errors {s['errors']}" if s["errors"] else ""))
+        lines.append(f"  tx {name:<{w}} {s['frames']:>8} sent" + (f"  errors {s['errors']}" if s["errors"] else ""))
     shifts = " ".join(f"{s['from_gear']}>{s['to_gear']}@{s['t_s']:.2f}" for s in rep["shifts"][:20])
     more = f" (+{len(rep['shifts']) - 20})" if len(rep["shifts"]) > 20 else ""
     lines.append(f"  shifts: {len(rep['shifts'])} {shifts}{more}".rstrip())
     lines.append(f"  stale episodes: {rep['stale']['episode_count']}"
                  + (", stale now" if rep["stale"]["now"] else ""))
     if rep["unknown_frames"]:
-        lines.append(f"  unknown ids: {rep['unknown_frames']}")
+        by_bus = rep.get("buses")
+        detail = (" (" + ", ".join(f"{n} {b['unknown_frames']}" for n, b in by_bus.items()) + ")"
+                  if by_bus else "")
+        lines.append(f"  unknown ids: {rep['unknown_frames']}{detail}")
     return lines
+
+
+def _where(rep):
+    """``interface:channel``, or through a mapping the interface, each bus's
+    channel and the mapping file."""
+    buses = rep.get("buses")
+    if not buses:
+        return f"{rep['interface']}:{rep['channel']}"
+    chans = ", ".join(f"{name} {b['channel']}" for name, b in buses.items())
+    return f"{rep['interface']} ({chans}) through {rep['mapping']}"
 
 
 def run(args, out=None, err=None, prog="dct-hil tcu"):
@@ -701,9 +1234,29 @@ def run(args, out=None, err=None, prog="dct-hil tcu"):
         problem = _check_report_path(args.report)
         if problem:
             return fail(2, problem)
+    setup, bus_channels = None, None
+    bus_items = getattr(args, "bus", None) or []
+    if getattr(args, "mapping", None):
+        if args.bitrate:
+            return fail(2, "--bitrate: with --mapping each bus runs at the mapping's bit rate")
+        try:
+            bus_channels = parse_bus_channels(bus_items)
+        except ValueError as e:
+            return fail(2, e)
+        setup, problem = load_mapping(args.mapping)
+        if problem:
+            return fail(2, f"--mapping: {problem}")
+        from can_dbc.mapping import MappingError
+
+        try:
+            setup.mapping.channels(args.channel, bus_channels, derive=args.interface in DERIVE_INTERFACES)
+        except MappingError as e:
+            return fail(2, e)
+    elif bus_items:
+        return fail(2, "--bus: only with --mapping (the contract has one bus: --channel)")
     try:
         tcu = CanTcu.open(args.interface, args.channel, bitrate=args.bitrate, time_scale=time_scale,
-                          clock=getattr(args, "clock", "wall"))
+                          clock=getattr(args, "clock", "wall"), mapping=setup, bus_channels=bus_channels)
     except ConnectionError as e:
         return fail(1, e)
 
@@ -724,7 +1277,10 @@ def run(args, out=None, err=None, prog="dct-hil tcu"):
         if not args.quiet:
             rcv = (f", receive buffer {tcu.rcvbuf_bytes} bytes (about {tcu.rcvbuf_bytes // SKB_BYTES_PER_FRAME} "
                    "frames)" if tcu.rcvbuf_bytes else "")
-            print(f"{prog} on {args.interface}:{args.channel}, period {PERIOD_S * 1000:g} ms of TCU time "
+            where = (f"{args.interface}:{args.channel}" if setup is None else
+                     f"{args.interface} (" + ", ".join(f"{n} {c}" for n, c in tcu.channels.items())
+                     + f") through {setup.mapping.path}")
+            print(f"{prog} on {where}, period {PERIOD_S * 1000:g} ms of TCU time "
                   f"({tcu.period_wall_s * 1000:g} ms wall at time scale {time_scale:g}){rcv}; "
                   "Ctrl-C or SIGTERM stops", file=out, flush=True)
         end = None if duration is None else time.monotonic() + duration

@@ -13,6 +13,11 @@ the direction signal the mapping derives from the same output), and for each
 command writes the signal that drives the input it means, scaled so the
 plant ends up with the value the TCU asked for.
 
+``TcuMatrix(mapping)`` is that search and scaling, once, for both users:
+this offline link and the CAN node (``tcu_stub.can_tcu.CanTcu`` with a
+mapping). It names messages ``bus:Message`` (``message_key``), since one
+name may be on two buses.
+
 ``MappedLink(mapping)`` is a drop-in for ``tcu_stub.offline.ContractLink``:
 every message goes through cantools' encode and decode at its mapping cycle
 time, so the TCU sees the matrix's quantisation and refresh rates. The
@@ -27,10 +32,12 @@ from __future__ import annotations
 import math
 
 from can_dbc import codec
-from can_dbc.mapping import Mapping
+from can_dbc.mapping import STATUS_FIELDS, Mapping
 from tcu_stub.logic import PERIOD_S
 
-__all__ = ["MappedLink", "MissingSignalError", "TCU_READS", "TCU_WRITES"]
+__all__ = ["MappedLink", "MissingSignalError", "REQUIRED_READS", "TCU_READS", "TCU_RECORDS",
+           "TCU_WRITES", "TcuMatrix", "cycle_ticks", "message_key", "start_value",
+           "target_signal_value"]
 
 
 def _tcu_reads():
@@ -52,14 +59,29 @@ REQUIRED_READS = ("AccelPedal", "BrakePedal", "EngineSpeed", "InputShaft1Speed",
 #: what the TCU commands: its name -> the plant input it means (None: information only)
 TCU_WRITES = {sig: input_name for targets in codec.TCU_SIGNAL_TARGETS.values()
               for sig, (_, input_name) in targets.items()}
+#: what the TCU commands that drives no plant input: its name -> the field a
+#: mapping records it under (``TargetGear`` -> ``target_gear``)
+TCU_RECORDS = {sig: field for targets in codec.TCU_SIGNAL_TARGETS.values()
+               for sig, (field, input_name) in targets.items() if input_name is None}
 
 
 class MissingSignalError(ValueError):
     """The matrix lacks a signal the reference TCU needs (one line)."""
 
 
+def message_key(m):
+    """``bus:Message``: how a mapped message is named wherever two buses may
+    carry the same message name (decoded values, counts, reports)."""
+    return f"{m.bus}:{m.name}"
+
+
 def _divisor(cycle_ms):
     return max(1, int(round(cycle_ms / 1000.0 / PERIOD_S)))
+
+
+def cycle_ticks(cycle_ms):
+    """A cycle time in TCU periods (PERIOD_S), at least 1."""
+    return _divisor(cycle_ms)
 
 
 class _Reader:
@@ -67,39 +89,62 @@ class _Reader:
 
     def __init__(self, msg, sig, direction_sig=None):
         self.msg, self.sig, self.direction_sig = msg, sig, direction_sig
+        self.key = message_key(msg)
         src = sig.source
         self.gain, self.bias, self.absolute = src.gain, src.bias, src.absolute
         self.negative_codes = set() if direction_sig is None else _negative_codes(
             direction_sig.source)
 
     def value(self, decoded):
-        raw = float(decoded[self.msg.name][self.sig.name])
+        """The quantity from ``decoded`` ({message_key: {signal: value}})."""
+        values = decoded[self.key]
+        raw = float(values[self.sig.name])
         x = (raw - self.bias) / self.gain
         if self.absolute and self.direction_sig is not None:
-            code = decoded[self.msg.name].get(self.direction_sig.name)
+            code = values.get(self.direction_sig.name)
             if code is not None and float(code) in self.negative_codes:
                 x = -x
         return x
 
 
-class MappedLink:
-    """The plant and the reference TCU through a vehicle matrix, in one process.
+class TcuMatrix:
+    """What the reference TCU reads and writes on a mapping's matrix: the one
+    search for the signal carrying each quantity, and the scaling both ways.
 
-    ``sensors(outputs, k)`` gives the TCU's view at TCU period ``k``;
-    ``apply(plant, commands, k)`` writes the TCU's messages due at ``k``
-    into the plant inputs they drive."""
+    The plant sends the mapping's ``direction == "send"`` messages (``sent``),
+    which the TCU receives; the TCU sends the ``direction == "receive"`` ones
+    (``received``), which the plant receives.
+
+    ``readers``   TCU name (``EngineSpeed`` ...) -> how to read it from the
+                  decoded frames (``view``)
+    ``writers``   TCU command (``SolenoidCurrent1`` ...) -> (message, signal)
+                  whose target is the plant input the command means
+    ``records``   TCU command without a plant input (``TargetGear``) ->
+                  (message, signal) recorded under the command's contract field
+                  (``target_gear``), when the matrix has one
+    ``status``    status field (``sim_time_s`` ...) -> reader, when sent
+    ``needed``    the sent messages that carry a quantity the TCU reads, in
+                  mapping order (the ones whose loss makes the TCU stale)
+
+    A matrix without a quantity the TCU cannot run without, or without a
+    received signal for every plant input it commands, raises
+    ``MissingSignalError`` (one line naming the mapping file)."""
 
     def __init__(self, mapping: Mapping) -> None:
         self.mapping = mapping
-        self.sent = [m for m in mapping.messages if m.direction == "send"]
-        self.received = [m for m in mapping.messages if m.direction == "receive"]
-        self._readers = self._find_readers()
-        self._writers = self._find_writers()
-        self._decoded: dict[str, dict] = {}
-        self._frames = {m.name: 0 for m in mapping.messages}
-        self._plan = self._phases(self.sent)
+        self.sent = tuple(m for m in mapping.messages if m.direction == "send")
+        self.received = tuple(m for m in mapping.messages if m.direction == "receive")
+        self.readers = self._find_readers()
+        self.writers = self._find_writers()
+        self.records = self._find_records()
+        self.status = self._find_status()
+        used = {r.key for r in self.readers.values()}
+        self.needed = tuple(m for m in self.sent if message_key(m) in used)
+        self._written = {}
+        for name, (m, s) in list(self.writers.items()) + list(self.records.items()):
+            self._written.setdefault(message_key(m), {})[s.name] = name
 
-    # ------------------------------------------------------------ set-up
+    # ------------------------------------------------------------ the search
     def _fail(self, what):
         raise MissingSignalError(f"{self.mapping.path}: the reference TCU needs {what}")
 
@@ -115,6 +160,15 @@ class MappedLink:
                     return m, s
         return None
 
+    def _reader(self, m, s):
+        direction = None
+        if s.source.absolute:
+            # the signal of the same message that tells negative values apart
+            direction = next((d for d in m.signals if d.source is not None
+                              and d.source.kind == s.source.kind and d.source.name == s.source.name
+                              and _negative_codes(d.source)), None)
+        return _Reader(m, s, direction)
+
     def _find_readers(self):
         readers = {}
         for name, output in TCU_READS.items():
@@ -123,15 +177,16 @@ class MappedLink:
                 if name in REQUIRED_READS:
                     self._fail(f"{output} ({name}), which no signal the plant sends carries")
                 continue
-            m, s = found
-            direction = None
-            if s.source.absolute:
-                # the signal of the same message that tells negative values apart
-                direction = next((d for d in m.signals if d.source is not None
-                                  and d.source.kind == "output" and d.source.name == output
-                                  and _negative_codes(d.source)), None)
-            readers[name] = _Reader(m, s, direction)
+            readers[name] = self._reader(*found)
         return readers
+
+    def _find_status(self):
+        status = {}
+        for field in STATUS_FIELDS:
+            found = self._carrier(self.sent, "source", "status", field)
+            if found is not None:
+                status[field] = self._reader(*found)
+        return status
 
     def _find_writers(self):
         writers = {}
@@ -144,22 +199,139 @@ class MappedLink:
             writers[name] = found
         return writers
 
+    def _find_records(self):
+        records = {}
+        for name, field in TCU_RECORDS.items():
+            for m in self.received:
+                s = next((s for s in m.signals if s.target is not None and s.target.kind == "record"
+                          and s.target.name == field), None)
+                if s is not None:
+                    records[name] = (m, s)
+                    break
+        return records
+
+    # ------------------------------------------------------------ reading
+    def view(self, decoded):
+        """The TCU's sensors ({TCU name: value}, without ``stale``) from
+        ``decoded`` ({message_key: {signal: value}}); a quantity whose message
+        has not been decoded yet is left out."""
+        return {name: r.value(decoded) for name, r in self.readers.items() if r.key in decoded}
+
+    def status_value(self, decoded, field):
+        """A status field (``sim_time_s`` ...) from ``decoded``, None when no
+        message carries it or it has not been decoded yet."""
+        r = self.status.get(field)
+        if r is None or r.key not in decoded:
+            return None
+        return r.value(decoded)
+
+    # ------------------------------------------------------------ writing
+    def written(self, m):
+        """{signal: TCU command} of the signals of a received message the TCU drives."""
+        return dict(self._written.get(message_key(m), {}))
+
+    def command_values(self, m, commands):
+        """{signal: value} of every signal of the TCU message ``m`` but its
+        protection fields: each signal that drives a plant input the value that
+        makes the plant's input ``commands[name]`` (the mapping's scaling
+        undone), a recorded command (``TargetGear``) through its table, any
+        other signal its start value (GenSigStartValue, else 0)."""
+        written = self._written.get(message_key(m), {})
+        values = {}
+        for s in m.signals:
+            if s.protection_field is not None:
+                continue
+            name = written.get(s.name)
+            raw = None
+            if name is not None and name in commands:
+                raw = target_signal_value(s.target, commands[name])
+            values[s.name] = start_value(s) if raw is None else raw
+        return values
+
+    def safe_values(self, m):
+        """``command_values`` with each target's ``safe`` value: what the plant
+        takes while the message is timed out, sent as the TCU's last word."""
+        values = {}
+        for s in m.signals:
+            if s.protection_field is not None:
+                continue
+            raw = None if s.target is None else target_signal_value(s.target, s.target.safe)
+            values[s.name] = start_value(s) if raw is None else raw
+        return values
+
+    def safe_commands(self):
+        """{TCU command: the safe value its carrier takes} (the contract's
+        safe values for commands the matrix does not carry)."""
+        out = {k: v for vals in codec.TCU_SAFE_VALUES.values() for k, v in vals.items()}
+        for name, (_, s) in list(self.writers.items()) + list(self.records.items()):
+            out[name] = s.target.safe
+        return out
+
+
+def target_signal_value(t, x):
+    """The signal value that makes target ``t`` take ``x`` (the inverse of its
+    scaling, or the first table key that gives ``x``); None if none does."""
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return None
+    if not math.isfinite(x):
+        return None
+    if t.table is not None or t.ranges:
+        for k, v in t.table or ():
+            if float(v) == x:
+                return float(k)
+        for lo, hi, v in t.ranges:
+            if float(v) == x:
+                return float(lo if lo is not None else hi if hi is not None else 0)
+        return None
+    if t.gain == 0:
+        return None
+    return (x - t.bias) / t.gain
+
+
+def start_value(s):
+    """A mapped signal's start value: the DBC's GenSigStartValue scaled, else 0."""
+    sig = s.signal
+    raw = getattr(sig, "raw_initial", None) if sig is not None else None
+    if raw is None:
+        return 0.0
+    return float(raw) * sig.scale + sig.offset
+
+
+class MappedLink:
+    """The plant and the reference TCU through a vehicle matrix, in one process.
+
+    ``sensors(outputs, k)`` gives the TCU's view at TCU period ``k``;
+    ``apply(plant, commands, k)`` writes the TCU's messages due at ``k``
+    into the plant inputs they drive. The signals are found, and scaled, by
+    ``TcuMatrix`` (the same search the CAN node ``tcu_stub.can_tcu`` uses)."""
+
+    def __init__(self, mapping: Mapping) -> None:
+        self.mapping = mapping
+        self.matrix = TcuMatrix(mapping)
+        self.sent = list(self.matrix.sent)
+        self.received = list(self.matrix.received)
+        self._decoded: dict[str, dict] = {}
+        self._frames = {message_key(m): 0 for m in mapping.messages}
+        self._plan = self._phases(self.sent)
+
     @staticmethod
     def _phases(messages):
-        """{name: (divisor, offset)} in TCU periods; one cycle time's messages
+        """{key: (divisor, offset)} in TCU periods; one cycle time's messages
         take consecutive offsets, as the server staggers them."""
         plan, used = {}, {}
         for m in messages:
             div = _divisor(m.cycle_ms)
             off = used.get(div, 0)
             used[div] = off + 1
-            plan[m.name] = (div, off % div)
+            plan[message_key(m)] = (div, off % div)
         return plan
 
     # ------------------------------------------------------------ the link
     def _values(self, m, outputs):
         values = {}
-        n = self._frames[m.name]
+        n = self._frames[message_key(m)]
         for s in m.signals:
             src = s.source
             if src is None:                      # a protection field: the codec writes it
@@ -180,35 +352,34 @@ class MappedLink:
         values = self._values(m, outputs)
         msg = m.message
         data = msg.encode(values, scaling=True, strict=False)
-        self._decoded[m.name] = msg.decode(data, decode_choices=False, scaling=True)
-        self._frames[m.name] += 1
+        key = message_key(m)
+        self._decoded[key] = msg.decode(data, decode_choices=False, scaling=True)
+        self._frames[key] += 1
 
     def sensors(self, outputs, k):
         first = not self._decoded
         for m in self.sent:
-            div, off = self._plan[m.name]
+            div, off = self._plan[message_key(m)]
             if first or k % div == off:
                 self._send(m, outputs)
-        view = {name: r.value(self._decoded) for name, r in self._readers.items()}
+        view = self.matrix.view(self._decoded)
         view["stale"] = False
         return view
 
     def apply(self, plant, commands, k):
-        due = {m.name for m in self.received if k % _divisor(m.cycle_ms) == 0}
-        by_message: dict[str, dict] = {}
-        for name, (m, s) in self._writers.items():
-            if m.name in due:
-                t = s.target
-                by_message.setdefault(m.name, {})[s.name] = (float(commands[name]) - t.bias) / t.gain
         for m in self.received:
-            if m.name not in by_message:
+            if k % _divisor(m.cycle_ms) != 0:
                 continue
-            values = {s.name: by_message[m.name].get(s.name, 0) for s in m.signals}
+            written = self.matrix.written(m)
+            if not any(m.signal(name).target.kind == "input" for name in written):
+                continue
+            values = {s.name: 0 for s in m.signals if s.protection_field is not None}
+            values.update(self.matrix.command_values(m, commands))
             decoded = m.message.decode(m.message.encode(values, scaling=True, strict=False),
                                        decode_choices=False, scaling=True)
             for s in m.signals:
                 t = s.target
-                if t is None or t.kind != "input" or s.name not in by_message[m.name]:
+                if t is None or t.kind != "input" or s.name not in written:
                     continue
                 x = t.gain * float(decoded[s.name]) + t.bias
                 if t.minimum is not None:
