@@ -1070,6 +1070,7 @@ class CanTcu:
                                          "unknown_frames": peer["unknown_frames_by_bus"].get(b.name, 0)}
                                 for b in self.mapping.buses}
                 rep["stale"]["needed"] = list(self._needed)
+                rep["own_echoes_dropped"] = peer["own_echoes_dropped"]
             return rep
 
     def write_report(self, path):

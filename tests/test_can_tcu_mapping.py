@@ -470,3 +470,24 @@ def test_cli_runs_on_the_mappings_buses_and_writes_the_report(capsys, tmp_path, 
     assert data["sent"]["io:TCU_ValveCurrents"]["frames"] > 0
     assert math.isclose(data["period_s"], 0.002)
     assert f"through {data['mapping']}" in out and "tx io:TCU_ValveCurrents" in out
+
+
+def test_on_udp_multicast_its_own_frames_looped_back_are_not_traffic(vehicle, udp_group):
+    """udp_multicast delivers the TCU's frames back to its own buses: they are
+    dropped as echoes on each bus, never counted as unknown identifiers."""
+    from waiting import free_udp_port
+
+    address, port = udp_group
+    io_address = address.rsplit(".", 1)[0] + f".{(int(address.rsplit('.', 1)[1]) % 254) + 1}"
+    buses = {"pt": can.Bus(interface="udp_multicast", channel=address, port=port),
+             "io": can.Bus(interface="udp_multicast", channel=io_address, port=free_udp_port())}
+    try:
+        with CanTcu(buses, mapping=vehicle) as tcu:
+            assert tcu.wait_for(lambda t: t.peer.own_echoes >= 100 and t.sent("pt:TCU_Gear") >= 5,
+                                timeout=WAIT_S)
+            rep = tcu.report()
+    finally:
+        for bus in buses.values():
+            bus.shutdown()
+    assert rep["unknown_frames"] == 0 and rep["own_echoes_dropped"] >= 100
+    assert rep["sent"]["io:TCU_ValveCurrents"]["frames"] > 0
