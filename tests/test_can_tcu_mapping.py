@@ -491,3 +491,30 @@ def test_on_udp_multicast_its_own_frames_looped_back_are_not_traffic(vehicle, ud
             bus.shutdown()
     assert rep["unknown_frames"] == 0 and rep["own_echoes_dropped"] >= 100
     assert rep["sent"]["io:TCU_ValveCurrents"]["frames"] > 0
+
+
+def test_the_default_mapping_speaks_the_contract_with_the_contracts_test_plant(channel):
+    """Through dct_hil.toml (the contract as a mapping) the mapped node and the
+    contract's own stand-in plant (can_dbc.peer, side "plant") accept each
+    other's frames."""
+    from can_dbc.peer import CanPeer
+
+    m = mapping_mod.load(mapping_mod.DEFAULT_MAPPING)
+    plant = CanPeer.open("plant", interface="virtual", channel=channel,
+                         values={"EngineSpeed": 750, "BrakePedal": 30, "SimTime": 12.5})
+    try:
+        with CanTcu.open("virtual", channel, mapping=m) as tcu:
+            assert tcu.wait_for(lambda t: fresh(t) and t.sim_time_s is not None, timeout=WAIT_S)
+            assert plant.wait_for(lambda p: all(p.counts(n)["accepted"] >= 3 for n in
+                                                ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd")),
+                                  timeout=WAIT_S)
+            sensors = dict(tcu.sensors)
+            rep = tcu.report()
+        counts = {n: plant.counts(n) for n in ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd")}
+    finally:
+        plant.close()
+    assert sensors["EngineSpeed"] == 750 and sensors["BrakePedal"] == 30
+    assert rep["sim_time_s"] == pytest.approx(12.5, abs=0.01)
+    assert all(r["rejected"] == {"bad_length": 0, "bad_crc": 0, "bad_counter": 0} for r in rep["received"].values())
+    for n, c in counts.items():
+        assert c["bad_crc"] == 0 and c["bad_counter"] == 0 and c["bad_length"] == 0, (n, c)
