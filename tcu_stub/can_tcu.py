@@ -1125,6 +1125,9 @@ def add_arguments(parser):
                         help="with --mapping: the CAN channel of the mapping's bus NAME (repeatable); "
                              "the first bus defaults to --channel, the others on virtual and "
                              "udp_multicast to CHANNEL-NAME, elsewhere each needs --bus")
+    parser.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
+                        help="with --mapping: read this DBC instead of the one the mapping names "
+                             "for BUS (without BUS=: the first bus); repeatable")
     parser.add_argument("--report", metavar="FILE.json", help="write the JSON report here at the end")
     parser.add_argument("--quiet", action="store_true", help="no live status and no summary")
     return parser
@@ -1145,15 +1148,16 @@ def parse_bus_channels(items):
     return out
 
 
-def load_mapping(name_or_path):
-    """``(MappedSetup, None)`` for a mapping file or shipped name, or ``(None,
-    one-line error)`` when it cannot be loaded, lacks what the TCU needs, or
-    has a layout the table codec cannot take. Opens no bus."""
-    from can_dbc.mapping import MappingError, find_mapping, load
+def load_mapping(name_or_path, dbc=()):
+    """``(MappedSetup, None)`` for a mapping file or shipped name (``dbc``:
+    ``--dbc [BUS=]FILE`` values, DBCs read instead of the mapping's), or
+    ``(None, one-line error)`` when it cannot be loaded, lacks what the TCU
+    needs, or has a layout the table codec cannot take. Opens no bus."""
+    from can_dbc.mapping import MappingError, load_options
     from can_dbc.table import TableError
 
     try:
-        return MappedSetup(load(find_mapping(name_or_path))), None
+        return MappedSetup(load_options(name_or_path, dbc)), None
     except (MappingError, MissingSignalError, TableError) as e:
         return None, _one_line(e)
     except OSError as e:
@@ -1244,7 +1248,7 @@ def run(args, out=None, err=None, prog="dct-hil tcu"):
             bus_channels = parse_bus_channels(bus_items)
         except ValueError as e:
             return fail(2, e)
-        setup, problem = load_mapping(args.mapping)
+        setup, problem = load_mapping(args.mapping, getattr(args, "dbc", None) or ())
         if problem:
             return fail(2, f"--mapping: {problem}")
         from can_dbc.mapping import MappingError
@@ -1253,6 +1257,8 @@ def run(args, out=None, err=None, prog="dct-hil tcu"):
             setup.mapping.channels(args.channel, bus_channels, derive=args.interface in DERIVE_INTERFACES)
         except MappingError as e:
             return fail(2, e)
+    elif getattr(args, "dbc", None):
+        return fail(2, "--dbc needs --mapping (the project's own contract has its own DBC)")
     elif bus_items:
         return fail(2, "--bus: only with --mapping (the contract has one bus: --channel)")
     try:
