@@ -89,6 +89,9 @@ def build_parser():
                      help="the TCU stub talks to the plant through this vehicle matrix (a "
                           "mapping file, or a shipped one: dct_hil, vehicle) instead of the "
                           "project's own contract")
+    sim.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
+                     help="with --mapping: read this DBC instead of the one the mapping names for "
+                          "BUS (without BUS=: the first bus); repeatable")
     sim.set_defaults(func=cmd_simulate)
 
     bench = sub.add_parser("bench", help="measure the cost of one plant step")
@@ -464,11 +467,11 @@ def _stub_link(args):
     """(link, description) of the matrix between the plant and the TCU stub."""
     if not getattr(args, "mapping", None):
         return None, "the CAN contract"
-    from can_dbc.mapping import MappingError, find_mapping, load
+    from can_dbc.mapping import MappingError, load_options
     from tcu_stub.mapped_link import MappedLink, MissingSignalError
 
     try:
-        m = load(find_mapping(args.mapping))
+        m = load_options(args.mapping, args.dbc)
         return MappedLink(m), f"the matrix of {m.path}"
     except (MappingError, MissingSignalError) as e:
         raise UserError(str(e)) from None
@@ -517,6 +520,8 @@ def cmd_simulate(args):
 
     if args.out:
         _check_writable(args.out, "--out")
+    if args.dbc and not args.mapping:
+        raise UserError("--dbc goes with --mapping (the project's own contract has its own DBC)")
     if args.scenario in MANEUVER_NAMES:
         return _simulate_maneuver(args)
     try:
