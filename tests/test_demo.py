@@ -129,6 +129,10 @@ def test_ctrl_c_stops_the_demo_with_everything_written(tmp_path):
     (["--time-scale", "0"], "--time-scale"),
     (["--duration", "-1"], "--duration"),
     (["--channel", "lo"], "not a CAN network interface"),
+    (["--mapping", "no_such_mapping"], "no_such_mapping"),
+    (["--mapping", "vehicle", "--bus", "xx=demo-x"], "bus 'xx'"),
+    (["--mapping", "vehicle", "--bus", "io"], "NAME=VALUE"),
+    (["--mapping", "vehicle", "--dbc", "io=no_such.dbc"], "no_such.dbc"),
 ])
 def test_bad_options_are_one_line_errors(tmp_path, args, words):
     proc = run_cli(*args, "--out", str(tmp_path), "--priority", "0", timeout=60)
@@ -220,3 +224,39 @@ def test_a_tcu_pause_outside_0_to_60_s_is_refused(seconds):
         assert "pause" in str(e.value) and "\n" not in str(e.value)
     finally:
         tcu.close()
+
+
+def test_over_the_vehicle_matrix_the_demo_shifts_as_the_offline_run_of_the_contract(tmp_path):
+    """The plant and the TCU stub (a CAN node) over the example vehicle matrix, two
+    buses on the embedded transport, half speed with the bus clock: every message
+    of both buses goes both ways unrejected, and the first shifts of paper-cycle
+    land where the in-process run over the project's own contract puts them."""
+    from plant.maneuvers import compare_shifts, gear_shifts, get_maneuver
+    from plant.model import Plant
+    from tcu_stub.offline import run_offline
+
+    proc = run_cli("--mapping", "vehicle", "--duration", "8", "--time-scale", "0.5",
+                   "--out", str(tmp_path), "--priority", "0", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "CAN matrix" in proc.stdout and "vehicle.toml" in proc.stdout
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["mapping"].endswith("vehicle.toml")
+    assert set(summary["buses"]) == {"pt", "io"}
+    stats = json.loads((tmp_path / "serve-stats.json").read_text())
+    counts = stats["counts"]
+    assert set(counts["channels"]) == {"pt", "io"}
+    for name, c in counts["tcu_messages"].items():
+        assert c["accepted"] > 0 and c["bad_crc"] == c["bad_counter"] == c["bad_length"] == 0, name
+    for name, c in counts["plant_messages"].items():
+        assert c["sent"] > 0, name
+    for name, r in summary["tcu"]["received"].items():
+        assert r["accepted"] > 0 and not any(r["rejected"].values()), (name, r)
+    over_can = [(s["time_s"], s["from"], s["to"]) for s in summary["shifts"]]
+    m = get_maneuver("paper-cycle")
+    plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
+    plant.reset(**m.reset_kwargs)
+    rec = run_offline(plant, m.driver, 8.0, record_every_s=0.002)
+    offline = gear_shifts(rec["time_s"], rec["gear"])
+    same, diffs = compare_shifts(offline, over_can)
+    assert same and len(offline) == 2, (offline, over_can)
+    assert max(abs(d) for d in diffs) <= 0.030, diffs

@@ -437,6 +437,16 @@ BAD_OPTIONS = {
     "unknown log format": (["--log", "{tmp}/x.xyz"], ["x.xyz", ".log"]),
     "missing parameter file": (["--params", "{tmp}/none.toml"], ["none.toml"]),
     "bit rate on socketcan": (["--interface", "socketcan", "--bitrate", "500000"], ["socketcan"]),
+    "missing mapping file": (["--mapping", "{tmp}/none.toml"], ["none.toml"]),
+    "bus the mapping lacks": (["--mapping", "vehicle", "--bus", "xx=ch"], ["bus 'xx'", "pt, io"]),
+    "bus without a channel": (["--mapping", "vehicle", "--bus", "io"], ["--bus", "NAME=VALUE"]),
+    "one channel for two buses": (["--mapping", "vehicle", "--bus", "io=same", "--bus", "pt=same"],
+                                  ["same", "channel of its own"]),
+    "dbc for a bus the mapping lacks": (["--mapping", "vehicle", "--dbc", "zz=x.dbc"], ["zz"]),
+    "dbc cantools cannot parse": (["--dbc", "README.md"], ["README.md"]),
+    "socketcan bus without --bus": (["--mapping", "vehicle", "--interface", "socketcan"],
+                                    ["io", "--bus io=CHANNEL"]),
+    "cycle times the rate cannot hit": (["--mapping", "vehicle", "--rate", "300"], ["cycle"]),
 }
 
 
