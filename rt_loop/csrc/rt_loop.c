@@ -77,9 +77,8 @@
  * (ct_check); when a message times out its counter state is reset to -1, so
  * the first frame after the TCU comes back is accepted whatever its counter
  * (as at start). A sent message's counter is the number of frames made so
- * far (modulo 720720, a multiple of every counter range up to 16, then
- * modulo the protection's range in ct_protect); toggles and counter sources
- * count the same frames.
+ * far (a 64-bit count) modulo the protection's counter range; toggles and
+ * counter sources count the same frames.
  *
  * Status sources (RT_STATUS_*): sim_state is 0 until the first frame of a
  * received message is accepted, then 1; when the loop ends, one last frame
@@ -1037,8 +1036,9 @@ static void make_frame(rt_run *r, int c, int m, int nf)
     f->reserved = 0;
     f->len = cm->length;
     (void)ct_encode(&ch->table, m, r->values, f->data);
-    (void)ct_protect(&ch->table, m, f->data, (uint32_t)(seq % 720720u)); /* lcm(1..16): counters
-                                                                            wrap cleanly */
+    /* the counter in 64 bits first: it wraps at its own modulus, never at 2^32 */
+    (void)ct_protect(&ch->table, m, f->data,
+                     (uint32_t)(cm->counter_modulus ? seq % cm->counter_modulus : 0u));
     l->tx_count[g] = seq + 1;
     r->tx_frame_msg[nf] = g;
 }
