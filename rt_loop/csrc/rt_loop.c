@@ -104,7 +104,8 @@
  * -EPROTOTYPE (fd not
  * a datagram socket), another -errno (SO_RXQ_OVFL refused) or -EDOM (the
  * plant rejected its parameters). rt_loop_run gives -EINVAL when the loop
- * was not prepared since its last run (stats.state is not RT_STATE_IDLE),
+ * was not prepared since its last run (stats.state is not RT_STATE_IDLE, or
+ * its last rt_loop_prepare failed: stats.n_channels is then 0),
  * else the final state. A duration <= 0 or infinite runs until
  * rt_loop_request_stop().
  *
@@ -518,10 +519,8 @@ static inline void apply_commands(rt_loop *l, const double *cmd)
             in[l->command_input[i]] = cmd[i];
 }
 
-int rt_loop_prepare(rt_loop *l)
+static int prepare_loop(rt_loop *l)
 {
-    if (!l)
-        return -EINVAL;
     const rt_config *c = &l->cfg;
     if (!(c->period_s >= RT_PERIOD_MIN_S && c->period_s <= RT_PERIOD_MAX_S))
         return -EINVAL;
@@ -600,6 +599,16 @@ int rt_loop_prepare(rt_loop *l)
     }
     atomic_store_explicit(AINT(&l->stop_request), 0, RELEASE);
     return 0;
+}
+
+int rt_loop_prepare(rt_loop *l)
+{
+    if (!l)
+        return -EINVAL;
+    int rc = prepare_loop(l);
+    if (rc != 0)
+        l->stats.n_channels = 0; /* not prepared: rt_loop_run refuses it */
+    return rc;
 }
 
 /* ------------------------------------------------------------------ */
@@ -1250,7 +1259,8 @@ int rt_loop_run(rt_loop *l)
 {
     /* not prepared, or already run since rt_loop_prepare */
     if (!l || atomic_load_explicit(AINT(&l->stats.state), RELAXED) != RT_STATE_IDLE ||
-        !(l->cfg.period_s >= RT_PERIOD_MIN_S && l->cfg.period_s <= RT_PERIOD_MAX_S))
+        !(l->cfg.period_s >= RT_PERIOD_MIN_S && l->cfg.period_s <= RT_PERIOD_MAX_S) ||
+        l->stats.n_channels < 1 || l->stats.n_channels != l->n_channels)
         return -EINVAL;
 
     rt_run r;
