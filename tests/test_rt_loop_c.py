@@ -265,6 +265,21 @@ def test_run_needs_prepare():
     fresh = ffi.new("rt_loop *")
     assert lib.rt_loop_run(fresh) == -errno.EINVAL          # never prepared
     assert lib.rt_loop_prepare(fresh) == -errno.EINVAL      # no configuration, no channel tables
+    # configured and given its tables, but never prepared: refused all the same
+    fresh.cfg.period_s, fresh.cfg.cpu, fresh.cfg.duration_s = 0.0005, -1, 0.01
+    CHANNELS.install(fresh)
+    fresh.chan[0].transport = lib.RT_TRANSPORT_RING
+    assert lib.rt_loop_run(fresh) == -errno.EINVAL and fresh.stats.ticks == 0
+    # a prepare that failed leaves the loop unprepared, even after an earlier good one
+    again = Loop(duration_s=0.01)
+    assert again.prepare_rc == 0
+    again.c.n_channels = lib.RT_MAX_CHANNELS + 1
+    assert lib.rt_loop_prepare(again.c) == -errno.EINVAL
+    assert lib.rt_loop_run(again.c) == -errno.EINVAL and again.c.stats.ticks == 0
+    again.c.n_channels = 1
+    assert lib.rt_loop_prepare(again.c) == 0
+    again.start()
+    assert again.join() == lib.RT_STATE_STOPPED
 
 
 # ---------------------------------------------------------------------- rings
