@@ -43,6 +43,11 @@ _PARAMS = load_params(None, ffi, None)
 _OUTPUTS = [n for n, _ in ffi.typeof("dct_outputs").fields]
 _INPUTS = [n for n, _ in ffi.typeof("dct_inputs").fields]
 
+# The rig: bus "a" (P_Values: every kind of source; P_Status: the simulator's
+# status; E_Cmd: an input with factor/offset and limits, a value table, a
+# recorded value; E_Beat: a short timeout) and bus "b" (the same identifiers
+# 0x200 and 0x100 with other layouts, 29-bit identifiers). The plant plays
+# PLANT, the device under test is ECU.
 RIG_A_DBC = """\
 VERSION ""
 
@@ -199,6 +204,8 @@ timeout_cycles = 1000
 ExtValue = {{ record = "ext_value", safe = 0 }}
 """
 
+# A CAN FD bus (BusType "CAN FD", VFrameFormat StandardCAN_FD: cantools marks
+# the messages FD) with a bit rate switch: 64-byte frames both ways.
 FD_DBC = """\
 VERSION ""
 
