@@ -3,7 +3,8 @@ protection every message carries.
 
 The DBC (``DBC_PATH``) is the truth: message names, identifiers, lengths,
 cycle times, signal layout, scaling and ranges all come from it. This module
-adds what a DBC cannot say, the same algorithm as can_dbc/csrc/dct_can.c:
+adds what a DBC cannot say, the same algorithm as the protection kind
+``dct`` of the table codec (can_dbc/protection.py, can_dbc/csrc/can_table.c):
 
 * byte 0, signal ``CRC``: CRC-8/SAE-J1850 (polynomial 0x1D, initial value
   0xFF, final XOR 0xFF, not reflected) over the identifier as two bytes (low
@@ -25,7 +26,7 @@ CRC_SIGNAL = "CRC"
 COUNTER_SIGNAL = "AliveCounter"
 E2E_SIGNALS = (CRC_SIGNAL, COUNTER_SIGNAL)
 
-# results of E2eReceiver.check (the same order as DCT_RX_* in dct_can.h)
+# results of E2eReceiver.check (the same order as CT_RX_* in can_table.h)
 OK = "ok"
 UNKNOWN_ID = "unknown_id"
 BAD_LENGTH = "bad_length"
@@ -36,8 +37,9 @@ REJECTS = (BAD_LENGTH, BAD_CRC, BAD_COUNTER)
 
 COUNTER_MAX_JUMP = 2          # a counter may advance by 1 or 2 (one frame lost)
 
-# What can_dbc/csrc/dct_can.c maps, for Python-side tools and tests:
-# plant message signal -> field of dct_outputs ("o.") or dct_sim_status ("st.")
+# What the contract's mapping (mappings/dct_hil.toml) maps, for Python-side tools and tests
+# (tests/test_mapping.py holds the two together):
+# plant message signal -> field of dct_outputs ("o.") or the simulator's status ("st.")
 PLANT_SIGNAL_SOURCES = {
     "DCT_ShaftSpeeds": {"EngineSpeed": "o.engine_speed_rpm", "InputShaft1Speed": "o.input_shaft1_speed_rpm",
                         "InputShaft2Speed": "o.input_shaft2_speed_rpm"},
@@ -56,7 +58,7 @@ PLANT_SIGNAL_SOURCES = {
     "SIM_Status": {"SimTime": "st.sim_time_s", "OverrunCount": "st.overrun_count",
                    "TurnaroundMax": "st.turnaround_max_us", "SimState": "st.sim_state"},
 }
-# TCU message signal -> field of dct_tcu_commands (and the dct_inputs field it drives;
+# TCU message signal -> the command value it sets (and the dct_inputs field it drives;
 # None for a signal the plant does not act on, recorded with the commands only)
 TCU_SIGNAL_TARGETS = {
     "TCU_ClutchCmd": {"SolenoidCurrent1": ("solenoid_current1_a", "solenoid_current1_a"),
@@ -70,7 +72,7 @@ TCU_SIGNAL_TARGETS = {
                       "TorqueRequestActive": ("torque_request_active", "torque_request_active"),
                       "TargetGear": ("target_gear", None)},
 }
-# safe values while a TCU message is timed out (dct_can_safe_rx)
+# safe values while a TCU message is timed out (the mapping's safe values)
 TCU_SAFE_VALUES = {
     "TCU_ClutchCmd": {"SolenoidCurrent1": 0.0, "SolenoidCurrent2": 0.0, "LineSolenoidCurrent": 0.0},
     "TCU_ShiftCmd": {"ForkForce1": 0.0, "ForkForce2": 0.0, "ForkForce3": 0.0, "ForkForce4": 0.0},
@@ -239,7 +241,7 @@ def decode(frame_id, data):
 
 
 class E2eReceiver:
-    """End-to-end check of received frames, per message (as dct_e2e_check).
+    """End-to-end check of received frames, per message (as ct_check for the kind ``dct``).
 
     ``names``: the messages it accepts (default: all of the DBC's, or those
     sent by node ``sender``). ``check(frame_id, data)`` returns one of

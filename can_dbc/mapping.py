@@ -109,7 +109,7 @@ LOAD_WARNING = 0.5                # warn above 50 % worst-case bus load
 PLACEHOLDER_NODE = "Vector__XXX"  # a DBC's "no node"
 
 #: the simulator's status a sent signal can carry ({ status = "..." }), as the C loop fills
-#: dct_sim_status (can_dbc/csrc/dct_can.h)
+#: them (RT_STATUS_* in rt_loop/csrc/rt_loop.h)
 STATUS_FIELDS = ("sim_time_s", "overrun_count", "turnaround_max_us", "sim_state")
 
 DIRECTIONS = ("send", "receive", "ignore")

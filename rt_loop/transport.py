@@ -110,7 +110,7 @@ _ARPHRD_CAN = 280
 _PROC_NET_UDP = ("/proc/net/udp", "/proc/net/udp6")
 
 # SocketCAN identifier flags (linux/can.h), used to pass non-standard frames
-# through the 32-bit id of dct_can_frame exactly as a CAN_RAW socket would
+# through the 32-bit id of rt_frame exactly as a CAN_RAW socket would
 CAN_EFF_FLAG = 0x80000000
 CAN_RTR_FLAG = 0x40000000
 CAN_ERR_FLAG = 0x20000000

@@ -23,7 +23,7 @@ Findings (INVALID):
 - no TCU frame at all during the run (no TCU took part: nothing of the closed
   loop was exercised), or a TCU message never received while others were
   (the plant ran on that message's safe values throughout);
-- a TCU message timeout (``timeout_events``) while the maneuver ran: in a run
+- a TCU message timeout (``counts.tcu_messages.*.timeouts``) while the maneuver ran: in a run
   that ended with its maneuver (``run.maneuver == "done"``: the loop stopped
   itself at the maneuver's end) every timeout; in any other run every timeout
   after which the message came back. The one timeout still in force at the

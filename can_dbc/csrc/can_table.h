@@ -41,7 +41,7 @@
 /* longest frame (CAN FD), bytes */
 #define CT_MAX_LENGTH 64
 
-/* results of ct_check: the values of DCT_RX_* in dct_can.h */
+/* results of ct_check (can_dbc/codec.py STATUSES in this order) */
 #define CT_RX_OK 0
 #define CT_RX_UNKNOWN_ID 1
 #define CT_RX_BAD_LENGTH 2

@@ -334,9 +334,11 @@ typedef struct {
     rt_rec_ring rec;                  /* loop -> recorder */
 } rt_loop;
 
-/* validates cfg, initialises the plant (dct_plant_init) with its step set
- * to the period, the statistics and the E2E state; returns 0 or a negative
- * errno-style code */
+/* validates cfg, the channels' tables and the commands, initialises the
+ * plant (dct_plant_init) with its step set to the period, the statistics,
+ * the counters' state and the command values (the targets' safe values);
+ * returns 0 or a negative errno-style code. After a failed prepare
+ * rt_loop_run refuses the loop (-EINVAL) until a prepare succeeds. */
 int rt_loop_prepare(rt_loop *l);
 /* runs the loop in the calling thread until stopped; returns the final state */
 int rt_loop_run(rt_loop *l);
