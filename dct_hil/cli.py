@@ -790,12 +790,16 @@ def _serve_priority(text):
 
 
 def _mapping_from_args(args, rate_hz):
-    """(Mapping, {bus: channel}) of --mapping, --dbc and --bus."""
+    """(Mapping, {bus: channel}) of --mapping, --dbc and --bus; (None, {...}) when
+    neither --mapping nor --dbc is given: the project's own contract, served and
+    spoken as it always is."""
     from can_dbc.mapping import MappingError, load_options, parse_pairs
 
     try:
-        return (load_options(args.mapping, args.dbc, rate_hz=rate_hz),
-                parse_pairs(args.bus, "--bus"))
+        buses = parse_pairs(args.bus, "--bus")
+        if args.mapping is None and not args.dbc:
+            return None, buses
+        return load_options(args.mapping, args.dbc, rate_hz=rate_hz), buses
     except MappingError as e:
         raise UserError(str(e)) from None
 
