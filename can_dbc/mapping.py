@@ -346,9 +346,11 @@ class Mapping:
         The first bus is on ``first`` unless ``named`` (bus name -> channel,
         from ``--bus NAME=CHANNEL``) names it; every other bus on the channel
         ``named`` gives it, else (``derive``: in-process and virtual buses)
-        ``f"{first}-{bus}"``, else it is an error. A name in ``named`` that is
-        not a bus of the mapping, or one channel for two buses, is a
-        MappingError (one line)."""
+        ``f"{first}-{bus}"`` or, when ``first`` is an IP address (a
+        udp_multicast group), the address ``first`` + i for the i-th bus
+        (239.74.163.2, 239.74.163.3, ...), else it is an error. A name in
+        ``named`` that is not a bus of the mapping, or one channel for two
+        buses, is a MappingError (one line)."""
         named = dict(named or {})
         known = [b.name for b in self.buses]
         for name in named:
@@ -362,7 +364,7 @@ class Mapping:
             elif i == 0:
                 out[b.name] = str(first)
             elif derive:
-                out[b.name] = f"{first}-{b.name}"
+                out[b.name] = _derived_channel(str(first), b.name, i)
             else:
                 raise MappingError(f"{self.path}: bus {b.name!r} has no CAN channel: give "
                                    f"--bus {b.name}=CHANNEL")
@@ -379,6 +381,17 @@ class Mapping:
         sent ones, then the received ones, each by identifier (standard before
         extended, ascending)."""
         return tuple(m for m in self.messages if m.bus == bus)
+
+
+def _derived_channel(first, bus, index):
+    """The channel of the index-th bus when only the first's is given."""
+    import ipaddress
+
+    try:
+        address = ipaddress.ip_address(first)
+    except ValueError:
+        return f"{first}-{bus}"
+    return str(address + index)
 
 
 def _codec_key(m):

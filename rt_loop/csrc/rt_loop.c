@@ -1084,6 +1084,52 @@ static void tx_final(rt_run *r, double state)
     }
 }
 
+/* the cache lines of [p, p + n) requested (prefetch: no fault, no wait) */
+static inline void warm(const void *p, size_t n)
+{
+    const char *c = (const char *)p;
+    for (size_t i = 0; i < n; i += 64)
+        __builtin_prefetch(c + i, 0, 3);
+    if (n)
+        __builtin_prefetch(c + n - 1, 0, 3);
+}
+
+/* one message's tables: its ct_message, signals, sources or targets, rt_msg */
+static inline void warm_message(const rt_channel *ch, int m)
+{
+    const ct_message *cm = &ch->table.messages[m];
+    warm(cm, sizeof *cm);
+    warm(&ch->msgs[m], sizeof ch->msgs[m]);
+    warm(ch->table.signals + cm->first_signal, cm->n_signals * sizeof(ct_signal));
+    if (ch->msgs[m].direction == RT_DIR_TX)
+        warm(ch->sources + cm->first_signal, cm->n_signals * sizeof(rt_source));
+    else
+        warm(ch->targets + cm->first_signal, cm->n_signals * sizeof(rt_target));
+}
+
+/* In the early wake-up (spin_us > 0), before the spin to the deadline: the
+ * tables tick k will read (the messages due to be sent, every received
+ * message's, the rings' heads) are brought into the cache, so that the tick
+ * after the deadline does not wait for memory the sleep let go cold. It
+ * writes nothing and costs the tick nothing: it runs before the deadline. */
+static void warm_tick(const rt_run *r, uint64_t k)
+{
+    const rt_loop *l = r->l;
+    for (int i = 0; i < r->n_tx; i++)
+        if (k % r->tx_div[i] == r->tx_off[i])
+            warm_message(&l->chan[r->tx_chan[i]], r->tx_local[i]);
+    for (int i = 0; i < r->n_rx; i++)
+        warm_message(&l->chan[r->rx_chan[i]], r->rx_local[i]);
+    for (int c = 0; c < l->n_channels; c++) {
+        warm(&l->chan[c], sizeof l->chan[c]);
+        warm(&l->rx[c].head, 2 * sizeof(uint32_t));
+        warm(&l->tx[c].head, 2 * sizeof(uint32_t));
+        if (l->chan[c].transport == RT_TRANSPORT_RING) /* the next slot the tick may fill */
+            __builtin_prefetch(&l->tx[c].frames[l->tx[c].head & (RT_RING_SIZE - 1u)], 1, 3);
+    }
+    warm(&l->stats, 256); /* the sequence counter and the counts published every tick */
+}
+
 /* the scripted driver: starts the maneuver when due, writes the pedals of
  * the maneuver time of this tick (the plant time before its step) */
 static void drive(rt_run *r)
@@ -1305,8 +1351,11 @@ int rt_loop_run(rt_loop *l)
         sleep_until(wake_at);
         int64_t wake = now_ns();
         int64_t start = wake;
-        /* early wake-up: spin the rest of the way so that the OS wake-up
-         * latency (up to spin_us) does not reach the tick */
+        /* early wake-up: warm the tick's tables, then spin the rest of the
+         * way so that the OS wake-up latency (up to spin_us) does not reach
+         * the tick */
+        if (r.spin_ns > 0 && wake < deadline)
+            warm_tick(&r, r.c.ticks);
         while (start < deadline)
             start = now_ns();
         if (stop_requested(l))
