@@ -637,6 +637,8 @@ typedef struct {
     uint8_t tx_local[RT_MAX_MESSAGES];  /* index in its channel's table */
     uint32_t tx_div[RT_MAX_MESSAGES];
     uint32_t tx_off[RT_MAX_MESSAGES];
+    uint32_t tx_wait[RT_MAX_MESSAGES];  /* executed ticks until it is due (0: this tick):
+                                           k % div == off without a division per tick */
     int n_rx;                        /* received messages */
     uint8_t rx_chan[RT_MAX_MESSAGES];
     uint8_t rx_local[RT_MAX_MESSAGES];
@@ -748,6 +750,7 @@ static void plan_tx(rt_run *r)
         }
         r->tx_div[i] = div;
         r->tx_off[i] = best;
+        r->tx_wait[i] = best;           /* tick 0 is the first executed tick */
     }
 }
 
@@ -1052,21 +1055,25 @@ static void make_frame(rt_run *r, int c, int m, int nf)
     r->tx_frame_msg[nf] = g;
 }
 
-/* encodes and sends the frames due at executed tick k, channel by channel */
-static int tx_tick(rt_run *r, uint64_t k)
+/* encodes and sends the frames due at this executed tick, channel by channel
+ * (called once per executed tick: tx_wait counts the ticks down) */
+static int tx_tick(rt_run *r)
 {
     rt_loop *l = r->l;
     sim_status(r, r->tcu_heard ? RT_SIM_RUNNING : RT_SIM_STARTING);
+    int err = 0;
     for (int c = 0; c < l->n_channels; c++) {
         int nf = 0;
         for (int i = 0; i < r->n_tx; i++)
-            if (r->tx_chan[i] == c && k % r->tx_div[i] == r->tx_off[i])
+            if (r->tx_chan[i] == c && r->tx_wait[i] == 0)
                 make_frame(r, c, r->tx_local[i], nf++);
-        int err = tx_send(r, c, nf);
-        if (err)
-            return err;
+        int e = tx_send(r, c, nf);
+        if (e && !err)
+            err = e;
     }
-    return 0;
+    for (int i = 0; i < r->n_tx; i++)
+        r->tx_wait[i] = r->tx_wait[i] ? r->tx_wait[i] - 1u : r->tx_div[i] - 1u;
+    return err;
 }
 
 /* one last frame of each message carrying the simulator's state, with the
@@ -1112,11 +1119,11 @@ static inline void warm_message(const rt_channel *ch, int m)
  * message's, the rings' heads) are brought into the cache, so that the tick
  * after the deadline does not wait for memory the sleep let go cold. It
  * writes nothing and costs the tick nothing: it runs before the deadline. */
-static void warm_tick(const rt_run *r, uint64_t k)
+static void warm_tick(const rt_run *r)
 {
     const rt_loop *l = r->l;
     for (int i = 0; i < r->n_tx; i++)
-        if (k % r->tx_div[i] == r->tx_off[i])
+        if (r->tx_wait[i] == 0)
             warm_message(&l->chan[r->tx_chan[i]], r->tx_local[i]);
     for (int i = 0; i < r->n_rx; i++)
         warm_message(&l->chan[r->rx_chan[i]], r->rx_local[i]);
@@ -1355,7 +1362,7 @@ int rt_loop_run(rt_loop *l)
          * way so that the OS wake-up latency (up to spin_us) does not reach
          * the tick */
         if (r.spin_ns > 0 && wake < deadline)
-            warm_tick(&r, r.c.ticks);
+            warm_tick(&r);
         while (start < deadline)
             start = now_ns();
         if (stop_requested(l))
@@ -1386,7 +1393,7 @@ int rt_loop_run(rt_loop *l)
         if (l->cfg.record_every > 0 && r.c.ticks % (uint64_t)l->cfg.record_every == 0)
             rec_push(&l->rec, r.c.ticks, l->plant.state.time_s, r.maneuver_time_s,
                      &l->plant.outputs, r.cmd, l->n_commands);
-        err = tx_tick(&r, r.c.ticks);
+        err = tx_tick(&r);
         r.c.ticks++;
         if (err) {
             state = RT_STATE_ERROR;
