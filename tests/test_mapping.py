@@ -828,3 +828,51 @@ def test_the_vehicle_mapping_carries_what_the_reference_tcu_needs_where_the_matr
     for name, (matrix, message, signal) in needs.items():
         carrier = vehicle_map.message(message, bus=buses[matrix]).signal(signal)
         assert field(carrier) == contract_fields[name], (name, message, signal)
+
+
+# ------------------------------------------------------------ the buses' channels
+
+def test_each_bus_gets_a_channel_of_its_own():
+    m = M.load(M.find_mapping("vehicle"))
+    # the first bus on the channel given, the others derived on virtual buses ...
+    assert m.channels("demo") == {"pt": "demo", "io": "demo-io"}
+    # ... the next addresses for a udp_multicast group (IPv4 and IPv6) ...
+    assert m.channels("239.74.163.2") == {"pt": "239.74.163.2", "io": "239.74.163.3"}
+    assert m.channels("ff15::7") == {"pt": "ff15::7", "io": "ff15::8"}
+    # ... and named ones as given, the first bus too
+    assert m.channels("can0", {"io": "can1"}, derive=False) == {"pt": "can0", "io": "can1"}
+    assert m.channels("x", {"pt": "can3", "io": "can1"}) == {"pt": "can3", "io": "can1"}
+
+
+@pytest.mark.parametrize("first, named, derive, words", [
+    ("can0", {}, False, ["bus 'io' has no CAN channel", "--bus io=CHANNEL"]),
+    ("can0", {"xx": "can1"}, True, ["bus 'xx'", "pt, io"]),
+    ("can0", {"io": "can0"}, True, ["'pt' and 'io'", "channel of its own"]),
+])
+def test_a_bus_without_a_channel_or_a_shared_one_is_one_line(first, named, derive, words):
+    m = M.load(M.find_mapping("vehicle"))
+    with pytest.raises(M.MappingError) as e:
+        m.channels(first, named, derive=derive)
+    text = str(e.value)
+    assert "\n" not in text and text.startswith(m.path)
+    for w in words:
+        assert w in text, text
+
+
+def test_dbc_options_replace_a_buss_dbc_or_name_the_cause(tmp_path):
+    pt = os.path.join(M.MAPPINGS_DIR, "..", "matrices", "vehicle_pt.dbc")
+    m = M.load_options("vehicle", [f"pt={pt}"])
+    assert m.bus("pt").dbc == os.path.abspath(pt)
+    m = M.load_options("dct_hil", [os.path.join(M.MAPPINGS_DIR, "..", "dct_hil.dbc")])
+    assert m.bus("dct").dbc.endswith("dct_hil.dbc")
+    bad = tmp_path / "bad.dbc"
+    bad.write_text("this is no DBC\n")
+    for values, words in (([f"zz={pt}"], "bus 'zz'"), ([str(bad)], "bad.dbc"),
+                          (["pt="], "BUS=FILE"), ([pt, pt], "given twice")):
+        with pytest.raises(M.MappingError) as e:
+            M.load_options("vehicle" if values != [str(bad)] else "dct_hil", values)
+        assert words in str(e.value) and "\n" not in str(e.value), (values, str(e.value))
+    assert M.parse_pairs(["io=vcan1", " pt = vcan0 "], "--bus") == {"io": "vcan1", "pt": "vcan0"}
+    for values in (["io"], ["=x"], ["io=a", "io=b"]):
+        with pytest.raises(M.MappingError):
+            M.parse_pairs(values, "--bus")
