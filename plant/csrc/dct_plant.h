@@ -831,6 +831,10 @@ typedef struct {
 } dct_plant;
 
 int dct_plant_init(dct_plant *plant);            /* checks params, prepares, resets to rest */
+/* checks params and computes the derived values again, the state untouched:
+ * after a parameter changed while running (DCT_ERR_PARAM: refused, the
+ * derived values left as they were) */
+int dct_plant_prepare(dct_plant *plant);
 int dct_plant_reset(dct_plant *plant, const dct_initial *init);
 int dct_plant_step(dct_plant *plant, int n);     /* n steps of params.solver.step_s */
 void dct_plant_update_outputs(dct_plant *plant);

@@ -423,7 +423,7 @@ static int check_params(const dct_params *p)
     return DCT_OK;
 }
 
-int dct_plant_init(dct_plant *pl)
+int dct_plant_prepare(dct_plant *pl)
 {
     int st = check_params(&pl->params);
     if (st != DCT_OK)
@@ -432,6 +432,14 @@ int dct_plant_init(dct_plant *pl)
     dct_hydraulics_prepare(&pl->params.hydraulics, pl->params.clutch, &pl->derived.hydraulics);
     pl->derived.front_static_n = dct_vehicle_static_front_n(&pl->params.vehicle);
     pl->derived.rear_static_n = dct_vehicle_static_rear_n(&pl->params.vehicle);
+    return DCT_OK;
+}
+
+int dct_plant_init(dct_plant *pl)
+{
+    int st = dct_plant_prepare(pl);
+    if (st != DCT_OK)
+        return st;
     memset(&pl->inputs, 0, sizeof pl->inputs);
     pl->inputs.engine_on = 1.0;
     dct_initial init;

@@ -207,6 +207,10 @@
 _Static_assert((RT_RING_SIZE & (RT_RING_SIZE - 1)) == 0, "RT_RING_SIZE must be a power of two");
 _Static_assert((RT_LOG_SIZE & (RT_LOG_SIZE - 1)) == 0, "RT_LOG_SIZE must be a power of two");
 _Static_assert((RT_REC_SIZE & (RT_REC_SIZE - 1)) == 0, "RT_REC_SIZE must be a power of two");
+_Static_assert((RT_DAQ_RING_SIZE & (RT_DAQ_RING_SIZE - 1)) == 0, "RT_DAQ_RING_SIZE: a power of two");
+_Static_assert((RT_WRITE_RING_SIZE & (RT_WRITE_RING_SIZE - 1)) == 0,
+               "RT_WRITE_RING_SIZE must be a power of two");
+_Static_assert(sizeof(rt_loop) < 0xFFFFFFFFu, "offsets into rt_loop must fit 32 bits");
 _Static_assert(sizeof(_Atomic uint32_t) == sizeof(uint32_t) &&
                    _Alignof(_Atomic uint32_t) == _Alignof(uint32_t),
                "atomic uint32_t must have the layout of uint32_t");
@@ -269,6 +273,23 @@ int rt_ring_push_many(rt_ring *r, const rt_frame *f, int n)
 RT_DEFINE_POP_MANY(rt_ring_pop_many, rt_ring, rt_frame, frames, RT_RING_SIZE)
 RT_DEFINE_POP_MANY(rt_log_pop_many, rt_log_ring, rt_log_entry, entries, RT_LOG_SIZE)
 RT_DEFINE_POP_MANY(rt_rec_pop_many, rt_rec_ring, rt_sample, samples, RT_REC_SIZE)
+RT_DEFINE_POP_MANY(rt_daq_pop_many, rt_daq_ring, rt_dto, dtos, RT_DAQ_RING_SIZE)
+
+int rt_write_push_many(rt_write_ring *r, const rt_write *w, int n)
+{
+    if (n <= 0)
+        return 0;
+    uint32_t head = atomic_load_explicit(A32(&r->head), RELAXED);
+    uint32_t tail = atomic_load_explicit(A32(&r->tail), ACQUIRE);
+    uint32_t space = RT_WRITE_RING_SIZE - (head - tail);
+    uint32_t k = (uint32_t)n < space ? (uint32_t)n : space;
+    for (uint32_t i = 0; i < k; i++)
+        r->writes[(head + i) & (RT_WRITE_RING_SIZE - 1u)] = w[i];
+    atomic_store_explicit(A32(&r->head), head + k, RELEASE);
+    if (k < (uint32_t)n)
+        count_dropped(&r->dropped, (uint64_t)n - k);
+    return (int)k;
+}
 
 int rt_ring_push(rt_ring *r, const rt_frame *f)
 {
@@ -416,7 +437,7 @@ static int check_channels(rt_loop *l)
     for (int i = 0; i < l->n_commands; i++)
         if (l->command_input[i] < -1 || l->command_input[i] >= RT_N_INPUTS)
             return -1;
-    int total = 0;
+    int total = 0, n_values = 0;
     for (int c = 0; c < l->n_channels; c++) {
         rt_channel *ch = &l->chan[c];
         const ct_table *t = &ch->table;
@@ -426,6 +447,7 @@ static int check_channels(rt_loop *l)
         if (ch->transport != RT_TRANSPORT_SOCKETCAN && ch->transport != RT_TRANSPORT_RING)
             return -1;
         ch->first_message = total;
+        ch->first_signal_value = n_values;
         for (int m = 0; m < t->n_messages; m++) {
             const ct_message *cm = &t->messages[m];
             const rt_msg *mm = &ch->msgs[m];
@@ -461,9 +483,29 @@ static int check_channels(rt_loop *l)
             }
         }
         total += t->n_messages;
+        const ct_message *last = &t->messages[t->n_messages - 1];
+        uint32_t n_sig = last->first_signal + last->n_signals;
+        if (n_sig > (uint32_t)(RT_MAX_SIGNAL_VALUES - n_values))
+            return -1;
+        n_values += (int)n_sig;
     }
+    l->n_signal_values = n_values;
     l->stats.n_messages = total;
     l->stats.n_channels = l->n_channels;
+    return 0;
+}
+
+/* the writable regions lie inside the loop, with a known kind */
+static int check_regions(const rt_loop *l)
+{
+    if (l->n_regions < 0 || l->n_regions > RT_MAX_REGIONS)
+        return -1;
+    for (int i = 0; i < l->n_regions; i++) {
+        const rt_region *g = &l->regions[i];
+        if (g->size == 0 || g->offset > sizeof(rt_loop) || g->size > sizeof(rt_loop) - g->offset ||
+            (g->kind != RT_REGION_DATA && g->kind != RT_REGION_PARAM))
+            return -1;
+    }
     return 0;
 }
 
@@ -540,6 +582,8 @@ static int prepare_loop(rt_loop *l)
     if (!(c->spin_us >= 0.0 && c->spin_us * 1e-6 < c->period_s))
         return -EINVAL; /* the early wake-up must stay inside the period */
     memset(&l->stats, 0, sizeof l->stats);
+    if (check_regions(l) != 0)
+        return -EINVAL;
     if (check_channels(l) != 0) {
         memset(&l->stats, 0, sizeof l->stats);
         return -EINVAL;
@@ -589,6 +633,13 @@ static int prepare_loop(rt_loop *l)
     memset(l->tx, 0, sizeof l->tx);
     memset(&l->log, 0, sizeof l->log);
     memset(&l->rec, 0, sizeof l->rec);
+    memset(&l->daq_ring, 0, sizeof l->daq_ring);
+    memset(&l->cal, 0, sizeof l->cal);
+    memset(&l->stim, 0, sizeof l->stim);
+    memset(l->daq, 0, sizeof l->daq);
+    memset(l->signal_values, 0, sizeof l->signal_values);
+    l->daq_gen = l->daq_ack = 0;      /* daq[0]: no lists */
+    l->daq_refused = 0;
     l->stats.maneuver_state = l->driver.rows > 0 ? RT_MANEUVER_WAITING : RT_MANEUVER_NONE;
     l->stats.maneuver_time_s = -1.0;
     if (l->driver.rows > 0) { /* the pedals of the first row until the maneuver starts */
@@ -672,6 +723,12 @@ typedef struct {
     rt_frame rx_frames[RT_RX_BATCH];
     rt_frame tx_frames[RT_MAX_MESSAGES];
     int32_t tx_frame_msg[RT_MAX_MESSAGES];  /* loop-wide message index of each tx frame */
+    /* DAQ */
+    const rt_daq_config *daq;        /* the configuration in use, NULL: none */
+    uint32_t daq_gen;                /* its generation (the last one looked at) */
+    uint32_t ev_div[RT_N_EVENTS];    /* ticks between an event's firings */
+    uint32_t ev_wait[RT_N_EVENTS];   /* ticks until it fires (0: this tick) */
+    uint16_t daq_pre[RT_DAQ_MAX_LISTS];  /* prescaler countdown of each list */
 } rt_run;
 
 static inline int64_t now_ns(void)
@@ -821,9 +878,13 @@ static inline void rx_one(rt_run *r, int c, rt_frame *f, int well_formed, uint64
         cs->rx_accepted++;
         ms->frames++;
         (void)ct_decode(&ch->table, m, f->data, f->len, r->values, r->written);
+        double *shown = l->signal_values + ch->first_signal_value + cm->first_signal;
         for (uint32_t k = 0; k < cm->n_signals; k++) {
+            if (!r->written[k])
+                continue;
+            shown[k] = r->values[k];
             const rt_target *t = &ch->targets[cm->first_signal + k];
-            if (t->kind == RT_TGT_COMMAND && r->written[k])
+            if (t->kind == RT_TGT_COMMAND)
                 r->cmd[t->command] = target_value(t, ch->ranges, r->values[k]);
         }
         l->last_rx_tick[g] = n;
@@ -1039,8 +1100,9 @@ static void make_frame(rt_run *r, int c, int m, int nf)
     int g = ch->first_message + m;
     uint64_t seq = l->tx_count[g];
     const rt_source *src = ch->sources + cm->first_signal;
+    double *shown = l->signal_values + ch->first_signal_value + cm->first_signal;
     for (uint32_t k = 0; k < cm->n_signals; k++)
-        r->values[k] = source_value(r, &src[k], ch->ranges, seq);
+        shown[k] = r->values[k] = source_value(r, &src[k], ch->ranges, seq);
     rt_frame *f = &r->tx_frames[nf];
     f->id = cm->id | (cm->extended ? CAN_EFF_FLAG : 0u);
     f->flags = ch->msgs[m].flags;
@@ -1135,6 +1197,172 @@ static void warm_tick(const rt_run *r)
             __builtin_prefetch(&l->tx[c].frames[l->tx[c].head & (RT_RING_SIZE - 1u)], 1, 3);
     }
     warm(&l->stats, 256); /* the sequence counter and the counts published every tick */
+}
+
+/* ------------------------------------------------------------------ */
+/* Writes (calibration, stimulus) and DAQ                              */
+/* ------------------------------------------------------------------ */
+
+static const rt_region *region_of(const rt_loop *l, uint32_t offset, uint32_t len)
+{
+    for (int i = 0; i < l->n_regions; i++) {
+        const rt_region *g = &l->regions[i];
+        if (offset >= g->offset && len <= g->size && offset - g->offset <= g->size - len)
+            return g;
+    }
+    return NULL;
+}
+
+/* one write, whole; 0 applied, -1 refused */
+static int apply_write(rt_loop *l, const rt_write *w)
+{
+    if (w->len == 0 || w->len > RT_WRITE_BYTES)
+        return -1;
+    const rt_region *g = region_of(l, w->offset, w->len);
+    if (!g)
+        return -1;
+    uint8_t *dst = (uint8_t *)(void *)l + w->offset;
+    if (g->kind != RT_REGION_PARAM) {
+        memcpy(dst, w->data, w->len);
+        return 0;
+    }
+    uint8_t old[RT_WRITE_BYTES];
+    memcpy(old, dst, w->len);
+    memcpy(dst, w->data, w->len);
+    if (dct_plant_prepare(&l->plant) != DCT_OK) {
+        memcpy(dst, old, w->len);     /* the plant refused them: as before */
+        return -1;
+    }
+    return 0;
+}
+
+/* applies the writes due: every queued calibration write, and the stimulus
+ * writes whose time has come (plant time before this tick's step) */
+static void apply_writes(rt_loop *l, rt_write_ring *ring, int timed)
+{
+    uint32_t tail = atomic_load_explicit(A32(&ring->tail), RELAXED);
+    uint32_t head = atomic_load_explicit(A32(&ring->head), ACQUIRE);
+    double now_s = l->plant.state.time_s + 1e-9;
+    int n = 0;
+    while (tail != head && n < RT_WRITES_PER_TICK) {
+        const rt_write *w = &ring->writes[tail & (RT_WRITE_RING_SIZE - 1u)];
+        if (timed && !(w->time_s <= now_s))
+            break;                    /* not yet (NaN: never) */
+        if (apply_write(l, w) == 0) {
+            atomic_store_explicit(A64(&ring->applied),
+                                  atomic_load_explicit(A64(&ring->applied), RELAXED) + 1u, RELAXED);
+            atomic_store_explicit(A64(&ring->last_applied_id), w->id, RELAXED);
+        } else {
+            atomic_store_explicit(A64(&ring->refused),
+                                  atomic_load_explicit(A64(&ring->refused), RELAXED) + 1u, RELAXED);
+            atomic_store_explicit(A64(&ring->last_refused_id), w->id, RELAXED);
+        }
+        tail++;
+        n++;
+    }
+    atomic_store_explicit(A32(&ring->tail), tail, RELEASE);
+}
+
+/* a configuration the tick may copy from: every index inside its arrays,
+ * every entry inside the loop, every ODT within one DTO */
+static int daq_config_ok(const rt_daq_config *c)
+{
+    if (c->n_lists > RT_DAQ_MAX_LISTS)
+        return 0;
+    for (uint32_t i = 0; i < c->n_lists; i++) {
+        const rt_daq_list *d = &c->lists[i];
+        if (d->event >= RT_N_EVENTS || d->first_odt > RT_DAQ_MAX_ODTS ||
+            d->n_odts > RT_DAQ_MAX_ODTS - d->first_odt)
+            return 0;
+        for (uint32_t o = d->first_odt; o < d->first_odt + d->n_odts; o++) {
+            const rt_odt *t = &c->odts[o];
+            if (t->first_entry > RT_DAQ_MAX_ENTRIES || t->n_entries > RT_DAQ_MAX_ENTRIES - t->first_entry)
+                return 0;
+            uint32_t bytes = 0;
+            for (uint32_t e = t->first_entry; e < t->first_entry + t->n_entries; e++) {
+                const rt_odt_entry *x = &c->entries[e];
+                if (x->size == 0 || x->size > RT_DAQ_ODT_BYTES || x->offset > sizeof(rt_loop) ||
+                    x->size > sizeof(rt_loop) - x->offset)
+                    return 0;
+                bytes += x->size;
+            }
+            if (bytes > RT_DAQ_ODT_BYTES)
+                return 0;
+        }
+    }
+    return 1;
+}
+
+/* at the start of a tick: a new configuration published since the last one? */
+static void daq_pickup(rt_run *r)
+{
+    rt_loop *l = r->l;
+    uint32_t gen = atomic_load_explicit(A32(&l->daq_gen), ACQUIRE);
+    if (gen == r->daq_gen)
+        return;                       /* nothing new (a refused one is counted once) */
+    r->daq_gen = gen;
+    const rt_daq_config *c = &l->daq[gen & 1u];
+    if (daq_config_ok(c)) {
+        r->daq = c->n_lists ? c : NULL;
+    } else {
+        r->daq = NULL;
+        atomic_store_explicit(A64(&l->daq_refused),
+                              atomic_load_explicit(A64(&l->daq_refused), RELAXED) + 1u, RELAXED);
+    }
+    for (int i = 0; i < RT_DAQ_MAX_LISTS; i++)
+        r->daq_pre[i] = 0;            /* each list fires at its first event */
+}
+
+/* at the end of a tick (inside its measured time): the ODTs of every running
+ * list whose event fires now, into the DAQ ring; then the generation used */
+static void daq_copy(rt_run *r, int64_t deadline_ns, uint64_t tick)
+{
+    rt_loop *l = r->l;
+    const rt_daq_config *c = r->daq;
+    if (c) {
+        rt_daq_ring *g = &l->daq_ring;
+        const uint8_t *base = (const uint8_t *)(const void *)l;
+        uint32_t head = atomic_load_explicit(A32(&g->head), RELAXED);
+        uint32_t tail = atomic_load_explicit(A32(&g->tail), ACQUIRE);
+        uint64_t dropped = 0;
+        for (uint32_t i = 0; i < c->n_lists; i++) {
+            const rt_daq_list *d = &c->lists[i];
+            if (!d->running || r->ev_wait[d->event] != 0)
+                continue;
+            if (r->daq_pre[i] > 0) {
+                r->daq_pre[i]--;
+                continue;
+            }
+            r->daq_pre[i] = (uint16_t)(d->prescaler > 1 ? d->prescaler - 1 : 0);
+            for (uint32_t o = 0; o < d->n_odts; o++) {
+                if (head - tail >= RT_DAQ_RING_SIZE) {
+                    dropped++;
+                    continue;
+                }
+                rt_dto *x = &g->dtos[head & (RT_DAQ_RING_SIZE - 1u)];
+                const rt_odt *t = &c->odts[d->first_odt + o];
+                uint32_t len = 0;
+                for (uint32_t e = t->first_entry; e < t->first_entry + t->n_entries; e++) {
+                    const rt_odt_entry *y = &c->entries[e];
+                    memcpy(x->data + len, base + y->offset, y->size);
+                    len += y->size;
+                }
+                x->time_ns = deadline_ns;
+                x->tick = tick;
+                x->list = (uint16_t)i;
+                x->odt = (uint16_t)o;
+                x->len = (uint16_t)len;
+                x->reserved = 0;
+                head++;
+            }
+        }
+        atomic_store_explicit(A32(&g->head), head, RELEASE);
+        if (dropped)
+            count_dropped(&g->dropped, dropped);
+    }
+    for (int e = 0; e < RT_N_EVENTS; e++)
+        r->ev_wait[e] = r->ev_wait[e] ? r->ev_wait[e] - 1u : r->ev_div[e] - 1u;
+    atomic_store_explicit(A32(&l->daq_ack), r->daq_gen, RELEASE);
 }
 
 /* the scripted driver: starts the maneuver when due, writes the pedals of
@@ -1326,6 +1554,12 @@ int rt_loop_run(rt_loop *l)
     r.spin_ns = llround(l->cfg.spin_us * 1e3);
     plan_tx(&r);
     plan_rx(&r);
+    static const double event_s[RT_N_EVENTS] = {0.0, 0.010, 0.100};
+    for (int e = 0; e < RT_N_EVENTS; e++) {
+        double ticks = event_s[e] * 1e9 / (double)r.step_ns;
+        r.ev_div[e] = ticks < 1.5 ? 1u : (uint32_t)llround(ticks);
+        r.ev_wait[e] = 0;             /* every event fires at the first tick */
+    }
     memcpy(r.cmd, l->stats.commands, sizeof r.cmd);
     memcpy(r.c.msgs, l->stats.msgs, sizeof r.c.msgs);
 
@@ -1380,6 +1614,9 @@ int rt_loop_run(rt_loop *l)
         }
         check_timeouts(&r, n);
         drive(&r);
+        daq_pickup(&r);
+        apply_writes(l, &l->cal, 0);
+        apply_writes(l, &l->stim, 1);
         apply_commands(l, r.cmd);
         int st = dct_plant_step(&l->plant, 1);
         if (st != DCT_OK) {
@@ -1405,6 +1642,7 @@ int rt_loop_run(rt_loop *l)
                             r.maneuver_time_s >= l->driver.end_s - 0.5 * (double)r.step_ns * 1e-9;
         if (maneuver_done)
             r.maneuver_state = RT_MANEUVER_DONE;
+        daq_copy(&r, deadline, r.c.ticks - 1u);
 
         int64_t end = now_ns();
         double turnaround_us = (double)(end - deadline) / 1e3;

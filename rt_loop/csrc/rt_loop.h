@@ -171,6 +171,8 @@ typedef struct {
                                          is on): frames are read and sent as struct canfd_frame */
     int first_message;                /* set by rt_loop_prepare: index of the channel's first
                                          message in the loop-wide numbering (stats.msgs) */
+    int first_signal_value;           /* set by rt_loop_prepare: index of its first signal in
+                                         rt_loop.signal_values */
     ct_table table;                   /* the bus's messages (can_dbc/table.py CodecTable) */
     const rt_msg *msgs;               /* one per message of table */
     const rt_source *sources;         /* one per signal of table (used for sent messages) */
@@ -178,6 +180,127 @@ typedef struct {
     const rt_range *ranges;           /* the value tables' ranges */
     int32_t n_ranges;
 } rt_channel;
+
+/* ---- measurement, calibration and stimulus (XCP: rt_loop/xcp/) -------------
+ *
+ * The loop's memory is the address space of measurement and calibration: an
+ * address is a byte offset from the start of the rt_loop (XCP address
+ * extension 0), so the A2L describes the C structs as they are (plant
+ * inputs, outputs, state, parameters, the statistics, the CAN signals'
+ * last values).
+ *
+ * DAQ: Python (the XCP slave's thread) writes a DAQ configuration (lists of
+ * ODTs of entries: offset and size) into the slot daq[(daq_gen + 1) & 1],
+ * then increments daq_gen (release). Each tick loads daq_gen (acquire),
+ * checks a configuration it has not seen before once (entries inside the
+ * loop, ODTs within RT_DAQ_ODT_BYTES; a bad one is ignored and counted in
+ * daq_refused), and at its end copies, for every running list whose event
+ * fires, each ODT's entries into one rt_dto of the daq ring (a full ring
+ * drops the DTO and counts it in daq_ring.dropped: the overload
+ * indication). It then stores the generation it used in daq_ack (release):
+ * Python writes the other slot again only once daq_ack == daq_gen.
+ * Events (rt_daq_list.event): RT_EVENT_TICK every executed tick,
+ * RT_EVENT_10MS and RT_EVENT_100MS every 10 / 100 ms of plant time
+ * (20 / 200 ticks at 2 kHz), each list with its prescaler (1: every time).
+ * A DTO carries the tick's deadline (CLOCK_MONOTONIC, ns): the DAQ clock.
+ *
+ * Writes: rt_write entries in two single-producer rings: cal (calibration:
+ * applied at the next tick boundary, before the plant step) and stim
+ * (stimulus: applied at the first tick whose plant time before the step is
+ * at least time_s, in ring order). A write is applied whole (all its bytes
+ * in the same tick, never torn) when its bytes lie inside one of the
+ * writable regions (set by Python before rt_loop_prepare); a write into a
+ * RT_REGION_PARAM region is followed by dct_plant_prepare (the parameters
+ * checked, derived values computed again; the state is kept) and undone
+ * when the plant refuses the new parameters. Refused writes are counted
+ * (write_refused), applied ones too (write_applied). */
+#define RT_DAQ_MAX_LISTS 32
+#define RT_DAQ_MAX_ODTS 512
+#define RT_DAQ_MAX_ENTRIES 4096
+#define RT_DAQ_ODT_BYTES 248          /* data bytes of one DTO (an XCP MAX_DTO of 256) */
+#define RT_DAQ_RING_SIZE 16384        /* DTOs, a power of two */
+#define RT_EVENT_TICK 0
+#define RT_EVENT_10MS 1
+#define RT_EVENT_100MS 2
+#define RT_N_EVENTS 3
+#define RT_WRITE_RING_SIZE 4096       /* writes, a power of two */
+#define RT_WRITE_BYTES 64             /* bytes of one write at most */
+#define RT_WRITES_PER_TICK 64         /* applied per ring and tick at most; the rest waits */
+#define RT_MAX_REGIONS 256
+#define RT_REGION_DATA 0              /* plain data (plant inputs): the bytes are enough */
+#define RT_REGION_PARAM 1             /* plant parameters: dct_plant_prepare after the write */
+#define RT_MAX_SIGNAL_VALUES 4096     /* the CAN signals' last values, all channels */
+
+typedef struct {
+    uint32_t offset;                  /* bytes from the start of the rt_loop */
+    uint32_t size;                    /* bytes, 1..RT_DAQ_ODT_BYTES */
+} rt_odt_entry;
+
+typedef struct {
+    uint32_t first_entry;             /* rt_daq_config.entries[first_entry .. + n_entries - 1] */
+    uint32_t n_entries;
+} rt_odt;
+
+typedef struct {
+    uint32_t first_odt;               /* rt_daq_config.odts[first_odt .. + n_odts - 1] */
+    uint32_t n_odts;
+    uint16_t event;                   /* RT_EVENT_* */
+    uint16_t prescaler;               /* 1: every time the event fires, n: every n-th */
+    uint32_t running;                 /* 1: copied when its event fires */
+} rt_daq_list;
+
+typedef struct {
+    uint32_t n_lists;
+    rt_daq_list lists[RT_DAQ_MAX_LISTS];
+    rt_odt odts[RT_DAQ_MAX_ODTS];
+    rt_odt_entry entries[RT_DAQ_MAX_ENTRIES];
+} rt_daq_config;
+
+/* one ODT's data from one tick */
+typedef struct {
+    int64_t time_ns;                  /* the tick's deadline, CLOCK_MONOTONIC */
+    uint64_t tick;                    /* executed tick index */
+    uint16_t list;
+    uint16_t odt;
+    uint16_t len;                     /* data bytes */
+    uint16_t reserved;
+    uint8_t data[RT_DAQ_ODT_BYTES];
+} rt_dto;
+
+typedef struct {
+    uint32_t head;
+    uint32_t tail;
+    uint64_t dropped;                 /* DTOs lost because the ring was full (overload) */
+    rt_dto dtos[RT_DAQ_RING_SIZE];
+} rt_daq_ring;
+
+/* bytes written into the loop's memory at a tick boundary */
+typedef struct {
+    double time_s;                    /* stim: plant time to apply it at; cal: ignored */
+    uint32_t offset;                  /* bytes from the start of the rt_loop */
+    uint32_t len;                     /* 1..RT_WRITE_BYTES */
+    uint64_t id;                      /* the producer's number for it (reported back in
+                                         last_applied_id / last_refused_id) */
+    uint8_t data[RT_WRITE_BYTES];
+} rt_write;
+
+typedef struct {
+    uint32_t head;                    /* producer (Python) */
+    uint32_t tail;                    /* consumer (the loop) */
+    uint64_t dropped;                 /* writes the producer could not queue (full) */
+    uint64_t applied;                 /* written by the loop */
+    uint64_t refused;                 /* outside every region, or parameters the plant refused */
+    uint64_t last_applied_id;
+    uint64_t last_refused_id;
+    rt_write writes[RT_WRITE_RING_SIZE];
+} rt_write_ring;
+
+/* a part of the loop's memory that writes may change */
+typedef struct {
+    uint32_t offset;
+    uint32_t size;
+    uint32_t kind;                    /* RT_REGION_* */
+} rt_region;
 
 typedef struct {
     double period_s;                  /* wall-clock time between deadlines: 0.0005 for 2 kHz */
@@ -332,6 +455,19 @@ typedef struct {
     rt_log_ring log;                  /* loop -> traffic log writer */
     rt_driver driver;                 /* filled by Python before rt_loop_prepare() */
     rt_rec_ring rec;                  /* loop -> recorder */
+    /* measurement, calibration, stimulus (see above) */
+    int n_regions;                    /* filled by Python before rt_loop_prepare */
+    rt_region regions[RT_MAX_REGIONS];
+    uint32_t daq_gen;                 /* written by Python: the configuration in daq[gen & 1] */
+    uint32_t daq_ack;                 /* written by the loop: the generation its last tick used */
+    uint64_t daq_refused;             /* configurations the loop found bad and ignored */
+    rt_daq_config daq[2];
+    rt_daq_ring daq_ring;             /* loop -> the XCP slave's sender */
+    rt_write_ring cal;                /* calibration writes: Python -> loop */
+    rt_write_ring stim;               /* stimulus writes: Python -> loop */
+    int n_signal_values;              /* set by rt_loop_prepare: signals of all channels */
+    double signal_values[RT_MAX_SIGNAL_VALUES];  /* each CAN signal's last value (physical):
+                                         channel c's signal k at chan[c].first_signal_value + k */
 } rt_loop;
 
 /* validates cfg, the channels' tables and the commands, initialises the
@@ -355,5 +491,9 @@ int rt_ring_push_many(rt_ring *r, const rt_frame *f, int n);
 int rt_ring_pop_many(rt_ring *r, rt_frame *f, int n);
 int rt_log_pop_many(rt_log_ring *r, rt_log_entry *e, int n);
 int rt_rec_pop_many(rt_rec_ring *r, rt_sample *s, int n);
+int rt_daq_pop_many(rt_daq_ring *r, rt_dto *d, int n);
+/* queues writes (the ring's only producer); returns how many were queued
+ * (the rest counted in dropped) */
+int rt_write_push_many(rt_write_ring *r, const rt_write *w, int n);
 
 #endif
