@@ -203,6 +203,10 @@ typedef struct {
  * RT_EVENT_10MS and RT_EVENT_100MS every 10 / 100 ms of plant time
  * (20 / 200 ticks at 2 kHz), each list with its prescaler (1: every time).
  * A DTO carries the tick's deadline (CLOCK_MONOTONIC, ns): the DAQ clock.
+ * The copy runs at the end of the tick, inside its measured time (its cost
+ * shows in the turnaround), after the plant step and the frames sent: plant
+ * values are this tick's, the statistics (rt_stats) as the previous tick
+ * published them.
  *
  * Writes: rt_write entries in two single-producer rings: cal (calibration:
  * applied at the next tick boundary, before the plant step) and stim
