@@ -257,6 +257,19 @@ def build_parser():
                              "instead of the table")
     doctor.set_defaults(func=cmd_doctor)
 
+    from rt_loop.xcp import a2l as a2l_module
+
+    a2l_cmd = sub.add_parser(
+        "a2l", help="write the A2L (ASAP2) file of the loop's memory for an XCP master",
+        description="Writes the A2L file (ASAM MCD-2 MC 1.71) of the real-time loop's memory: plant "
+                    "inputs, outputs, state and parameters, the statistics, the received values and "
+                    "every CAN signal's last value; writable: the inputs a test may override and the "
+                    "parameters marked online in plant/data/ranges.toml. dct-hil serve --xcp serves "
+                    "the same file on GET_ID. Exit status: 0 written, 1 the C extension is not "
+                    "built, 2 bad options.")
+    a2l_module.add_arguments(a2l_cmd)
+    a2l_cmd.set_defaults(func=cmd_a2l)
+
     mapping = sub.add_parser(
         "mapping", help="vehicle CAN matrices: write, check and show mapping files",
         description="A mapping file (TOML) says what the plant sends and receives on a vehicle's "
@@ -861,6 +874,12 @@ def cmd_demo(args):
         raise UserError(str(e)) from None
 
 
+def cmd_a2l(args):
+    from rt_loop.xcp import a2l
+
+    return a2l.run(args)
+
+
 def cmd_doctor(args):
     from rt_loop.doctor import DoctorError, run_doctor
 
@@ -936,8 +955,8 @@ def main(argv=None):
     try:
         args = parser.parse_args(argv)
         if args.command is None:
-            raise UserError("choose a command: demo, simulate, serve, tcu, bench, valve, doctor or "
-                            "mapping (dct-hil --help)")
+            raise UserError("choose a command: demo, simulate, serve, tcu, bench, valve, doctor, "
+                            "mapping or a2l (dct-hil --help)")
         try:
             user_errors = _user_errors()
         except ImportError as e:
