@@ -179,6 +179,14 @@ def build_parser():
                             "verdict is printed with a warning and the exit status stays)")
     _add_pm_qos_options(serve)
     _add_mapping_options(serve, "the plant")
+    serve.add_argument("--xcp", metavar="[HOST:]PORT",
+                       help="serve the loop's memory to an XCP master (XCP on Ethernet: measurement "
+                            "with DAQ, calibration, the A2L on GET_ID); binds to 127.0.0.1 unless "
+                            "HOST is given")
+    serve.add_argument("--xcp-tcp", action="store_true", help="XCP on TCP instead of UDP")
+    serve.add_argument("--xcp-key", metavar="FILE",
+                       help="seed & key: the secret in FILE (at least 16 bytes) locks calibration "
+                            "and DAQ until the master unlocks them (HMAC-SHA256 of the seed)")
     serve.set_defaults(func=cmd_serve)
 
     from tcu_stub import can_tcu
@@ -844,6 +852,7 @@ def cmd_serve(args):
             spin_us=args.spin_us, time_scale=args.time_scale, driver=driver,
             maneuver_end_s=end, record_path=args.record, record_every_s=args.record_every,
             pm_qos_us=args.pm_qos_us, mapping=mapping, bus_channels=bus_channels,
+            xcp=args.xcp, xcp_protocol="tcp" if args.xcp_tcp else "udp", xcp_key=args.xcp_key,
         )
         return run_console(server, args.stats, quiet=args.quiet, strict=args.strict)
     except (ServerError, TransportError) as e:

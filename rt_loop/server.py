@@ -254,6 +254,16 @@ class Server:
     ``f"{channel}-{bus}"`` (``Mapping.channels``); each bus has a transport
     of its own (``transports``; ``transport`` is the first).
 
+    ``xcp``: serve the loop's memory to an XCP master (``rt_loop.xcp``): a
+    "[HOST:]PORT" text or (host, port); the host is 127.0.0.1 unless one is
+    given; ``xcp_protocol`` "udp" or "tcp"; ``xcp_key``: a file holding the
+    seed & key secret that locks calibration and DAQ (a warning when the port
+    is opened beyond loopback without one). The A2L it serves on GET_ID is
+    ``rt_loop.xcp.a2l.generate`` of this loop and mapping. The loop's
+    writable regions (the inputs a test may override and the parameters
+    marked online) are set for every run: XCP calibration and stimulus
+    write only there.
+
     Errors in the arguments, the mapping (``MappingError``), the parameters (``ParamError``) or the
     transport (``TransportError``) are raised with one-line messages.
     """
@@ -269,7 +279,8 @@ class Server:
                  record_every_s: float = 0.002,
                  pm_qos_us: int | str | None = "auto",
                  pm_qos_path: str | None = None, mapping: Any = None,
-                 bus_channels: dict | None = None) -> None:
+                 bus_channels: dict | None = None, xcp: Any = None, xcp_protocol: str = "udp",
+                 xcp_key: str | os.PathLike | None = None) -> None:
         from can_dbc import mapping as _mapping  # noqa: PLC0415
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
@@ -354,6 +365,9 @@ class Server:
             self.channels = LoopChannels(self.mapping, ffi, lib)
         except (ChannelError, ValueError) as e:
             raise ServerError(_one_line(e)) from None
+        self.xcp_address, self.xcp_protocol, self.xcp_key = self._check_xcp(xcp, xcp_protocol,
+                                                                            xcp_key)
+        self.xcp = None
         overrides = {**HYDRAULICS, "solver": {"step_s": self.step_s}}
         self.params = load_params(self.params_path, ffi, overrides)
         self._l = ffi.new("rt_loop *")  # zeroed; lives as long as this object
@@ -374,6 +388,27 @@ class Server:
         self._loop_error: str | None = None
         self._started = self._stopped = False
         self._t_start = self._t_end = None
+
+    def _check_xcp(self, xcp: Any, protocol: str, key: Any) -> tuple:
+        if xcp is None:
+            if key is not None:
+                raise ServerError("--xcp-key needs --xcp")
+            return None, protocol, None
+        from rt_loop.xcp import parse_address  # noqa: PLC0415
+        from rt_loop.xcp.protocol import read_secret  # noqa: PLC0415
+
+        try:
+            address = parse_address(xcp) if isinstance(xcp, str) else (str(xcp[0]), int(xcp[1]))
+        except (ValueError, TypeError, IndexError) as e:
+            raise ServerError(_one_line(e)) from None
+        if protocol not in ("udp", "tcp"):
+            raise ServerError(f"XCP transport {protocol!r}: choose udp or tcp")
+        if key is not None:
+            try:
+                read_secret(key)
+            except (OSError, ValueError) as e:
+                raise ServerError(f"--xcp-key {key}: {_one_line(e)}") from None
+        return address, protocol, None if key is None else os.fspath(key)
 
     @staticmethod
     def _dbc_of(mapping: Any) -> dict:
@@ -432,6 +467,11 @@ class Server:
             cfg.duration_s = 0.0 if self.duration_s is None else self.duration_s
             cfg.log_frames = int(self.logger is not None)
             self.channels.install(loop, self.transports)
+            from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
+            from rt_loop.xcp.loop_backend import set_regions  # noqa: PLC0415
+
+            self._regions = _a2l.calibration_regions(ffi, lib)
+            set_regions(ffi, lib, loop, self._regions)
             rc = lib.rt_loop_prepare(loop)
             if rc == -errno.EDOM:
                 raise ServerError("the plant core rejected the parameter set (dct_plant_init "
@@ -441,6 +481,8 @@ class Server:
                 raise ServerError(f"the loop refused its set-up: {os.strerror(abs(rc))} "
                                   f"(rt_loop_prepare returned {rc}; rate {self.rate_hz:g} Hz, "
                                   f"priority {self.priority}, cpu {cfg.cpu})")
+            if self.xcp_address is not None:
+                self._start_xcp(_a2l)
             if self.pm_qos is not None and not self.pm_qos.acquire():
                 self.warnings.append(f"PM QoS not held ({self.pm_qos.error}): idle CPUs may "
                                      "wake up late (tens to hundreds of us)")
@@ -570,7 +612,7 @@ class Server:
         self._stopped = True
         _LIVE.discard(self)
         errors: list[Exception] = []
-        for step in (self._release_pm_qos, self._stop_transport, self._stop_logger,
+        for step in (self._stop_xcp, self._release_pm_qos, self._stop_transport, self._stop_logger,
                      self._stop_recorder, self._close_transport):
             try:
                 step()
@@ -580,6 +622,37 @@ class Server:
             self.stats.read()
         if errors:
             raise ServerError(f"stopping: {_one_line(errors[0])}")
+
+    def _start_xcp(self, a2l: Any) -> None:
+        from rt_loop.xcp import XcpServer  # noqa: PLC0415
+
+        host, port = self.xcp_address
+        ffi, lib = self._ffi, self._lib
+
+        def a2l_text() -> str:        # the address bound (a port 0 asked for is chosen then)
+            bound_host, bound_port = self.xcp.address
+            settings = {"transport": self.xcp_protocol, "address": bound_host, "port": bound_port,
+                        "rate_hz": self.rate_hz, "time_scale": self.time_scale}
+            return a2l.generate(ffi, lib, channels=self.channels, xcp=settings)
+
+        try:
+            self.xcp = XcpServer(
+                ffi, lib, self._l, host=host, port=port, protocol=self.xcp_protocol,
+                a2l_text=a2l_text,
+                a2l_name="dct_hil", epk=a2l.epk(ffi, lib, channels=self.channels),
+                key_file=self.xcp_key, ranges=self._regions)
+            self.xcp.start()
+        except OSError as e:
+            self.xcp = None
+            raise ServerError(f"XCP on {self.xcp_protocol.upper()} {host}:{port}: "
+                              f"{e.strerror or _one_line(e)}") from None
+        if self.xcp_key is None and host not in ("127.0.0.1", "::1", "localhost"):
+            self.warnings.append(f"XCP on {host}:{port} is open beyond loopback without "
+                                 "--xcp-key: anyone who reaches it can calibrate the plant")
+
+    def _stop_xcp(self) -> None:
+        if self.xcp is not None:
+            self.xcp.stop()
 
     def _release_pm_qos(self) -> None:
         if self.pm_qos is not None:
@@ -696,6 +769,19 @@ class Server:
             return None
         return {**self._rings, "size": int(self._lib.RT_RING_SIZE)}
 
+    def xcp_counters(self) -> dict | None:
+        """The XCP slave's counters and the loop's side (DTOs lost in a full ring,
+        DAQ configurations refused, calibration writes applied and refused); None
+        without XCP."""
+        if self.xcp is None:
+            return None
+        loop = self._l
+        return {**self.xcp.counters(),
+                "loop": {"dto_ring_dropped": int(loop.daq_ring.dropped),
+                         "daq_configurations_refused": int(loop.daq_refused),
+                         "cal_applied": int(loop.cal.applied),
+                         "cal_refused": int(loop.cal.refused)}}
+
     def transport_counters(self) -> dict:
         """The transports' own counters: the first bus's, or with several buses
         their sums (``counts.channels`` has each bus's)."""
@@ -735,6 +821,10 @@ class Server:
                                     if m.bus == b.name and m.direction == "receive"]}
                       for i, b in enumerate(self.mapping.buses)],
             "commands": list(self.channels.command_names),
+            "xcp": None if self.xcp_address is None else {
+                "protocol": self.xcp_protocol,
+                "address": list(self.xcp.address) if self.xcp is not None else list(self.xcp_address),
+                "seed_and_key": self.xcp_key is not None},
             "params": self.params_path,
             "hydraulics": "solenoid currents (pressure_commanded = 0)",
             "log": self.log_path,
@@ -790,6 +880,7 @@ class Server:
             "transport": {key: value for key, value in self.transport_counters().items()},
             "log": self.logger.counters() if self.logger is not None else None,
             "record": self.recorder.counters() if self.recorder is not None else None,
+            "xcp": self.xcp_counters(),
             "plant": self.stats.plant(),
             "machine": machine,
         }

@@ -65,6 +65,15 @@ def banner_lines(server: Any, stats_path: str) -> list[str]:
                                         if q is None else q.describe()))
     lines.append(f"plant             {server.params_path or 'default parameters'}; "
                  "solenoid currents drive the clutch hydraulics")
+    m = getattr(server, "mapping", None)
+    if m is not None and len(getattr(server, "transports", [])) > 1:
+        lines.append("buses             " + ", ".join(
+            f"{b.name} on {server.bus_channels[b.name]}" for b in m.buses))
+    x = getattr(server, "xcp", None)
+    if x is not None:
+        host, port = x.address
+        lines.append(f"XCP               on {x.protocol.upper()} {host}:{port} (A2L on GET_ID"
+                     + (", seed & key" if server.xcp_key else "") + ")")
     if server.logger is not None:
         lines.append(f"log               {server.logger.path} ({server.logger.format})")
     if server.recorder is not None:
