@@ -167,9 +167,10 @@ def build_parser():
                        help="the driver inside the loop plays a scripted maneuver ("
                             + ", ".join(SCRIPTED_MANEUVERS) + ") from the first accepted TCU "
                             "frame; the run ends with it")
-    serve.add_argument("--record", metavar="FILE.csv",
-                       help="record every plant output (the columns of dct-hil simulate) to "
-                            "this CSV, in plant time")
+    serve.add_argument("--record", metavar="FILE.csv|FILE.mf4",
+                       help="record every plant output (the columns of dct-hil simulate) in plant "
+                            "time: a CSV, or ASAM MDF4 (.mf4) with units, comments and the CAN "
+                            "traffic of every bus as bus logging in the same file")
     serve.add_argument("--record-every", type=argtypes.record_interval, default=0.002, metavar="S",
                        help="recording interval in plant time (default 0.002)")
     serve.add_argument("--quiet", action="store_true",
@@ -184,6 +185,12 @@ def build_parser():
                             "with DAQ, calibration, the A2L on GET_ID); binds to 127.0.0.1 unless "
                             "HOST is given")
     serve.add_argument("--xcp-tcp", action="store_true", help="XCP on TCP instead of UDP")
+    serve.add_argument("--stimulus", metavar="FILE.csv|FILE.mf4",
+                       help="play recorded channels (a CSV with time_s, or an MF4 recording) into "
+                            "the running loop: plant inputs and the parameters marked online, each "
+                            "value at its plant time")
+    serve.add_argument("--stimulus-start", choices=("plant", "maneuver"), default="plant",
+                       help="stimulus time 0: plant time 0 (default) or the maneuver's start")
     serve.add_argument("--xcp-key", metavar="FILE",
                        help="seed & key: the secret in FILE (at least 16 bytes) locks calibration "
                             "and DAQ until the master unlocks them (HMAC-SHA256 of the seed)")
@@ -853,6 +860,7 @@ def cmd_serve(args):
             maneuver_end_s=end, record_path=args.record, record_every_s=args.record_every,
             pm_qos_us=args.pm_qos_us, mapping=mapping, bus_channels=bus_channels,
             xcp=args.xcp, xcp_protocol="tcp" if args.xcp_tcp else "udp", xcp_key=args.xcp_key,
+            stimulus_path=args.stimulus, stimulus_start=args.stimulus_start,
         )
         return run_console(server, args.stats, quiet=args.quiet, strict=args.strict)
     except (ServerError, TransportError) as e:

@@ -156,7 +156,12 @@ class TrafficLogger(RingDrain):
         self._rx = lib.RT_DIR_RX
         self._start(ffi, lib, loop)
 
+    #: also handed every batch of log entries (an MF4 recording's bus logging), or None
+    forward: Callable[[Any, int], None] | None = None
+
     def _write(self, buf: Any, n: int) -> None:
+        if self.forward is not None:
+            self.forward(buf, n)
         ffi, can, rx = self._ffi, self._can, self._rx
         fd_flag, brs_flag = self._lib.RT_FRAME_FD, self._lib.RT_FRAME_BRS
         for i in range(n):
@@ -234,7 +239,9 @@ class Server:
     accel_pedal_pct, brake_pedal_pct)), started at the first accepted TCU
     frame (``maneuver_start`` "tcu") or at once ("now"); the run ends when
     its maneuver time reaches ``maneuver_end_s`` (None: never).
-    ``record_path``: a CSV recording of every plant output each
+    ``record_path``: a recording (CSV, or with the suffix .mf4 ASAM MDF4
+    with the CAN traffic as bus logging in the same file,
+    ``rt_loop.mdf_recorder``) of every plant output each
     ``record_every_s`` of plant time (``rt_loop.recorder``).
     ``pm_qos_us``: the CPU wake-up latency (us) requested through PM QoS
     (``/dev/cpu_dma_latency``, or ``pm_qos_path``) from before the loop
@@ -280,7 +287,9 @@ class Server:
                  pm_qos_us: int | str | None = "auto",
                  pm_qos_path: str | None = None, mapping: Any = None,
                  bus_channels: dict | None = None, xcp: Any = None, xcp_protocol: str = "udp",
-                 xcp_key: str | os.PathLike | None = None) -> None:
+                 xcp_key: str | os.PathLike | None = None,
+                 stimulus_path: str | os.PathLike | None = None,
+                 stimulus_start: str = "plant") -> None:
         from can_dbc import mapping as _mapping  # noqa: PLC0415
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
@@ -368,6 +377,9 @@ class Server:
         self.xcp_address, self.xcp_protocol, self.xcp_key = self._check_xcp(xcp, xcp_protocol,
                                                                             xcp_key)
         self.xcp = None
+        self.stimulus = self._load_stimulus(stimulus_path, stimulus_start)
+        self.stimulus_start = stimulus_start
+        self.player = None
         overrides = {**HYDRAULICS, "solver": {"step_s": self.step_s}}
         self.params = load_params(self.params_path, ffi, overrides)
         self._l = ffi.new("rt_loop *")  # zeroed; lives as long as this object
@@ -388,6 +400,25 @@ class Server:
         self._loop_error: str | None = None
         self._started = self._stopped = False
         self._t_start = self._t_end = None
+
+    def _load_stimulus(self, path: Any, start: str) -> Any:
+        if path is None:
+            return None
+        if start not in ("plant", "maneuver"):
+            raise ServerError(f"stimulus start {start!r}: choose plant or maneuver")
+        if start == "maneuver" and not self.driver_rows:
+            raise ServerError("a stimulus started with the maneuver needs a maneuver")
+        from rt_loop.stimulus import (  # noqa: PLC0415
+            StimulusError, load_stimulus, plant_inputs_writable, writable_of_regions)
+        from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
+
+        ffi, lib = self._ffi, self._lib
+        writable = {**writable_of_regions(_a2l.calibration_regions(ffi, lib)),
+                    **plant_inputs_writable(ffi)}
+        try:
+            return load_stimulus(path, writable)
+        except StimulusError as e:
+            raise ServerError(str(e)) from None
 
     def _check_xcp(self, xcp: Any, protocol: str, key: Any) -> tuple:
         if xcp is None:
@@ -444,7 +475,13 @@ class Server:
                 self.logger = TrafficLogger(self.log_path, list(self.bus_channels.values()))
             if self.record_path is not None:
                 try:
-                    self.recorder = Recorder(self.record_path, self.channels.command_names)
+                    if self.record_path.lower().endswith((".mf4", ".mdf")):
+                        from rt_loop.mdf_recorder import MdfRecorder  # noqa: PLC0415
+
+                        self.recorder = MdfRecorder(self.record_path, self.channels.command_names,
+                                                    channels=list(self.bus_channels.values()))
+                    else:
+                        self.recorder = Recorder(self.record_path, self.channels.command_names)
                 except OSError as e:
                     raise ServerError(str(e)) from None
 
@@ -465,7 +502,8 @@ class Server:
             cfg.overrun_stop = int(self.overrun_policy == "stop")
             cfg.spin_us = self.spin_us
             cfg.duration_s = 0.0 if self.duration_s is None else self.duration_s
-            cfg.log_frames = int(self.logger is not None)
+            mf4 = self.recorder is not None and not isinstance(self.recorder, Recorder)
+            cfg.log_frames = int(self.logger is not None or mf4)
             self.channels.install(loop, self.transports)
             from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
             from rt_loop.xcp.loop_backend import set_regions  # noqa: PLC0415
@@ -493,7 +531,20 @@ class Server:
             if self.logger is not None:
                 self.logger.start(ffi, lib, loop, wall0)
             if self.recorder is not None:
-                self.recorder.start(ffi, lib, loop)
+                if isinstance(self.recorder, Recorder):
+                    self.recorder.start(ffi, lib, loop)
+                else:                     # MF4: the CAN traffic too, from the log ring or the log
+                    self.recorder.start(ffi, lib, loop, drain_log=self.logger is None,
+                                        wall0=wall0)
+                    if self.logger is not None:
+                        self.logger.forward = self.recorder.add_frames
+            if self.stimulus is not None:
+                from rt_loop.stimulus import StimulusPlayer  # noqa: PLC0415
+
+                self.player = StimulusPlayer(self.stimulus, ffi, lib, loop,
+                                             start=self.stimulus_start,
+                                             t0_s=0.0 if self.stimulus_start == "plant" else None)
+                self.player.start()
             self._thread = threading.Thread(target=self._run, name="rt-loop", daemon=True)
             _LIVE.add(self)
             self._thread.start()
@@ -612,7 +663,7 @@ class Server:
         self._stopped = True
         _LIVE.discard(self)
         errors: list[Exception] = []
-        for step in (self._stop_xcp, self._release_pm_qos, self._stop_transport, self._stop_logger,
+        for step in (self._stop_player, self._stop_xcp, self._release_pm_qos, self._stop_transport, self._stop_logger,
                      self._stop_recorder, self._close_transport):
             try:
                 step()
@@ -649,6 +700,10 @@ class Server:
         if self.xcp_key is None and host not in ("127.0.0.1", "::1", "localhost"):
             self.warnings.append(f"XCP on {host}:{port} is open beyond loopback without "
                                  "--xcp-key: anyone who reaches it can calibrate the plant")
+
+    def _stop_player(self) -> None:
+        if self.player is not None:
+            self.player.stop()
 
     def _stop_xcp(self) -> None:
         if self.xcp is not None:
@@ -881,6 +936,9 @@ class Server:
             "log": self.logger.counters() if self.logger is not None else None,
             "record": self.recorder.counters() if self.recorder is not None else None,
             "xcp": self.xcp_counters(),
+            "stimulus": None if self.player is None else {
+                "file": self.stimulus.path if hasattr(self.stimulus, "path") else None,
+                "start": self.stimulus_start, **self.player.counters()},
             "plant": self.stats.plant(),
             "machine": machine,
         }
