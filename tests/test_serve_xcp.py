@@ -168,3 +168,20 @@ def test_a_taken_port_is_one_line_and_nothing_is_left_running():
         assert not second.running
     finally:
         first.stop()
+
+
+def test_the_xcp_benchmark_writes_its_figures(tmp_path):
+    """python -m rt_loop.xcp.bench in its shortest form: the figures are there (never judged)."""
+    import json
+
+    from rt_loop.xcp import bench
+
+    out = tmp_path / "bench-xcp.json"
+    assert bench.main(["--signals", "30", "--pairs", "1", "--round-s", "1", "--priority", "0",
+                       "--json", str(out)]) == 0
+    rep = json.loads(out.read_text())
+    assert rep["signals"] == 30 and rep["odts"] == 1 and rep["daq_copy_ns"] > 0
+    assert [r["xcp"] for r in rep["rounds"]] == [False, True]
+    assert rep["rounds"][1]["dtos_received"] > 0 and rep["rounds"][1]["dtos_lost_in_loop"] == 0
+    names = [n for n, _ in bench.measurable_doubles(ffi, 100)]
+    assert len(names) == 100 and len(set(names)) == 100 and names[0].startswith("outputs.")

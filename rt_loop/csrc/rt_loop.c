@@ -1365,6 +1365,35 @@ static void daq_copy(rt_run *r, int64_t deadline_ns, uint64_t tick)
     atomic_store_explicit(A32(&l->daq_ack), r->daq_gen, RELEASE);
 }
 
+double rt_daq_bench(rt_loop *l, int64_t iterations)
+{
+    if (!l || iterations < 1)
+        return -1.0;
+    uint32_t gen = atomic_load_explicit(A32(&l->daq_gen), ACQUIRE);
+    const rt_daq_config *c = &l->daq[gen & 1u];
+    if (!daq_config_ok(c))
+        return -1.0;
+    static rt_run r;                  /* benchmark only: not reentrant, not the loop's */
+    memset(&r, 0, sizeof r);
+    r.l = l;
+    r.daq = c;
+    r.daq_gen = gen;
+    for (int e = 0; e < RT_N_EVENTS; e++)
+        r.ev_div[e] = 1;              /* every event fires at every call */
+    rt_daq_ring *g = &l->daq_ring;
+    uint64_t dropped0 = g->dropped;
+    struct timespec a, b;
+    clock_gettime(CLOCK_MONOTONIC, &a);
+    for (int64_t i = 0; i < iterations; i++) {
+        daq_copy(&r, 0, (uint64_t)i);
+        atomic_store_explicit(A32(&g->tail), atomic_load_explicit(A32(&g->head), RELAXED), RELEASE);
+    }
+    clock_gettime(CLOCK_MONOTONIC, &b);
+    g->dropped = dropped0;
+    double ns = (double)(b.tv_sec - a.tv_sec) * 1e9 + (double)(b.tv_nsec - a.tv_nsec);
+    return ns / (double)iterations;
+}
+
 /* the scripted driver: starts the maneuver when due, writes the pedals of
  * the maneuver time of this tick (the plant time before its step) */
 static void drive(rt_run *r)

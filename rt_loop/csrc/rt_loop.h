@@ -499,5 +499,10 @@ int rt_daq_pop_many(rt_daq_ring *r, rt_dto *d, int n);
 /* queues writes (the ring's only producer); returns how many were queued
  * (the rest counted in dropped) */
 int rt_write_push_many(rt_write_ring *r, const rt_write *w, int n);
+/* Benchmark only (reads the clock; the loop must not be running): the DAQ
+ * copy of the published configuration (every list, every event firing),
+ * `iterations` times into the DAQ ring, which is emptied after each; returns
+ * ns per copy, -1 for a bad configuration or argument. */
+double rt_daq_bench(rt_loop *l, int64_t iterations);
 
 #endif
