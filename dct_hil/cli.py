@@ -247,6 +247,9 @@ def build_parser():
                            "verdict is printed with a warning and the exit status stays)")
     _add_pm_qos_options(demo)
     _add_mapping_options(demo, "the plant and the TCU stub")
+    demo.add_argument("--mf4", action="store_true",
+                      help="record plant.mf4 (ASAM MDF4: every plant output with its unit and the "
+                           "CAN traffic as bus logging) instead of plant.csv")
     demo.set_defaults(func=cmd_demo)
 
     doctor = sub.add_parser(
@@ -886,7 +889,7 @@ def cmd_demo(args):
                         time_scale=args.time_scale, priority=args.priority, quiet=args.quiet,
                         duration_s=args.duration, tcu_clock=args.tcu_clock,
                         pm_qos_us=args.pm_qos_us, strict=args.strict, mapping=mapping,
-                        bus_channels=bus_channels)
+                        bus_channels=bus_channels, mf4=args.mf4)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 

@@ -212,7 +212,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
              time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
              duration_s: float | None = None, tcu_clock: str | None = None,
              pm_qos_us: int | str | None = "auto", strict: bool = False, out=None, err=None,
-             mapping=None, bus_channels: dict | None = None) -> int:
+             mapping=None, bus_channels: dict | None = None, mf4: bool = False) -> int:
     """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C; with
     ``strict``, 3 for a run that would exit 0 but whose timing verdict is INVALID).
 
@@ -223,7 +223,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     ``mapping`` (a ``can_dbc.mapping.Mapping``, default the project's own
     contract) is the CAN matrix both the server and the TCU stub use, its
     buses on the channels ``bus_channels`` names (``Server``); the shifts are
-    compared with the offline run over the project's own contract."""
+    compared with the offline run over the project's own contract. ``mf4``:
+    the recording is ``plant.mf4`` (ASAM MDF4 with the CAN traffic as bus
+    logging) instead of ``plant.csv``."""
     from plant import maneuvers as mv  # noqa: PLC0415
     from plant.plots import write_plots  # noqa: PLC0415
     from rt_loop.recorder import read_recording  # noqa: PLC0415
@@ -239,7 +241,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     iface, chan, why, two = choose_transport(channel, interface)
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
-    paths = {"recording": folder / "plant.csv", "can_log": folder / "can.log",
+    paths = {"recording": folder / ("plant.mf4" if mf4 else "plant.csv"), "can_log": folder / "can.log",
              "stats": folder / "serve-stats.json", "tcu_report": folder / "tcu-report.json",
              "summary": folder / "summary.json"}
     for p in paths.values():

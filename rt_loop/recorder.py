@@ -84,8 +84,11 @@ class Recorder(RingDrain):
         self._file.close()
 
 def read_recording(path: str | os.PathLike) -> dict:
-    """A recording as {column: float array}; maneuver times before the start are NaN."""
+    """A recording (CSV, or the plant group of an MF4 recording) as {column:
+    float array}; maneuver times before the start are NaN."""
     path = os.fspath(path)
+    if path.lower().endswith((".mf4", ".mdf")):
+        return _read_mf4(path)
     with open(path, encoding="ascii") as f:
         header = f.readline().strip().split(",")
     if not header or header[0] != "time_s":
@@ -96,3 +99,15 @@ def read_recording(path: str | os.PathLike) -> dict:
     if data.size == 0:
         return {name: np.zeros(0) for name in header}
     return {name: data[:, k] for k, name in enumerate(header)}
+
+
+def _read_mf4(path: str) -> dict:
+    from asammdf import MDF  # noqa: PLC0415
+
+    with MDF(path) as mdf:
+        for index, group in enumerate(mdf.groups):
+            names = [ch.name for ch in group.channels]
+            if "time_s" in names and "maneuver_time_s" in names:
+                return {name: np.asarray(mdf.get(name, group=index).samples, dtype=float)
+                        for name in names if name != "time"}
+    raise ValueError(f"{path}: not a dct-hil recording (no plant group with time_s)")

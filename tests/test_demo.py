@@ -260,3 +260,25 @@ def test_over_the_vehicle_matrix_the_demo_shifts_as_the_offline_run_of_the_contr
     same, diffs = compare_shifts(offline, over_can)
     assert same and len(offline) == 2, (offline, over_can)
     assert max(abs(d) for d in diffs) <= 0.030, diffs
+
+
+def test_a_demo_recorded_to_mf4_opens_in_asammdf_with_units_and_decoded_can(tmp_path):
+    asammdf = pytest.importorskip("asammdf")
+    from can_dbc import codec
+
+    proc = run_cli("--mf4", "--duration", "4", "--out", str(tmp_path), "--priority", "0",
+                   "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["files"]["recording"].endswith("plant.mf4") and summary["shifts"]
+    with asammdf.MDF(str(tmp_path / "plant.mf4")) as mdf:
+        plant = next(g for g in mdf.groups if g.channel_group.acq_name == "plant")
+        names = {c.name for c in plant.channels}
+        outputs = [n for n, _ in __import__("rt_loop._rt_loop", fromlist=["ffi"]).ffi.typeof(
+            "dct_outputs").fields]
+        assert set(outputs) <= names and "maneuver_time_s" in names
+        assert mdf.get("vehicle_speed_kmh").unit == "km/h"
+        assert mdf.get("clutch1_pressure_bar").unit == "bar"
+        decoded = mdf.extract_bus_logging({"CAN": [(codec.DBC_PATH, 0)]})
+        signals = {c.name for g in decoded.groups for c in g.channels}
+    assert {"EngineSpeed", "VehicleSpeed", "SolenoidCurrent1", "ForkForce1"} <= signals
