@@ -266,7 +266,7 @@ def test_a_demo_recorded_to_mf4_opens_in_asammdf_with_units_and_decoded_can(tmp_
     asammdf = pytest.importorskip("asammdf")
     from can_dbc import codec
 
-    proc = run_cli("--mf4", "--duration", "4", "--out", str(tmp_path), "--priority", "0",
+    proc = run_cli("--mf4", "--duration", "6", "--out", str(tmp_path), "--priority", "0",
                    "--quiet")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((tmp_path / "summary.json").read_text())
