@@ -699,6 +699,11 @@ class Measured(DaqOnlinePolicy):
     """pyxcp's own DAQ decoding: the rows it gives."""
 
     def __init__(self, lists):
+        # pyxcp's policies ask for the application when made; without one set it
+        # would parse the test runner's command line: set a neutral one first
+        # (pyxcp_master sets its own for the session)
+        set_application(create_application_from_config(
+            {"General": {"disable_error_handling": True}}, log_level=logging.CRITICAL))
         super().__init__(lists)
         self.rows = []
 

@@ -1365,6 +1365,16 @@ static void daq_copy(rt_run *r, int64_t deadline_ns, uint64_t tick)
     atomic_store_explicit(A32(&l->daq_ack), r->daq_gen, RELEASE);
 }
 
+void rt_daq_publish(rt_loop *l, uint32_t gen)
+{
+    atomic_store_explicit(A32(&l->daq_gen), gen, RELEASE);
+}
+
+uint32_t rt_daq_acked(rt_loop *l)
+{
+    return atomic_load_explicit(A32(&l->daq_ack), ACQUIRE);
+}
+
 double rt_daq_bench(rt_loop *l, int64_t iterations)
 {
     if (!l || iterations < 1)

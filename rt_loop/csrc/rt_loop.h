@@ -499,6 +499,11 @@ int rt_daq_pop_many(rt_daq_ring *r, rt_dto *d, int n);
 /* queues writes (the ring's only producer); returns how many were queued
  * (the rest counted in dropped) */
 int rt_write_push_many(rt_write_ring *r, const rt_write *w, int n);
+/* the DAQ hand-over with the memory order it needs on any CPU: publish the
+ * generation whose slot Python has just written (release), read the one the
+ * loop last used (acquire) */
+void rt_daq_publish(rt_loop *l, uint32_t gen);
+uint32_t rt_daq_acked(rt_loop *l);
 /* Benchmark only (reads the clock; the loop must not be running): the DAQ
  * copy of the published configuration (every list, every event firing),
  * `iterations` times into the DAQ ring, which is emptied after each; returns

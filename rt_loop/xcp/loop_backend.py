@@ -30,8 +30,10 @@ An XCP address is a byte offset from the start of the ``rt_loop`` struct
   measured ODTs come out of ``daq_ring`` (``rt_daq_pop_many``); the ring's
   ``dropped`` is the overload indication.
 
-The loop's stores and loads of ``daq_gen``/``daq_ack`` and the rings'
-heads are plain aligned accesses from Python; x86-64 keeps their order.
+``daq_gen`` is published and ``daq_ack`` read through ``rt_daq_publish`` /
+``rt_daq_acked`` (release / acquire in C); the write ring is filled by
+``rt_write_push_many`` and the DTO ring drained by ``rt_daq_pop_many``, both
+with the ring's own atomics.
 """
 
 from __future__ import annotations
@@ -129,6 +131,8 @@ class LoopBackend(Memory, Daq):
                              max_entries=lib.RT_DAQ_MAX_ENTRIES, odt_bytes=lib.RT_DAQ_ODT_BYTES)
         self.write_wait_s = write_wait_s
         self.ack_wait_s = ack_wait_s
+        # the rt_loop * for the hand-over functions (loop may be the pointer or the struct)
+        self._loop_ptr = loop if ffi.typeof(loop).kind == "pointer" else ffi.addressof(loop)
         self._cal = ffi.addressof(loop, "cal")
         self._ring = ffi.addressof(loop, "daq_ring")
         self._next_id = max(int(loop.cal.last_applied_id), int(loop.cal.last_refused_id)) + 1
@@ -261,7 +265,7 @@ class LoopBackend(Memory, Daq):
     def _wait_ack(self) -> bool:
         loop = self.loop
         deadline = time.monotonic() + self.ack_wait_s
-        while int(loop.daq_ack) != int(loop.daq_gen):
+        while int(self.lib.rt_daq_acked(self._loop_ptr)) != int(loop.daq_gen):
             if not self.ticking():
                 return True                        # nobody reads the slots now
             if time.monotonic() > deadline:
@@ -302,10 +306,11 @@ class LoopBackend(Memory, Daq):
         slot.n_lists = len(lists)
         refused = int(loop.daq_refused)
         new_gen = (gen + 1) & 0xFFFFFFFF
-        loop.daq_gen = new_gen                     # publish (after the slot: x86 keeps the order)
+        self.lib.rt_daq_publish(self._loop_ptr, new_gen)   # release: the slot before the generation
         self._counts["daq_configs"] += 1
         deadline = time.monotonic() + self.ack_wait_s
-        while self.ticking() and int(loop.daq_ack) != new_gen and time.monotonic() < deadline:
+        while (self.ticking() and int(self.lib.rt_daq_acked(self._loop_ptr)) != new_gen
+               and time.monotonic() < deadline):
             time.sleep(_POLL_S)
         if int(loop.daq_ack) == new_gen and int(loop.daq_refused) != refused:
             return ERR_DAQ_CONFIG
