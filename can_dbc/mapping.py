@@ -452,16 +452,16 @@ def load(path=DEFAULT_MAPPING, rate_hz=DEFAULT_RATE_HZ, *, outputs=None, inputs=
     return _Loader(str(path), float(rate_hz), tuple(outputs), tuple(inputs), dict(dbc or {})).load()
 
 
-def parse_pairs(values, option):
+def parse_pairs(values, option, form="NAME=VALUE"):
     """``["io=vcan1", ...]`` (a repeated command-line option) as {name: value};
     a value without ``=``, an empty side or a name given twice is a MappingError
-    naming ``option``."""
+    naming ``option`` (and the ``form`` expected)."""
     out = {}
     for text in values or ():
         name, sep, value = str(text).partition("=")
         name, value = name.strip(), value.strip()
         if not sep or not name or not value:
-            raise MappingError(f"{option} {text!r}: give NAME=VALUE")
+            raise MappingError(f"{option} {text!r}: give {form}")
         if name in out:
             raise MappingError(f"{option}: {name!r} given twice")
         out[name] = value

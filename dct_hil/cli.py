@@ -827,7 +827,7 @@ def _mapping_from_args(args, rate_hz):
     from can_dbc.mapping import MappingError, load_options, parse_pairs
 
     try:
-        buses = parse_pairs(args.bus, "--bus")
+        buses = parse_pairs(args.bus, "--bus", "NAME=CHANNEL")
         if args.mapping is None and not args.dbc:
             return None, buses
         return load_options(args.mapping, args.dbc, rate_hz=rate_hz), buses

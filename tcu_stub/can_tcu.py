@@ -1135,17 +1135,10 @@ def add_arguments(parser):
 
 def parse_bus_channels(items):
     """{bus name: channel} from ``--bus NAME=CHANNEL`` items; ValueError (one line) for
-    an item without both parts or a bus named twice."""
-    out = {}
-    for item in items or ():
-        name, sep, channel = str(item).partition("=")
-        name, channel = name.strip(), channel.strip()
-        if not sep or not name or not channel:
-            raise ValueError(f"--bus {item!r}: expected NAME=CHANNEL")
-        if name in out:
-            raise ValueError(f"--bus {name}: given twice ({out[name]}, {channel})")
-        out[name] = channel
-    return out
+    an item without both parts or a bus named twice (``can_dbc.mapping.parse_pairs``)."""
+    from can_dbc.mapping import parse_pairs
+
+    return parse_pairs(items, "--bus", "NAME=CHANNEL")
 
 
 def load_mapping(name_or_path, dbc=()):

@@ -131,7 +131,7 @@ def test_ctrl_c_stops_the_demo_with_everything_written(tmp_path):
     (["--channel", "lo"], "not a CAN network interface"),
     (["--mapping", "no_such_mapping"], "no_such_mapping"),
     (["--mapping", "vehicle", "--bus", "xx=demo-x"], "bus 'xx'"),
-    (["--mapping", "vehicle", "--bus", "io"], "NAME=VALUE"),
+    (["--mapping", "vehicle", "--bus", "io"], "NAME=CHANNEL"),
     (["--mapping", "vehicle", "--dbc", "io=no_such.dbc"], "no_such.dbc"),
 ])
 def test_bad_options_are_one_line_errors(tmp_path, args, words):

@@ -439,7 +439,7 @@ BAD_OPTIONS = {
     "bit rate on socketcan": (["--interface", "socketcan", "--bitrate", "500000"], ["socketcan"]),
     "missing mapping file": (["--mapping", "{tmp}/none.toml"], ["none.toml"]),
     "bus the mapping lacks": (["--mapping", "vehicle", "--bus", "xx=ch"], ["bus 'xx'", "pt, io"]),
-    "bus without a channel": (["--mapping", "vehicle", "--bus", "io"], ["--bus", "NAME=VALUE"]),
+    "bus without a channel": (["--mapping", "vehicle", "--bus", "io"], ["--bus", "NAME=CHANNEL"]),
     "one channel for two buses": (["--mapping", "vehicle", "--bus", "io=same", "--bus", "pt=same"],
                                   ["same", "channel of its own"]),
     "dbc for a bus the mapping lacks": (["--mapping", "vehicle", "--dbc", "zz=x.dbc"], ["zz"]),

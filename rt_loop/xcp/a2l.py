@@ -807,18 +807,11 @@ def _slug(unit: str) -> str:
 
 
 def _time_code(seconds: float) -> tuple[int, int]:
-    """XCP EVENT TIME_CYCLE and TIME_UNIT (0: 1 ns ... 9: 1 s) of a cycle time:
-    the coarsest unit that gives it exactly, else the finest that holds it (as
-    the slave's GET_DAQ_EVENT_INFO)."""
-    ns = round(seconds * 1e9)
-    for unit in range(9, -1, -1):
-        step = 10 ** unit
-        if ns % step == 0 and 1 <= ns // step <= 255:
-            return ns // step, unit
-    for unit in range(10):
-        if round(ns / 10 ** unit) <= 255:
-            return max(1, round(ns / 10 ** unit)), unit
-    return 255, 9
+    """XCP EVENT TIME_CYCLE and TIME_UNIT of a cycle time, as the slave's
+    GET_DAQ_EVENT_INFO codes it (one rule: rt_loop.xcp.protocol.event_cycle)."""
+    from rt_loop.xcp.protocol import event_cycle  # noqa: PLC0415
+
+    return event_cycle(seconds)
 
 
 def _xcp_settings(xcp: dict | None, channels: Any, lib: Any) -> dict:

@@ -314,7 +314,7 @@ def _u32(p: bytes, at: int) -> int:
     return _U32.unpack_from(p, at)[0]
 
 
-def _cycle(cycle_s: float) -> tuple[int, int]:
+def event_cycle(cycle_s: float) -> tuple[int, int]:
     """An event cycle as XCP's (cycle 1..255, unit 0 = 1 ns .. 9 = 1 s): the
     coarsest unit that gives it exactly, else the finest that holds it."""
     if cycle_s <= 0:
@@ -1066,7 +1066,7 @@ class Slave:
             raise _Refused(ERR_OUT_OF_RANGE)
         event = self.events[n]
         name = event.name.encode("ascii", "replace")[:255]
-        cycle, unit = _cycle(event.cycle_s)
+        cycle, unit = event_cycle(event.cycle_s)
         self._mta = (name, 0)
         # DAQ, consistency per event channel; any number of lists; priority 0
         return bytes([0x84, 0xFF, len(name), cycle, unit, 0])
