@@ -237,21 +237,28 @@ static inline void count_dropped(uint64_t *dropped, uint64_t n)
     atomic_store_explicit(A64(dropped), atomic_load_explicit(A64(dropped), RELAXED) + n, RELAXED);
 }
 
-int rt_ring_push_many(rt_ring *r, const rt_frame *f, int n)
-{
-    if (n <= 0)
-        return 0;
-    uint32_t head = atomic_load_explicit(A32(&r->head), RELAXED);
-    uint32_t tail = atomic_load_explicit(A32(&r->tail), ACQUIRE);
-    uint32_t space = RT_RING_SIZE - (head - tail);
-    uint32_t k = (uint32_t)n < space ? (uint32_t)n : space;
-    for (uint32_t i = 0; i < k; i++)
-        r->frames[(head + i) & (RT_RING_SIZE - 1u)] = f[i];
-    atomic_store_explicit(A32(&r->head), head + k, RELEASE);
-    if (k < (uint32_t)n)
-        count_dropped(&r->dropped, (uint64_t)n - k);
-    return (int)k;
-}
+/* The producer's side of each single-producer single-consumer ring: copies
+ * up to n entries in, then publishes them; what does not fit is counted in
+ * dropped; returns how many went in. */
+#define RT_DEFINE_PUSH_MANY(fn, ring_t, entry_t, items, size)                     \
+    int fn(ring_t *r, const entry_t *in, int n)                                 \
+    {                                                                           \
+        if (n <= 0)                                                             \
+            return 0;                                                           \
+        uint32_t head = atomic_load_explicit(A32(&r->head), RELAXED);           \
+        uint32_t tail = atomic_load_explicit(A32(&r->tail), ACQUIRE);           \
+        uint32_t space = (size) - (head - tail);                                \
+        uint32_t k = (uint32_t)n < space ? (uint32_t)n : space;                 \
+        for (uint32_t i = 0; i < k; i++)                                        \
+            r->items[(head + i) & ((size) - 1u)] = in[i];                       \
+        atomic_store_explicit(A32(&r->head), head + k, RELEASE);                \
+        if (k < (uint32_t)n)                                                    \
+            count_dropped(&r->dropped, (uint64_t)n - k);                        \
+        return (int)k;                                                          \
+    }
+
+RT_DEFINE_PUSH_MANY(rt_ring_push_many, rt_ring, rt_frame, frames, RT_RING_SIZE)
+RT_DEFINE_PUSH_MANY(rt_write_push_many, rt_write_ring, rt_write, writes, RT_WRITE_RING_SIZE)
 
 /* The consumer's side of each single-producer single-consumer ring: copies
  * up to n entries out, then frees their slots; returns how many. */
@@ -274,22 +281,6 @@ RT_DEFINE_POP_MANY(rt_ring_pop_many, rt_ring, rt_frame, frames, RT_RING_SIZE)
 RT_DEFINE_POP_MANY(rt_log_pop_many, rt_log_ring, rt_log_entry, entries, RT_LOG_SIZE)
 RT_DEFINE_POP_MANY(rt_rec_pop_many, rt_rec_ring, rt_sample, samples, RT_REC_SIZE)
 RT_DEFINE_POP_MANY(rt_daq_pop_many, rt_daq_ring, rt_dto, dtos, RT_DAQ_RING_SIZE)
-
-int rt_write_push_many(rt_write_ring *r, const rt_write *w, int n)
-{
-    if (n <= 0)
-        return 0;
-    uint32_t head = atomic_load_explicit(A32(&r->head), RELAXED);
-    uint32_t tail = atomic_load_explicit(A32(&r->tail), ACQUIRE);
-    uint32_t space = RT_WRITE_RING_SIZE - (head - tail);
-    uint32_t k = (uint32_t)n < space ? (uint32_t)n : space;
-    for (uint32_t i = 0; i < k; i++)
-        r->writes[(head + i) & (RT_WRITE_RING_SIZE - 1u)] = w[i];
-    atomic_store_explicit(A32(&r->head), head + k, RELEASE);
-    if (k < (uint32_t)n)
-        count_dropped(&r->dropped, (uint64_t)n - k);
-    return (int)k;
-}
 
 int rt_ring_push(rt_ring *r, const rt_frame *f)
 {
