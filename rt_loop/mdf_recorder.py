@@ -74,6 +74,7 @@ import numpy as np
 
 from can_dbc.mapping import unit_of_name
 from rt_loop.drain import RingDrain, one_line
+from rt_loop.recorder import sample_layout
 
 __all__ = ["MdfRecorder", "MDF_VERSION", "output_comments"]
 
@@ -336,16 +337,11 @@ class MdfRecorder(RingDrain):
         from asammdf.blocks.v4_blocks import SourceInformation  # noqa: PLC0415
         from asammdf.blocks import v4_constants as v4c  # noqa: PLC0415
 
-        outputs = [name for name, _ in ffi.typeof("dct_outputs").fields]
-        sample = ffi.typeof("rt_sample")
-        fields = dict(sample.fields)
-        self._n_doubles = ffi.sizeof(sample) // 8
-        if ffi.sizeof(sample) % 8 or fields["tick"].offset != 0:
-            raise TypeError("rt_sample must be a uint64 tick followed by doubles")
-        base_o = fields["outputs"].offset // 8
-        base_c = fields["commands"].offset // 8
-        cmd_extra = [(k, n) for k, n in enumerate(self.command_names) if n not in outputs]
-        self.columns = outputs + ["maneuver_time_s", "tick"] + [f"cmd_{n}" for _, n in cmd_extra]
+        lay = sample_layout(ffi, self.command_names)
+        outputs, base_o, base_c, cmd_extra = lay.outputs, lay.base_o, lay.base_c, lay.cmd_extra
+        fields = lay.fields
+        self._n_doubles = lay.n_doubles
+        self.columns = lay.columns
         self._mt_col = 1 + len(outputs)          # in the record: time first
         # the record's doubles, picked from the sample: time (the output time_s), the
         # outputs, maneuver time, tick (its bits), the commands

@@ -17,15 +17,40 @@ silently.
 from __future__ import annotations
 
 import os
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from rt_loop.drain import RingDrain
 
-__all__ = ["Recorder"]
+__all__ = ["Recorder", "SampleLayout", "read_recording", "sample_layout"]
 
 _BATCH = 1024
+
+
+class SampleLayout(NamedTuple):
+    """Where a recording's columns are in an ``rt_sample`` seen as doubles."""
+    n_doubles: int                       # doubles in one rt_sample (tick first, as uint64)
+    fields: dict                         # rt_sample's cffi fields by name
+    outputs: list                        # dct_outputs names, time_s first
+    base_o: int                          # index of the first output double
+    base_c: int                          # index of the first command value
+    cmd_extra: list                      # (index in commands, name) of those no output holds
+    columns: list                        # outputs, maneuver_time_s, tick, cmd_<name>...
+
+
+def sample_layout(ffi: Any, command_names: list | tuple) -> SampleLayout:
+    """The recording's columns and where they sit in a sample (every recorder's)."""
+    outputs = [name for name, _ in ffi.typeof("dct_outputs").fields]
+    sample = ffi.typeof("rt_sample")
+    fields = dict(sample.fields)
+    if ffi.sizeof(sample) % 8 or fields["tick"].offset != 0:
+        raise TypeError("rt_sample must be a uint64 tick followed by doubles")
+    cmd_extra = [(k, n) for k, n in enumerate(command_names) if n not in outputs]
+    # column order: outputs (time_s first), maneuver_time_s, tick, cmd_*
+    columns = outputs + ["maneuver_time_s", "tick"] + [f"cmd_{n}" for _, n in cmd_extra]
+    return SampleLayout(ffi.sizeof(sample) // 8, fields, outputs, fields["outputs"].offset // 8,
+                        fields["commands"].offset // 8, cmd_extra, columns)
 
 
 class Recorder(RingDrain):
@@ -45,18 +70,11 @@ class Recorder(RingDrain):
             raise OSError(f"recording {self.path}: {e.strerror}") from None
 
     def start(self, ffi: Any, lib: Any, loop: Any) -> None:
-        outputs = [name for name, _ in ffi.typeof("dct_outputs").fields]
-        commands = list(enumerate(self.command_names))
-        sample = ffi.typeof("rt_sample")
-        fields = dict(sample.fields)
-        self._n_doubles = ffi.sizeof(sample) // 8
-        if ffi.sizeof(sample) % 8 or fields["tick"].offset != 0:
-            raise TypeError("rt_sample must be a uint64 tick followed by doubles")
-        base_o = fields["outputs"].offset // 8
-        base_c = fields["commands"].offset // 8
-        cmd_extra = [(k, n) for k, n in commands if n not in outputs]
-        # column order: outputs (time_s first), maneuver_time_s, tick, cmd_*
-        self.columns = outputs + ["maneuver_time_s", "tick"] + [f"cmd_{n}" for _, n in cmd_extra]
+        lay = sample_layout(ffi, self.command_names)
+        outputs, base_o, base_c, cmd_extra = lay.outputs, lay.base_o, lay.base_c, lay.cmd_extra
+        fields = lay.fields
+        self._n_doubles = lay.n_doubles
+        self.columns = lay.columns
         self._out_idx = np.arange(base_o, base_o + len(outputs))
         self._mt_idx = fields["maneuver_time_s"].offset // 8
         self._cmd_idx = np.array([base_c + k for k, _ in cmd_extra], dtype=int)
