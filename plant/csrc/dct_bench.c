@@ -84,7 +84,7 @@ typedef struct {
 
 static void bench_couplings(const dct_plant *pl, bench_inputs *b)
 {
-    const dct_params *p = &pl->params;
+    const dct_params *p = &pl->effective;
     const dct_state *s = &pl->state;
     const dct_inputs *u = &pl->applied;
     dct_hydraulics_output hy;
@@ -99,6 +99,7 @@ static void bench_couplings(const dct_plant *pl, bench_inputs *b)
     b->hydraulics_in.current_a[0] = u->solenoid_current1_a;
     b->hydraulics_in.current_a[1] = u->solenoid_current2_a;
     b->hydraulics_in.line_current_a = u->line_solenoid_current_a;
+    dct_faults_apply_couplings(&pl->derived.faults, &b->hydraulics_in, &b->gearbox_in);
     if (p->hydraulics.pressure_commanded > 0.5) {
         for (int k = 0; k < 2; k++) {
             dct_piston_output po;
@@ -160,7 +161,7 @@ static void bench_couplings(const dct_plant *pl, bench_inputs *b)
  * advance, with the couplings held */
 static void component_substep(const dct_plant *pl, const bench_inputs *b, int c, dct_state *x, double h)
 {
-    const dct_params *p = &pl->params;
+    const dct_params *p = &pl->effective;
     switch (c) {
     case COMP_HYDRAULICS:
         if (p->hydraulics.pressure_commanded > 0.5) {
@@ -262,7 +263,7 @@ int dct_bench_components(const dct_plant *plant, int n, double *ns_per_substep)
         return DCT_ERR_INPUT;
     bench_inputs b;
     bench_couplings(plant, &b);
-    double h = plant->params.solver.step_s / (int)plant->params.solver.substeps;
+    double h = plant->effective.solver.step_s / (int)plant->effective.solver.substeps;
     int per_batch = (n + BENCH_BATCHES - 1) / BENCH_BATCHES;
     int rounds = (per_batch + BENCH_RESTORE_EVERY - 1) / BENCH_RESTORE_EVERY;
     dct_state copy = plant->state;

@@ -249,6 +249,8 @@ typedef struct {
     double gear_inertia_pos_kgm2;     /* gear side of the first gear, at the gear: what the cone turns
                                        * (loose gear, its input shaft and the gears that mesh with it) */
     double gear_inertia_neg_kgm2;     /* gear side of the second gear (0 for the 6-N sleeve) */
+    double fork_jammed;               /* 1: the sleeve is held where it is (fault): it neither
+                                         moves nor passes the blocker; the rest evolves */
 } dct_sync_input;
 
 typedef struct {
@@ -298,6 +300,7 @@ typedef struct {
     double clutch_torque_nm[2];
     double fork_force_n[DCT_N_SLEEVES];
     double load_torque_nm;                  /* taken from the carrier by the differential */
+    double fork_jammed[DCT_N_SLEEVES];      /* 1: that sleeve held where it is (fault) */
 } dct_gearbox_input;
 
 typedef struct {
@@ -652,6 +655,8 @@ void dct_valve_advance(const dct_valve_params *p, dct_valve_state *s,
 typedef struct {
     double current_a[2];              /* clutch valve solenoids */
     double line_current_a;
+    double spool_stuck[2];            /* 1: that valve's spool held where it is (fault); its
+                                         edges still meter at the held opening */
 } dct_hydraulics_input;
 
 typedef struct {
@@ -800,6 +805,47 @@ typedef struct {
                                          when the active shaft has no gear engaged */
 } dct_outputs;
 
+/* Physical faults (failure simulation, rt_loop's fault table or a test):
+ * all zero is the healthy car. The plant reads them in one place
+ * (faults.c): dct_plant_prepare turns the parametric ones into the
+ * parameters the step uses (dct_plant.effective), the step turns the others
+ * into its components' inputs (a spool or a sleeve held, a solenoid without
+ * current). Set them, then call dct_plant_prepare: it checks them and puts
+ * all of them in effect at once (dct_derived.faults), or refuses them
+ * (DCT_ERR_PARAM, error_index = the index in doubles into dct_faults of the
+ * first bad value) and leaves the faults in effect as they were. */
+typedef struct {
+    double spool_stuck[2];            /* 1: the K1 / K2 valve's spool does not move (held where it is) */
+    double solenoid_open[2];          /* 1: open circuit: no current in the K1 / K2 valve solenoid */
+    double friction_loss[2];          /* share of the K1 / K2 friction coefficients lost (fade), 0..1 */
+    double pack_gap_offset_mm[2];     /* added to the K1 / K2 pack gap (kiss point drift) */
+    double line_pressure_loss;        /* share of the line pressure lost (supply failing), 0..1 */
+    double fork_jammed[DCT_N_SLEEVES];     /* 1: the sleeve does not move (held where it is) */
+    double blocker_failed[DCT_N_SLEEVES];  /* 1: the blocker ring does not block: the sleeve
+                                              engages without synchronizing */
+    double engine_torque_limited;     /* 1: engine torque limited (limp home): the full-load
+                                         curve capped at engine_torque_max_nm, so the brake
+                                         torque never exceeds it, pedal or TCU request */
+    double engine_torque_max_nm;      /* >= 0 */
+} dct_faults;
+
+/* faults.c. Ranges: the flags (stuck, open, jammed, failed, limited) 0..1,
+ * in effect above 0.5; the losses 0..1; pack gap + offset >= 0;
+ * engine_torque_max_nm >= 0; every value finite. */
+/* DCT_OK, or DCT_ERR_PARAM with *bad_index = the first bad value's index
+ * in doubles into dct_faults */
+int dct_faults_check(const dct_faults *faults, const dct_params *params, int *bad_index);
+/* checks the faults, then effective = params with the parametric faults
+ * applied and in_effect = faults; refused: nothing written */
+int dct_faults_prepare(const dct_faults *faults, const dct_params *params, dct_params *effective,
+                       dct_faults *in_effect, int *bad_index);
+/* an open solenoid circuit: no current in that valve, whatever is commanded */
+void dct_faults_apply_inputs(const dct_faults *in_effect, dct_inputs *applied);
+/* a stuck spool, a jammed fork: the hydraulics and gearbox inputs of one
+ * evaluation (written in full, 0 or 1) */
+void dct_faults_apply_couplings(const dct_faults *in_effect, dct_hydraulics_input *hydraulics_in,
+                                dct_gearbox_input *gearbox_in);
+
 /* Initial conditions for dct_plant_reset(). */
 typedef struct {
     double vehicle_speed_kmh;
@@ -813,6 +859,7 @@ typedef struct {
     dct_hydraulics_derived hydraulics;
     double front_static_n;            /* static axle loads on level road */
     double rear_static_n;
+    dct_faults faults;                /* the faults dct_plant_prepare accepted: those in effect */
 } dct_derived;
 
 typedef struct {
@@ -821,19 +868,25 @@ typedef struct {
     dct_state state;
     dct_inputs inputs;
     dct_outputs outputs;
-    int error_index;                  /* index into inputs or state of the first bad value */
+    int error_index;                  /* index into inputs or state of the first bad value (or
+                                         into faults: a fault dct_plant_prepare refused) */
     double step_count;                /* steps since reset */
     double input_clamps;              /* inputs limited to their range since reset */
     double active_shaft;              /* input shaft (0 K1, 1 K2) whose clutch carried the drive
                                          torque last, updated after each step (output gear);
                                          -1: none since the reset */
     dct_inputs applied;               /* the inputs as limited and used by the last step */
+    dct_faults faults;                /* physical faults to put in effect (all zero: none), by
+                                         dct_plant_prepare */
+    dct_params effective;             /* params with the parametric faults applied: what the
+                                         step uses (set by dct_plant_prepare) */
 } dct_plant;
 
 int dct_plant_init(dct_plant *plant);            /* checks params, prepares, resets to rest */
-/* checks params and computes the derived values again, the state untouched:
- * after a parameter changed while running (DCT_ERR_PARAM: refused, the
- * derived values left as they were) */
+/* checks params and faults, builds effective (params with the faults
+ * applied) and computes the derived values again, the state untouched:
+ * after a parameter or a fault changed while running (DCT_ERR_PARAM:
+ * refused, effective and the derived values left as they were) */
 int dct_plant_prepare(dct_plant *plant);
 int dct_plant_reset(dct_plant *plant, const dct_initial *init);
 int dct_plant_step(dct_plant *plant, int n);     /* n steps of params.solver.step_s */

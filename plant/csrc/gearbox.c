@@ -95,6 +95,7 @@ void dct_gearbox_output_eval(const dct_gearbox_params *p, const dct_gearbox_deri
         dct_sync_input *si = &out->sync_in[k];
         double wo = w_out[SLEEVE_OUTPUT[k]];
         si->fork_force_n = in->fork_force_n[k];
+        si->fork_jammed = in->fork_jammed[k];
         si->slip_pos_rad_s = w_gear[SLEEVE_POS[k]] - wo;
         si->has_neg = SLEEVE_NEG[k] >= 0 ? 1.0 : 0.0;
         si->slip_neg_rad_s = SLEEVE_NEG[k] >= 0 ? w_gear[SLEEVE_NEG[k]] - wo : 0.0;

@@ -122,7 +122,15 @@ void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_hydraulics
             dct_valve_output_eval(&p->valve, &p->oil, &s->valve[k], &vi, &vo[k]);
         }
         for (int k = 0; k < 2; k++) {
+            double held_m = s->valve[k].spool_position_m;
             dct_valve_advance(&p->valve, &s->valve[k], &vo[k], hh);
+            if (in->spool_stuck[k] > 0.5) {
+                /* a stuck spool (fault): the forces on it no longer move
+                 * it; the solenoid force still follows the current and the
+                 * edges meter at the held opening */
+                s->valve[k].spool_position_m = held_m;
+                s->valve[k].spool_velocity_m_s = 0.0;
+            }
             s->clutch_oil_m3[k] += hh * vo[k].flow_m3_s;
         }
         s->line_pressure_pa += hh * (line_target - s->line_pressure_pa) / p->supply.tau_s;

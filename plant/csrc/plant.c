@@ -43,13 +43,15 @@ typedef struct {
 
 static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
 {
-    const dct_params *p = &pl->params;
+    const dct_params *p = &pl->effective;
     const dct_state *s = &pl->state;
     /* hydraulics: clamp forces from the chamber pressures, or from the
      * commanded pressures through the same pistons */
     c->hydraulics_in.current_a[0] = u->solenoid_current1_a;
     c->hydraulics_in.current_a[1] = u->solenoid_current2_a;
     c->hydraulics_in.line_current_a = u->line_solenoid_current_a;
+    /* a stuck spool, a jammed fork (faults.c) */
+    dct_faults_apply_couplings(&pl->derived.faults, &c->hydraulics_in, &c->gearbox_in);
     if (p->hydraulics.pressure_commanded > 0.5) {
         double pressure[2] = {u->clutch1_pressure_bar, u->clutch2_pressure_bar};
         for (int k = 0; k < 2; k++) {
@@ -130,7 +132,7 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
 
 static void advance(dct_plant *pl, const coupling *c, double h)
 {
-    const dct_params *p = &pl->params;
+    const dct_params *p = &pl->effective;
     dct_state *s = &pl->state;
     if (!(p->hydraulics.pressure_commanded > 0.5))
         dct_hydraulics_advance(&p->hydraulics, &pl->derived.hydraulics, &s->hydraulics, &c->hydraulics_in, h);
@@ -209,7 +211,7 @@ static double engaged_gear(const dct_plant *pl, const coupling *c)
 
 static void write_outputs(dct_plant *pl, const coupling *c)
 {
-    const dct_params *p = &pl->params;
+    const dct_params *p = &pl->effective;
     const dct_state *s = &pl->state;
     dct_outputs *o = &pl->outputs;
     const dct_gearbox_state *g = &s->gearbox;
@@ -296,7 +298,7 @@ static int apply_inputs(dct_plant *pl)
             return DCT_ERR_INPUT;
         }
     }
-    const dct_params *p = &pl->params;
+    const dct_params *p = &pl->effective;
     const dct_inputs *u = &pl->inputs;
     dct_inputs *a = &pl->applied;
     double fmax = p->gearbox.max_fork_force_n;
@@ -316,6 +318,7 @@ static int apply_inputs(dct_plant *pl)
     a->engine_torque_request_nm = limit(pl, u->engine_torque_request_nm, -200.0, 1000.0);
     a->torque_request_active = u->torque_request_active > 0.5 ? 1.0 : 0.0;
     a->engine_on = u->engine_on > 0.5 ? 1.0 : 0.0;
+    dct_faults_apply_inputs(&pl->derived.faults, a);
     return DCT_OK;
 }
 
@@ -334,8 +337,8 @@ static int check_state(dct_plant *pl)
 int dct_plant_step(dct_plant *pl, int n)
 {
     coupling c;
-    int sub = (int)pl->params.solver.substeps;
-    double h = pl->params.solver.step_s / sub;
+    int sub = (int)pl->effective.solver.substeps;
+    double h = pl->effective.solver.step_s / sub;
     int st = apply_inputs(pl);
     if (st != DCT_OK)
         return st;
@@ -423,15 +426,23 @@ static int check_params(const dct_params *p)
     return DCT_OK;
 }
 
+/* params is the car as loaded (and calibrated); effective, params with the
+ * faults applied, is what runs, so clearing the faults gives the car back
+ * exactly */
 int dct_plant_prepare(dct_plant *pl)
 {
     int st = check_params(&pl->params);
     if (st != DCT_OK)
         return st;
-    dct_gearbox_prepare(&pl->params.gearbox, &pl->derived.gearbox);
-    dct_hydraulics_prepare(&pl->params.hydraulics, pl->params.clutch, &pl->derived.hydraulics);
-    pl->derived.front_static_n = dct_vehicle_static_front_n(&pl->params.vehicle);
-    pl->derived.rear_static_n = dct_vehicle_static_rear_n(&pl->params.vehicle);
+    st = dct_faults_prepare(&pl->faults, &pl->params, &pl->effective, &pl->derived.faults,
+                            &pl->error_index);
+    if (st != DCT_OK)
+        return st;
+    const dct_params *p = &pl->effective;
+    dct_gearbox_prepare(&p->gearbox, &pl->derived.gearbox);
+    dct_hydraulics_prepare(&p->hydraulics, p->clutch, &pl->derived.hydraulics);
+    pl->derived.front_static_n = dct_vehicle_static_front_n(&p->vehicle);
+    pl->derived.rear_static_n = dct_vehicle_static_rear_n(&p->vehicle);
     return DCT_OK;
 }
 
@@ -450,7 +461,7 @@ int dct_plant_init(dct_plant *pl)
 
 int dct_plant_reset(dct_plant *pl, const dct_initial *init)
 {
-    const dct_params *p = &pl->params;
+    const dct_params *p = &pl->effective;
     dct_state *s = &pl->state;
     const dct_gearbox_derived *d = &pl->derived.gearbox;
     memset(s, 0, sizeof *s);
@@ -512,7 +523,7 @@ int dct_plant_reset(dct_plant *pl, const dct_initial *init)
 
 double dct_plant_energy(const dct_plant *pl)
 {
-    const dct_params *p = &pl->params;
+    const dct_params *p = &pl->effective;
     const dct_state *s = &pl->state;
     const dct_gearbox_derived *d = &pl->derived.gearbox;
     double e = 0.5 * p->engine.inertia_kgm2 * dct_sq(s->engine.speed_rad_s);

@@ -27,6 +27,9 @@
  * A fork force above the blocker's strength pushes the sleeve through before
  * the speeds match: an engagement with a slip above the clash speed is
  * counted as a clash.
+ * A jammed sleeve (fault, dct_sync_input.fork_jammed) stays where it is in
+ * every phase: on the cone it cannot pass the blocker, engaged it cannot be
+ * pulled out; its phase, twist and torques evolve as they would.
  * Sign: w_r = gear speed - shaft speed; the torque acts + on the shaft.
  */
 #include "dct_plant.h"
@@ -112,8 +115,9 @@ void dct_sync_advance(const dct_sync_params *p, dct_sync_state *s,
             s->phase = DCT_SYNC_DISENGAGED;
             s->side = 0.0;
             s->twist_rad = 0.0;
-        } else if (fabs(out->slip_rad_s) <= p->lock_speed_rad_s ||
-                   fabs(f) > p->blocker_force_max_n) {
+        } else if (!(in->fork_jammed > 0.5) && (fabs(out->slip_rad_s) <= p->lock_speed_rad_s ||
+                                                 fabs(f) > p->blocker_force_max_n)) {
+            /* (a jammed sleeve cannot move through the blocker) */
             engage(p, s, out);
         } else {
             s->twist_rad = out->torque_nm / p->stiffness_nm_per_rad; /* eq. 3 */
@@ -142,6 +146,10 @@ void dct_sync_advance(const dct_sync_params *p, dct_sync_state *s,
             if (v1 * side > 0.0)
                 v1 = 0.0;
         }
+        if (in->fork_jammed > 0.5) {
+            x1 = x; /* jammed (fault): held, and so held in gear */
+            v1 = 0.0;
+        }
         s->position_m = x1;
         s->velocity_m_s = v1;
         if (x1 * side < cone) {
@@ -162,6 +170,10 @@ void dct_sync_advance(const dct_sync_params *p, dct_sync_state *s,
         x1 = 0.0;
         if (v1 < 0.0)
             v1 = 0.0;
+    }
+    if (in->fork_jammed > 0.5) {
+        x1 = x; /* jammed (fault): held, whatever the fork force */
+        v1 = 0.0;
     }
     s->position_m = x1;
     s->velocity_m_s = v1;

@@ -65,7 +65,7 @@ static void test_sync_phases(void)
     dct_sync_state s;
     dct_sync_init(&p, &s, 0);
     double j = 0.05;
-    dct_sync_input in = {400.0, 50.0, 0.0, 1.0, j, j};
+    dct_sync_input in = {400.0, 50.0, 0.0, 1.0, j, j, 0.0};
     dct_sync_output o;
     double h = 1.25e-4, t = 0.0, t_sync = -1.0, t_eng = -1.0;
     int last_phase = 0, order_ok = 1;
@@ -95,7 +95,7 @@ static void test_sync_clash(void)
     dct_sync_params p = sync_params();
     dct_sync_state s;
     dct_sync_init(&p, &s, 0);
-    dct_sync_input in = {1500.0, 100.0, 0.0, 1.0, 0.05, 0.05}; /* above the blocker's strength */
+    dct_sync_input in = {1500.0, 100.0, 0.0, 1.0, 0.05, 0.05, 0.0}; /* above the blocker's strength */
     dct_sync_output o;
     for (int i = 0; i < 2000 && s.phase != DCT_SYNC_ENGAGED; i++) {
         dct_sync_output_eval(&p, &s, &in, &o);
@@ -111,7 +111,7 @@ static void test_sync_released_from_the_cone(void)
     dct_sync_params p = sync_params();
     dct_sync_state s;
     dct_sync_init(&p, &s, 0);
-    dct_sync_input in = {400.0, 200.0, 0.0, 1.0, 0.05, 0.05};
+    dct_sync_input in = {400.0, 200.0, 0.0, 1.0, 0.05, 0.05, 0.0};
     dct_sync_output o;
     for (int i = 0; i < 4000 && s.phase != DCT_SYNC_SYNCHRONIZING; i++) {
         dct_sync_output_eval(&p, &s, &in, &o);
@@ -136,7 +136,7 @@ static double sleeve_travel_time(const dct_sync_params *p, double force_n, doubl
     s.phase = DCT_SYNC_ENGAGED;
     s.side = 1.0;
     s.position_m = p->cone_travel_mm * 1e-3;
-    dct_sync_input in = {force_n, 0.0, 0.0, 1.0, j, 0.0};
+    dct_sync_input in = {force_n, 0.0, 0.0, 1.0, j, 0.0, 0.0};
     dct_sync_output o;
     double end = (p->cone_travel_mm + dx_mm) * 1e-3;
     for (int i = 1; i < 100000; i++) {
@@ -179,7 +179,7 @@ static void test_sync_ring_turn_back(void)
     /* pulled back out of an engaged gear, the sleeve leaves the ring: no turn-back */
     dct_sync_state s;
     dct_sync_init(&p, &s, 1);
-    dct_sync_input in = {-f, 0.0, 0.0, 1.0, j, j};
+    dct_sync_input in = {-f, 0.0, 0.0, 1.0, j, j, 0.0};
     dct_sync_output o;
     double t_out = -1.0, t_out_free = -1.0;
     for (int i = 1; i < 100000 && t_out < 0.0; i++) {
