@@ -289,7 +289,8 @@ class Server:
                  bus_channels: dict | None = None, xcp: Any = None, xcp_protocol: str = "udp",
                  xcp_key: str | os.PathLike | None = None,
                  stimulus_path: str | os.PathLike | None = None,
-                 stimulus_start: str = "plant") -> None:
+                 stimulus_start: str = "plant",
+                 faults_path: str | os.PathLike | None = None) -> None:
         from can_dbc import mapping as _mapping  # noqa: PLC0415
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
@@ -386,6 +387,17 @@ class Server:
         fill_params(ffi, self._l.plant.params, self.params)
         self.stats = StatsReader(ffi, lib, self._l, self.channels)
         self._read_lock = threading.Lock()   # one copy of the statistics, many readers
+        from rt_loop.faults import FaultError, FaultManager, load_faults  # noqa: PLC0415
+
+        #: failure simulation: inject and clear faults, their figures and events
+        self.faults = FaultManager(ffi, lib, self._l, self.channels)
+        self.faults_path = None if faults_path is None else os.fspath(faults_path)
+        if self.faults_path is not None:
+            try:                          # checked whole before any of it is queued
+                for f in load_faults(self.faults_path, self.faults.names):
+                    self.faults.inject(f)
+            except FaultError as e:
+                raise ServerError(str(e)) from None
 
         self.transport: Transport | None = None
         self.transports: list[Transport] = []
@@ -775,6 +787,8 @@ class Server:
             "latency_max_us": float(s.latency_max_us),
             "counts": self._counts(),
             "plant": self.stats.plant(),
+            "faults": {"active": int(s.fault_mask).bit_count(),
+                       "changes": int(s.fault_changes)},
         }
 
     def _counts(self) -> dict:
@@ -940,6 +954,7 @@ class Server:
                 "file": self.stimulus.path if hasattr(self.stimulus, "path") else None,
                 "start": self.stimulus_start, **self.player.counters()},
             "plant": self.stats.plant(),
+            "faults": self.faults.report(s),
             "machine": machine,
         }
 

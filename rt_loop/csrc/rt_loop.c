@@ -173,6 +173,7 @@
 #endif
 
 #include "rt_loop.h"
+#include "rt_faults.h"
 
 #include <errno.h>
 #include <math.h>
@@ -194,7 +195,7 @@
 #define RT_PRIORITY_MAX 99
 #define RT_RX_BATCH 64                  /* frames per recvmmsg / ring pop */
 #define RT_RX_MAX_PER_TICK 256          /* drained per tick at most */
-#define RT_STACK_PREFAULT (64 * 1024)
+#define RT_STACK_PREFAULT (128 * 1024)
 #define RT_READ_RETRIES 1000
 #define RT_RCVBUF_BYTES (8 * 1024 * 1024)
 #define RT_SNDBUF_BYTES (1024 * 1024)
@@ -316,7 +317,8 @@ int rt_log_pop(rt_log_ring *r, rt_log_entry *e)
 }
 
 static inline void rec_push(rt_rec_ring *g, uint64_t tick, double time_s, double maneuver_time_s,
-                            const dct_outputs *o, const double *commands, int n_commands)
+                            const dct_outputs *o, const double *commands, int n_commands,
+                            uint64_t fault_mask)
 {
     uint32_t head = atomic_load_explicit(A32(&g->head), RELAXED);
     uint32_t tail = atomic_load_explicit(A32(&g->tail), ACQUIRE);
@@ -330,6 +332,7 @@ static inline void rec_push(rt_rec_ring *g, uint64_t tick, double time_s, double
     e->maneuver_time_s = maneuver_time_s;
     e->outputs = *o;
     memcpy(e->commands, commands, (size_t)n_commands * sizeof *commands);
+    e->fault_mask = fault_mask;
     atomic_store_explicit(A32(&g->head), head + 1, RELEASE);
 }
 
@@ -678,6 +681,7 @@ typedef struct {
     uint8_t tx_chan[RT_MAX_MESSAGES];
     uint8_t tx_local[RT_MAX_MESSAGES];  /* index in its channel's table */
     uint32_t tx_div[RT_MAX_MESSAGES];
+    uint32_t tx_div_plan[RT_MAX_MESSAGES];  /* tx_div as planned (a cycle fault changes tx_div) */
     uint32_t tx_off[RT_MAX_MESSAGES];
     uint32_t tx_wait[RT_MAX_MESSAGES];  /* executed ticks until it is due (0: this tick):
                                            k % div == off without a division per tick */
@@ -720,6 +724,9 @@ typedef struct {
     uint32_t ev_div[RT_N_EVENTS];    /* ticks between an event's firings */
     uint32_t ev_wait[RT_N_EVENTS];   /* ticks until it fires (0: this tick) */
     uint16_t daq_pre[RT_DAQ_MAX_LISTS];  /* prescaler countdown of each list */
+    /* failure simulation */
+    rt_fault_run f;
+    int faults_dirty;                /* a fault changed since the last publication */
 } rt_run;
 
 static inline int64_t now_ns(void)
@@ -796,7 +803,7 @@ static void plan_tx(rt_run *r)
                 best = off;
             }
         }
-        r->tx_div[i] = div;
+        r->tx_div[i] = r->tx_div_plan[i] = div;
         r->tx_off[i] = best;
         r->tx_wait[i] = best;           /* tick 0 is the first executed tick */
     }
@@ -869,6 +876,8 @@ static inline void rx_one(rt_run *r, int c, rt_frame *f, int well_formed, uint64
         cs->rx_accepted++;
         ms->frames++;
         (void)ct_decode(&ch->table, m, f->data, f->len, r->values, r->written);
+        if (r->f.msg_signal_faults[g])
+            rtf_signals(&r->f, g, r->values, r->written, cm->n_signals);
         double *shown = l->signal_values + ch->first_signal_value + cm->first_signal;
         for (uint32_t k = 0; k < cm->n_signals; k++) {
             if (!r->written[k])
@@ -1082,6 +1091,24 @@ static inline double source_value(const rt_run *r, const rt_source *s, const rt_
     return s->table.count ? lookup(&s->table, ranges, x) : s->gain * x + s->bias;
 }
 
+/* the CAN faults of sent message g on its frame (after encoding and protection) */
+static void fault_frame(rt_run *r, int g, const ct_message *cm, rt_frame *f, unsigned fault)
+{
+    if (fault & RTF_FREEZE)
+        rtf_hit_message(&r->f, g, RTF_FREEZE);
+    if ((fault & RTF_BAD_CRC) && cm->crc_byte >= 0 && (uint32_t)cm->crc_byte < f->len) {
+        f->data[cm->crc_byte] ^= 0xFFu;
+        rtf_hit_message(&r->f, g, RTF_BAD_CRC);
+    }
+    if (fault & RTF_LENGTH) {
+        uint8_t len = r->f.msg_length[g];
+        if (len > f->len)
+            memset(f->data + f->len, 0, (size_t)(len - f->len));
+        f->len = len;
+        rtf_hit_message(&r->f, g, RTF_LENGTH);
+    }
+}
+
 /* the next frame of sent message m of channel c, into tx_frames[nf] */
 static void make_frame(rt_run *r, int c, int m, int nf)
 {
@@ -1090,10 +1117,15 @@ static void make_frame(rt_run *r, int c, int m, int nf)
     const ct_message *cm = &ch->table.messages[m];
     int g = ch->first_message + m;
     uint64_t seq = l->tx_count[g];
+    unsigned fault = r->f.tx_any ? r->f.msg_flags[g] : 0u;
+    uint64_t shown_seq = fault & RTF_FREEZE ? r->f.msg_frozen_seq[g] : seq;
     const rt_source *src = ch->sources + cm->first_signal;
     double *shown = l->signal_values + ch->first_signal_value + cm->first_signal;
     for (uint32_t k = 0; k < cm->n_signals; k++)
-        shown[k] = r->values[k] = source_value(r, &src[k], ch->ranges, seq);
+        r->values[k] = source_value(r, &src[k], ch->ranges, shown_seq);
+    if (r->f.msg_signal_faults[g])
+        rtf_signals(&r->f, g, r->values, NULL, cm->n_signals);
+    memcpy(shown, r->values, cm->n_signals * sizeof r->values[0]);
     rt_frame *f = &r->tx_frames[nf];
     f->id = cm->id | (cm->extended ? CAN_EFF_FLAG : 0u);
     f->flags = ch->msgs[m].flags;
@@ -1103,9 +1135,43 @@ static void make_frame(rt_run *r, int c, int m, int nf)
     (void)ct_encode(&ch->table, m, r->values, f->data);
     /* the counter in 64 bits first: it wraps at its own modulus, never at 2^32 */
     (void)ct_protect(&ch->table, m, f->data,
-                     (uint32_t)(cm->counter_modulus ? seq % cm->counter_modulus : 0u));
+                     (uint32_t)(cm->counter_modulus ? shown_seq % cm->counter_modulus : 0u));
+    if (fault)
+        fault_frame(r, g, cm, f, fault);
     l->tx_count[g] = seq + 1;
     r->tx_frame_msg[nf] = g;
+}
+
+/* a frame a CAN fault keeps off the bus (counted as the fault's hit) */
+static int fault_skips(rt_run *r, int c, int g)
+{
+    if (r->f.chan_off[c]) {
+        rtf_hit_channel(&r->f, c);
+        return 1;
+    }
+    if (r->f.msg_flags[g] & RTF_OMIT) {
+        rtf_hit_message(&r->f, g, RTF_OMIT);
+        return 1;
+    }
+    return 0;
+}
+
+/* a cycle fault started or ended: each sent message's divisor from its
+ * faulted cycle or as planned; a message due later than its new cycle is
+ * due at the end of it */
+static void replan_cycles(rt_run *r)
+{
+    for (int i = 0; i < r->n_tx; i++) {
+        int g = r->l->chan[r->tx_chan[i]].first_message + r->tx_local[i];
+        uint32_t div = r->tx_div_plan[i];
+        if (r->f.msg_flags[g] & RTF_CYCLE) {
+            double ticks = r->f.msg_cycle_s[g] * 1e9 / (double)r->step_ns;
+            div = ticks < 1.5 ? 1u : (uint32_t)llround(ticks);
+        }
+        r->tx_div[i] = div;
+        if (r->tx_wait[i] >= div)
+            r->tx_wait[i] = div - 1u;
+    }
 }
 
 /* encodes and sends the frames due at this executed tick, channel by channel
@@ -1118,8 +1184,11 @@ static int tx_tick(rt_run *r)
     for (int c = 0; c < l->n_channels; c++) {
         int nf = 0;
         for (int i = 0; i < r->n_tx; i++)
-            if (r->tx_chan[i] == c && r->tx_wait[i] == 0)
+            if (r->tx_chan[i] == c && r->tx_wait[i] == 0) {
+                if (r->f.tx_any && fault_skips(r, c, l->chan[c].first_message + r->tx_local[i]))
+                    continue;
                 make_frame(r, c, r->tx_local[i], nf++);
+            }
         int e = tx_send(r, c, nf);
         if (e && !err)
             err = e;
@@ -1479,6 +1548,10 @@ static void copy_counts(rt_stats *s, rt_run *r)
     s->sim_time_s = l->plant.state.time_s;
     s->maneuver_state = r->maneuver_state;
     s->maneuver_time_s = r->maneuver_time_s;
+    if (r->faults_dirty || r->f.mask) {  /* starts, ends, and the hits of active faults */
+        rtf_publish(&r->f, s);
+        r->faults_dirty = 0;
+    }
 }
 
 static void publish_tick(rt_run *r, double turnaround_us, double exec_us, double latency_us)
@@ -1643,6 +1716,12 @@ int rt_loop_run(rt_loop *l)
             break;
         }
         check_timeouts(&r, n);
+        int fc = rtf_tick(&r.f, l, r.cmd, r.maneuver_time_s);
+        if (fc) {
+            r.faults_dirty = 1;
+            if (fc & RTF_CYCLES_CHANGED)
+                replan_cycles(&r);
+        }
         drive(&r);
         daq_pickup(&r);
         apply_writes(l, &l->cal, 0);
@@ -1659,7 +1738,7 @@ int rt_loop_run(rt_loop *l)
             r.maneuver_time_s = l->plant.state.time_s - r.maneuver_t0_s;
         if (l->cfg.record_every > 0 && r.c.ticks % (uint64_t)l->cfg.record_every == 0)
             rec_push(&l->rec, r.c.ticks, l->plant.state.time_s, r.maneuver_time_s,
-                     &l->plant.outputs, r.cmd, l->n_commands);
+                     &l->plant.outputs, r.cmd, l->n_commands, r.f.mask);
         err = tx_tick(&r);
         r.c.ticks++;
         if (err) {

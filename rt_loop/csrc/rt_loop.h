@@ -306,6 +306,170 @@ typedef struct {
     uint32_t kind;                    /* RT_REGION_* */
 } rt_region;
 
+/* ---- failure simulation: faults inside the tick ---------------------------
+ *
+ * Faults are data: a table of RT_MAX_FAULTS slots the tick walks. Python
+ * (rt_loop/faults.py) queues commands (arm a slot with a fault, clear a
+ * slot, clear all) in the single-producer ring fault_cmds; the loop applies
+ * them at the start of the next tick, so a fault can be switched while the
+ * loop runs and the loop never waits for Python.
+ *
+ * An armed fault starts at the first tick whose plant time (before the
+ * step) is at least start_s and whose condition holds (rt_condition: up to
+ * RT_COND_TERMS comparisons of plant outputs, command values, CAN signal
+ * values or the maneuver time, all of them or any of them), and stays
+ * active for duration_s of plant time (<= 0 or inf: until cleared). A watch
+ * (RT_FAULT_WATCH) has no effect: it latches the plant time its condition
+ * first held (the test API's wait_until).
+ *
+ * Effects, each read in one place:
+ *   CAN faults (the plant's sent messages): in the tick's send schedule and
+ *     frame builder (omit, counter frozen, checksum corrupted, cycle
+ *     changed: late or too often, wrong length, bus off of the plant node);
+ *   signal faults (any sent or received signal): on the signal's physical
+ *     value between codec and plant, for received signals before they
+ *     become command values, for sent signals before they are encoded;
+ *   physical faults: dct_plant.faults, then dct_plant_prepare (the plant's
+ *     own one place, plant/csrc/faults.c), only when a fault starts or ends.
+ * Every start and end goes into the event ring fault_events (plant time,
+ * slot, id, kind) and into the statistics (stats.faults, stats.fault_mask:
+ * the slots active after this tick), and each recorder sample carries the
+ * mask of the faults active in its tick. With no fault armed the tick pays
+ * one load of the command ring's head and one test. */
+#define RT_MAX_FAULTS 64
+#define RT_FAULT_CMD_RING_SIZE 256    /* commands, a power of two */
+#define RT_FAULT_EVENT_RING_SIZE 4096 /* events, a power of two */
+#define RT_COND_TERMS 4
+
+/* rt_fault_def.kind */
+#define RT_FAULT_NONE 0
+/* CAN: a message the plant sends (message: loop-wide index; bus off: channel) */
+#define RT_FAULT_CAN_OMIT 1           /* not sent */
+#define RT_FAULT_CAN_FREEZE_COUNTER 2 /* its alive counter stays at the value it had */
+#define RT_FAULT_CAN_BAD_CRC 3        /* its checksum byte inverted */
+/* RT_FAULT_CAN_CYCLE: sent every value seconds (late: longer than its cycle, too often: shorter) */
+#define RT_FAULT_CAN_CYCLE 4
+#define RT_FAULT_CAN_LENGTH 5         /* sent with value data bytes (padded with zeros or cut) */
+#define RT_FAULT_CAN_BUS_OFF 6        /* no frame of the plant on the channel */
+/* signal: signal = index into rt_loop.signal_values (its channel's first + its table index) */
+#define RT_FAULT_SIG_HOLD 10          /* stuck at the value it had when the fault started */
+#define RT_FAULT_SIG_VALUE 11         /* stuck at value */
+#define RT_FAULT_SIG_OFFSET 12        /* + value */
+#define RT_FAULT_SIG_GAIN 13          /* x value */
+#define RT_FAULT_SIG_NOISE 14         /* + Gaussian noise of standard deviation value (seeded) */
+#define RT_FAULT_SIG_INVALID 15       /* the signal's invalid value (value, physical) */
+/* physical: target = clutch / valve 0..1 or sleeve 0..3 */
+#define RT_FAULT_SPOOL_STUCK 20
+#define RT_FAULT_SOLENOID_OPEN 21
+#define RT_FAULT_FRICTION_FADE 22     /* value: share of the friction coefficient lost, 0..1 */
+#define RT_FAULT_KISS_DRIFT 23        /* value: mm added to the pack gap */
+#define RT_FAULT_LINE_PRESSURE_LOSS 24 /* value: share of the line pressure lost, 0..1 */
+#define RT_FAULT_FORK_JAMMED 25
+#define RT_FAULT_BLOCKER_FAILED 26
+#define RT_FAULT_ENGINE_TORQUE_LIMIT 27 /* value: Nm the combustion torque is limited to */
+#define RT_FAULT_WATCH 30             /* no effect: latches when its condition first holds */
+
+/* rt_term.source */
+#define RT_OPD_OUTPUT 0               /* index: a dct_outputs double */
+#define RT_OPD_COMMAND 1              /* index: a command value (received, as applied) */
+#define RT_OPD_SIGNAL 2               /* index: rt_loop.signal_values (last value on the bus) */
+#define RT_OPD_MANEUVER_TIME 3        /* the maneuver time (< 0 before it started) */
+/* rt_term.op */
+#define RT_OP_LT 0
+#define RT_OP_LE 1
+#define RT_OP_GT 2
+#define RT_OP_GE 3
+#define RT_OP_EQ 4                    /* within 1e-9 of the value (relative above 1) */
+#define RT_OP_NE 5
+
+/* rt_fault_cmd.op */
+#define RT_FCMD_SET 1                 /* arm slot with def (a fault in the slot ends first) */
+#define RT_FCMD_CLEAR 2               /* end slot's fault (if active) and free the slot */
+#define RT_FCMD_CLEAR_ALL 3
+
+/* rt_fault_stats.state */
+#define RT_FSTATE_FREE 0
+#define RT_FSTATE_ARMED 1             /* waiting for its start time and condition */
+#define RT_FSTATE_ACTIVE 2
+#define RT_FSTATE_ENDED 3             /* its duration is over; the slot stays until cleared */
+
+/* rt_fault_event.what */
+#define RT_FEV_START 1
+#define RT_FEV_END 2                  /* duration over */
+#define RT_FEV_CLEARED 3              /* cleared while active */
+
+typedef struct {
+    uint8_t source;                   /* RT_OPD_* */
+    uint8_t op;                       /* RT_OP_* */
+    uint16_t reserved;
+    uint32_t index;
+    double value;
+} rt_term;
+
+typedef struct {
+    uint32_t n_terms;                 /* 0: always true */
+    uint32_t any;                     /* 0: every term holds; 1: at least one */
+    rt_term terms[RT_COND_TERMS];
+} rt_condition;
+
+typedef struct {
+    uint64_t id;                      /* the producer's number for it */
+    uint16_t kind;                    /* RT_FAULT_* */
+    uint16_t reserved;
+    int32_t channel;                  /* CAN bus off: the channel */
+    int32_t message;                  /* CAN and signal faults: loop-wide message index */
+    int32_t signal;                   /* signal faults: index into rt_loop.signal_values */
+    int32_t local_signal;             /* signal faults: index among its message's signals */
+    int32_t target;                   /* physical: clutch / valve 0..1, sleeve 0..3 */
+    double value;
+    uint64_t seed;                    /* noise */
+    double start_s;                   /* plant time it may start at (-inf: at once) */
+    double duration_s;                /* active this long; <= 0 or inf: until cleared */
+    rt_condition when;                /* and this holds (n_terms 0: nothing more) */
+} rt_fault_def;
+
+typedef struct {
+    uint32_t op;                      /* RT_FCMD_* */
+    uint32_t slot;
+    rt_fault_def fault;
+} rt_fault_cmd;
+
+typedef struct {
+    uint32_t head;
+    uint32_t tail;
+    uint64_t dropped;
+    uint64_t applied;                 /* written by the loop */
+    uint64_t refused;                 /* bad slot, kind or index */
+    uint64_t last_id;                 /* id of the last command the loop took (applied or refused) */
+    rt_fault_cmd cmds[RT_FAULT_CMD_RING_SIZE];
+} rt_fault_cmd_ring;
+
+typedef struct {
+    double time_s;                    /* plant time of the tick (before its step) */
+    uint64_t id;
+    uint16_t slot;
+    uint16_t kind;
+    uint32_t what;                    /* RT_FEV_* */
+} rt_fault_event;
+
+typedef struct {
+    uint32_t head;
+    uint32_t tail;
+    uint64_t dropped;
+    rt_fault_event events[RT_FAULT_EVENT_RING_SIZE];
+} rt_fault_event_ring;
+
+/* one slot, as published (stats.faults) */
+typedef struct {
+    uint64_t id;
+    uint16_t kind;
+    uint16_t state;                   /* RT_FSTATE_* */
+    uint32_t activations;
+    double started_s;                 /* plant time of the last start (NaN: never) */
+    double ended_s;                   /* ... of the last end (NaN: not ended) */
+    uint64_t hits;                    /* frames or values it changed (CAN, signal) */
+} rt_fault_stats;
+
 typedef struct {
     double period_s;                  /* wall-clock time between deadlines: 0.0005 for 2 kHz */
     double step_s;                    /* simulated time per tick (the plant step; the CAN
@@ -345,6 +509,7 @@ typedef struct {
     double maneuver_time_s;           /* plant time since the maneuver started (< 0: not yet) */
     dct_outputs outputs;
     double commands[RT_MAX_COMMANDS]; /* the received values as applied in this tick */
+    uint64_t fault_mask;              /* fault slots active in this tick (bit = slot) */
 } rt_sample;
 
 typedef struct {
@@ -438,6 +603,9 @@ typedef struct {
     rt_msg_stats msgs[RT_MAX_MESSAGES];
     double commands[RT_MAX_COMMANDS]; /* the received values as applied this tick */
     dct_outputs outputs;              /* the plant's outputs after this tick */
+    uint64_t fault_mask;              /* fault slots active after this tick (bit = slot) */
+    uint64_t fault_changes;           /* starts and ends so far (stats.faults changed) */
+    rt_fault_stats faults[RT_MAX_FAULTS];
 } rt_stats;
 
 typedef struct {
@@ -472,6 +640,9 @@ typedef struct {
     int n_signal_values;              /* set by rt_loop_prepare: signals of all channels */
     double signal_values[RT_MAX_SIGNAL_VALUES];  /* each CAN signal's last value (physical):
                                          channel c's signal k at chan[c].first_signal_value + k */
+    /* failure simulation (see above) */
+    rt_fault_cmd_ring fault_cmds;     /* Python -> loop */
+    rt_fault_event_ring fault_events; /* loop -> Python */
 } rt_loop;
 
 /* validates cfg, the channels' tables and the commands, initialises the
@@ -499,6 +670,9 @@ int rt_daq_pop_many(rt_daq_ring *r, rt_dto *d, int n);
 /* queues writes (the ring's only producer); returns how many were queued
  * (the rest counted in dropped) */
 int rt_write_push_many(rt_write_ring *r, const rt_write *w, int n);
+/* fault commands in (the ring's only producer), fault events out */
+int rt_fault_push_many(rt_fault_cmd_ring *r, const rt_fault_cmd *c, int n);
+int rt_fault_events_pop_many(rt_fault_event_ring *r, rt_fault_event *e, int n);
 /* the DAQ hand-over with the memory order it needs on any CPU: publish the
  * generation whose slot Python has just written (release), read the one the
  * loop last used (acquire) */
