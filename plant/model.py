@@ -79,9 +79,37 @@ STATE_NAMES = _state_names()
 _OFF_STATE = ffi.offsetof("dct_plant", "state")
 _OFF_INPUTS = ffi.offsetof("dct_plant", "inputs")
 _OFF_OUTPUTS = ffi.offsetof("dct_plant", "outputs")
-# snapshot: everything after the parameters and their derived constants
+# snapshot: state, inputs, outputs and the step's bookkeeping; not the
+# parameters, their derived constants, the faults or the parameters they make
 _SNAP_BEGIN = _OFF_STATE
-_SNAP_END = ffi.sizeof("dct_plant")
+_SNAP_END = ffi.offsetof("dct_plant", "faults")
+assert _SNAP_END > ffi.offsetof("dct_plant", "applied")
+
+
+def _fault_fields():
+    """{name: number of values} of dct_faults (1: a scalar), in struct order."""
+    fields = {}
+    for name, field in ffi.typeof("dct_faults").fields:
+        if field.type is _DOUBLE:
+            fields[name] = 1
+        elif field.type.kind == "array" and field.type.item is _DOUBLE:
+            fields[name] = field.type.length
+        else:
+            raise TypeError(f"dct_faults.{name} is {field.type.cname}; faults are doubles")
+    return fields
+
+
+#: physical faults (``Plant.set_faults``): name -> number of values (1: scalar;
+#: 2: K1, K2; 4: sleeves 1-3, 2-4, 5-R, 6-N)
+FAULT_FIELDS = _fault_fields()
+FAULT_NAMES = list(FAULT_FIELDS)
+# the ranges dct_faults_check (plant/csrc/faults.c) holds, for the messages
+_FAULT_RANGE = {
+    "friction_loss": "a share from 0 to 1",
+    "line_pressure_loss": "a share from 0 to 1",
+    "engine_torque_max_nm": "a torque >= 0",
+}
+_FLAG_RANGE = "0 (healthy) to 1 (failed), in effect above 0.5"
 
 
 class Plant:
@@ -178,9 +206,86 @@ class Plant:
         )
         self._check(lib.dct_plant_reset(self._p, init))
 
+    # ----------------------------------------------------------------- faults
+    @property
+    def faults(self):
+        """The physical faults in effect: {name: value, or a list for K1/K2 or
+        the four sleeves}; all zero is the healthy car."""
+        f = self._p.derived.faults
+        return {name: float(getattr(f, name)) if n == 1 else [float(x) for x in getattr(f, name)]
+                for name, n in FAULT_FIELDS.items()}
+
+    def set_faults(self, **faults):
+        """Put physical faults in effect from the next step; the others stay.
+
+        Names as ``FAULT_NAMES`` (dct_faults in plant/csrc/dct_plant.h). A
+        per-clutch or per-sleeve fault takes a list of all its values or
+        ``{index: value}`` for some (``fork_jammed={1: 1}``: sleeve 2-4).
+        Flags (``spool_stuck``, ``solenoid_open``, ``fork_jammed``,
+        ``blocker_failed``, ``engine_torque_limited``) are 0 or 1; losses a
+        share 0..1; ``pack_gap_offset_mm`` in mm, the gap staying >= 0;
+        ``engine_torque_max_nm`` >= 0. A bad name or value raises ValueError
+        and changes nothing.
+        """
+        wanted = self.faults
+        for name, value in faults.items():
+            if name not in FAULT_FIELDS:
+                raise ValueError(f"unknown fault {name!r}; the faults are {', '.join(FAULT_NAMES)}")
+            n = FAULT_FIELDS[name]
+            if n == 1:
+                wanted[name] = _fault_number(name, value)
+            elif isinstance(value, dict):
+                for i, v in value.items():
+                    if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < n:
+                        raise ValueError(f"fault {name}: index {i!r} is not 0..{n - 1}")
+                    wanted[name][i] = _fault_number(f"{name}[{i}]", v)
+            elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == n:
+                wanted[name] = [_fault_number(f"{name}[{i}]", v) for i, v in enumerate(value)]
+            else:
+                raise ValueError(f"fault {name} needs {n} values (a list) or {{index: value}}, "
+                                 f"got {value!r}")
+        self._put_faults(wanted)
+
+    def clear_faults(self):
+        """The healthy car again: every fault zero (effective params = params, byte for byte)."""
+        self._put_faults({name: 0.0 if n == 1 else [0.0] * n for name, n in FAULT_FIELDS.items()})
+
+    def _put_faults(self, values):
+        f = self._p.faults
+        before = {name: getattr(f, name) if n == 1 else list(getattr(f, name))
+                  for name, n in FAULT_FIELDS.items()}
+        for name, value in values.items():
+            setattr(f, name, value)
+        self._p.error_index = -1
+        if lib.dct_plant_prepare(self._p) == lib.DCT_OK:
+            return
+        bad = int(self._p.error_index)
+        for name, value in before.items():
+            setattr(f, name, value)
+        self._check(lib.dct_plant_prepare(self._p))  # the faults as they were
+        raise ValueError(self._fault_refused(bad, values))
+
+    def _fault_refused(self, index, values):
+        """One line naming the fault value at ``index`` (doubles into dct_faults)."""
+        i = 0
+        for name, n in FAULT_FIELDS.items():
+            if index < i + n:
+                k = index - i
+                label = name if n == 1 else f"{name}[{k}]"
+                value = values[name] if n == 1 else values[name][k]
+                if name == "pack_gap_offset_mm":
+                    gap = float(self._p.params.clutch[k].pack_gap_mm)
+                    rule = f"the pack gap ({gap:g} mm) plus the offset must stay >= 0"
+                else:
+                    rule = f"it must be {_FAULT_RANGE.get(name, _FLAG_RANGE)}"
+                return f"fault {label} = {value!r} refused: {rule}"
+            i += n
+        return "faults refused by the plant core (dct_faults_check, plant/csrc/faults.c)"
+
     # ------------------------------------------------------------ save/restore
     def snapshot(self):
-        """Copy of state, inputs and outputs: ``restore()`` continues identically."""
+        """Copy of state, inputs and outputs: ``restore()`` continues identically
+        (the parameters and the faults are not in it: they stay as set)."""
         return self._buf[_SNAP_BEGIN:_SNAP_END]
 
     def restore(self, snap):
@@ -293,6 +398,15 @@ def state_counts(kind=None):
 def build_info():
     """Compiler and flags the C extension was built with."""
     return ffi.string(lib.dct_bench_build_info()).decode()
+
+
+def _fault_number(label, value):
+    if isinstance(value, (str, bytes)) or not isinstance(value, (int, float, np.number)):
+        raise ValueError(f"fault {label} must be a number, got {value!r}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise ValueError(f"fault {label} must be finite, got {value!r}")
+    return x
 
 
 def _count(n, what):

@@ -4,6 +4,7 @@
  * address and undefined-behaviour sanitizers).
  */
 #include <math.h>
+#include <stddef.h>
 #include <stdio.h>
 #include <string.h>
 
@@ -199,6 +200,147 @@ static void test_sync_ring_turn_back(void)
     CHECK(t_out > 0.0 && t_out == t_out_free, "pull-out unaffected (%g, %g)", t_out, t_out_free);
 }
 
+/* a jammed sleeve stays where it is in every phase: in neutral under a fork
+ * force, on the cone (it cannot pass the blocker, however small the slip),
+ * engaged under a pull-out force (it stays in gear) */
+static void test_sync_jammed(void)
+{
+    dct_sync_params p = sync_params();
+    dct_sync_state s;
+    dct_sync_output o;
+    dct_sync_init(&p, &s, 0);
+    dct_sync_input in = {1000.0, 50.0, 0.0, 1.0, 0.05, 0.05, 1.0};
+    for (int i = 0; i < 4000; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, 1.25e-4);
+    }
+    CHECK(s.position_m == 0.0 && s.velocity_m_s == 0.0 && s.phase == DCT_SYNC_DISENGAGED,
+          "jammed in neutral: %g mm, phase %g", s.position_m * 1e3, s.phase);
+
+    in.fork_jammed = 0.0;
+    in.slip_pos_rad_s = 0.1; /* below the lock speed: would engage at once */
+    for (int i = 0; i < 4000 && s.phase != DCT_SYNC_SYNCHRONIZING; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, 1.25e-4);
+    }
+    double x_cone = s.position_m;
+    in.fork_jammed = 1.0;
+    for (int i = 0; i < 4000; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, 1.25e-4);
+    }
+    CHECK(s.phase == DCT_SYNC_SYNCHRONIZING && s.position_m == x_cone,
+          "jammed on the cone: phase %g, %g mm", s.phase, s.position_m * 1e3);
+    CHECK(s.twist_rad == o.torque_nm / p.stiffness_nm_per_rad, "cone twist still follows eq. 3");
+
+    dct_sync_init(&p, &s, 1);
+    in.fork_force_n = -1000.0;
+    in.slip_pos_rad_s = 0.5;
+    double twist0 = s.twist_rad;
+    for (int i = 0; i < 4000; i++) {
+        dct_sync_output_eval(&p, &s, &in, &o);
+        dct_sync_advance(&p, &s, &in, &o, 1.25e-4);
+    }
+    CHECK(s.phase == DCT_SYNC_ENGAGED && s.position_m == 8.5e-3 && s.velocity_m_s == 0.0,
+          "jammed in gear: phase %g, %g mm", s.phase, s.position_m * 1e3);
+    CHECK(fabs(s.twist_rad - twist0 - 4000 * 1.25e-4 * 0.5) < 1e-12, "twist integrates the slip (%g)",
+          s.twist_rad);
+}
+
+/* faults.c on a small parameter set: ranges, the parametric faults in the
+ * parameters, the others in the inputs, all zero = the parameters as given */
+static void test_faults(void)
+{
+    static dct_params p, e;
+    dct_faults f, in_effect;
+    memset(&p, 0, sizeof p);
+    memset(&f, 0, sizeof f);
+    for (int k = 0; k < 2; k++) {
+        p.clutch[k].mu_static = 0.11;
+        p.clutch[k].mu_kinetic = 0.12;
+        p.clutch[k].pack_gap_mm = 1.5;
+    }
+    p.hydraulics.supply.line.n = 2;
+    p.hydraulics.supply.line.pressure_bar[0] = 20.0;
+    p.hydraulics.supply.line.pressure_bar[1] = 5.0;
+    for (int k = 0; k < DCT_N_SLEEVES; k++)
+        p.gearbox.sync[k].blocker_force_max_n = 1300.0;
+    p.engine.full_load.n = 3;
+    p.engine.full_load.torque_nm[0] = 150.0;
+    p.engine.full_load.torque_nm[1] = 280.0;
+    p.engine.full_load.torque_nm[2] = 250.0;
+
+    int bad = -1;
+    memset(&e, 0xff, sizeof e);
+    CHECK(dct_faults_prepare(&f, &p, &e, &in_effect, &bad) == DCT_OK, "no fault accepted");
+    CHECK(memcmp(&e, &p, sizeof p) == 0, "no fault: effective = params byte for byte");
+
+    f.friction_loss[1] = 0.5;
+    f.pack_gap_offset_mm[0] = 0.7;
+    f.line_pressure_loss = 0.25;
+    f.blocker_failed[2] = 1.0;
+    f.engine_torque_limited = 1.0;
+    f.engine_torque_max_nm = 200.0;
+    CHECK(dct_faults_prepare(&f, &p, &e, &in_effect, &bad) == DCT_OK, "faults accepted");
+    CHECK(e.clutch[1].mu_static == 0.055 && e.clutch[1].mu_kinetic == 0.06 && e.clutch[0].mu_static == 0.11,
+          "friction fade %g %g", e.clutch[1].mu_static, e.clutch[1].mu_kinetic);
+    CHECK(e.clutch[0].pack_gap_mm == 1.5 + 0.7 && e.clutch[1].pack_gap_mm == 1.5, "kiss point drift %g",
+          e.clutch[0].pack_gap_mm);
+    CHECK(e.hydraulics.supply.line.pressure_bar[0] == 15.0 && e.hydraulics.supply.line.pressure_bar[1] == 3.75,
+          "line pressure loss");
+    CHECK(e.gearbox.sync[2].blocker_force_max_n == 0.0 && e.gearbox.sync[1].blocker_force_max_n == 1300.0,
+          "blocker failed");
+    CHECK(e.engine.full_load.torque_nm[0] == 150.0 && e.engine.full_load.torque_nm[1] == 200.0 &&
+          e.engine.full_load.torque_nm[2] == 200.0, "full load capped");
+    CHECK(p.clutch[1].mu_static == 0.11 && p.engine.full_load.torque_nm[1] == 280.0, "params untouched");
+    CHECK(memcmp(&in_effect, &f, sizeof f) == 0, "faults in effect");
+
+    /* refused: the first bad value named, nothing written */
+    dct_params before = e;
+    dct_faults g = f;
+    g.friction_loss[0] = 1.5;
+    CHECK(dct_faults_prepare(&g, &p, &e, &in_effect, &bad) == DCT_ERR_PARAM &&
+          bad == (int)(offsetof(dct_faults, friction_loss) / sizeof(double)), "loss > 1 refused (%d)", bad);
+    CHECK(memcmp(&e, &before, sizeof e) == 0 && memcmp(&in_effect, &f, sizeof f) == 0, "refusal writes nothing");
+    g = f;
+    g.pack_gap_offset_mm[1] = -1.6;
+    CHECK(dct_faults_check(&g, &p, &bad) == DCT_ERR_PARAM &&
+          bad == (int)(offsetof(dct_faults, pack_gap_offset_mm) / sizeof(double)) + 1, "gap < 0 refused");
+    g.pack_gap_offset_mm[1] = -1.5;
+    CHECK(dct_faults_check(&g, &p, &bad) == DCT_OK, "gap closed to 0 accepted");
+    g = f;
+    g.engine_torque_max_nm = -1.0;
+    CHECK(dct_faults_check(&g, &p, &bad) == DCT_ERR_PARAM &&
+          bad == (int)(offsetof(dct_faults, engine_torque_max_nm) / sizeof(double)), "negative torque refused");
+    g = f;
+    g.fork_jammed[3] = NAN;
+    CHECK(dct_faults_check(&g, &p, &bad) == DCT_ERR_PARAM &&
+          bad == (int)(offsetof(dct_faults, fork_jammed) / sizeof(double)) + 3, "NaN refused");
+    g = f;
+    g.pack_gap_offset_mm[0] = INFINITY;
+    CHECK(dct_faults_check(&g, &p, &bad) == DCT_ERR_PARAM, "infinite offset refused");
+
+    /* the step's faults */
+    memset(&f, 0, sizeof f);
+    f.solenoid_open[1] = 1.0;
+    f.spool_stuck[0] = 1.0;
+    f.fork_jammed[2] = 0.7;
+    dct_inputs u;
+    memset(&u, 0, sizeof u);
+    u.solenoid_current1_a = 0.6;
+    u.solenoid_current2_a = 0.8;
+    dct_faults_apply_inputs(&f, &u);
+    CHECK(u.solenoid_current1_a == 0.6 && u.solenoid_current2_a == 0.0, "solenoid open");
+    dct_hydraulics_input hi;
+    dct_gearbox_input gi;
+    memset(&hi, 0xff, sizeof hi);
+    memset(&gi, 0xff, sizeof gi);
+    dct_faults_apply_couplings(&f, &hi, &gi);
+    CHECK(hi.spool_stuck[0] == 1.0 && hi.spool_stuck[1] == 0.0, "spool stuck");
+    CHECK(gi.fork_jammed[0] == 0.0 && gi.fork_jammed[1] == 0.0 && gi.fork_jammed[2] == 1.0 &&
+          gi.fork_jammed[3] == 0.0, "fork jammed");
+}
+
 static void test_magic_formula(void)
 {
     dct_tyre_params p;
@@ -238,6 +380,8 @@ int main(void)
     test_sync_clash();
     test_sync_released_from_the_cone();
     test_sync_ring_turn_back();
+    test_sync_jammed();
+    test_faults();
     test_magic_formula();
     test_differential();
     printf("%d passed, %d failed\n", checks - failures, failures);
