@@ -254,18 +254,26 @@ def parse_condition(text: Any, names: Names, what: str = "when") -> list[tuple[s
     return out, ("or" in joins)
 
 
-def invalid_value(sig: Any) -> float:
-    """The physical value a DBC signal uses for invalid: a value named
+def invalid_raw(sig: Any) -> int | None:
+    """The raw value a DBC signal uses for invalid: a value named
     invalid/SNA/error/not available in its value table, else the raw value all
-    ones (unsigned) or the lowest raw value (signed)."""
+    ones (unsigned) or the lowest raw value (signed); None for a float signal
+    without a named one."""
     choices = getattr(sig, "choices", None) or {}
     for raw, label in choices.items():
         if _INVALID_NAMES.search(str(label)):
-            return float(raw) * float(sig.scale or 1.0) + float(sig.offset or 0.0)
+            return int(raw)
     if getattr(sig, "is_float", False):
-        return math.nan
+        return None
     n = int(sig.length)
-    raw = -(2 ** (n - 1)) if sig.is_signed else 2 ** n - 1
+    return -(2 ** (n - 1)) if sig.is_signed else 2 ** n - 1
+
+
+def invalid_value(sig: Any) -> float:
+    """The physical value of ``invalid_raw`` (NaN: none)."""
+    raw = invalid_raw(sig)
+    if raw is None:
+        return math.nan
     return raw * float(sig.scale or 1.0) + float(sig.offset or 0.0)
 
 
@@ -310,7 +318,7 @@ def parse_fault(spec: Any, names: Names) -> Fault:
     lib = names.lib
     d = f.fields
     d.update(kind=int(getattr(lib, kind.code)), channel=-1, message=-1, signal=-1,
-             local_signal=-1, target=-1, value=0.0, seed=0)
+             local_signal=-1, target=-1, value=0.0, raw=0, seed=0)
     # what it acts on
     if kind.needs == "message":
         if "message" not in spec:
@@ -320,7 +328,7 @@ def parse_fault(spec: Any, names: Names) -> Fault:
         if m.direction != "send":
             raise FaultError(f"{what}: the mapping does not send {spec['message']!r} (the plant "
                              "receives it); CAN faults act on the plant's own messages")
-        if kind_name == "can.bad_crc" and getattr(m.protection, "crc", None) is None:
+        if kind_name == "can.bad_crc" and getattr(m.protection, "crc_signal", None) is None:
             raise FaultError(f"{what}: {spec['message']!r} carries no checksum")
         d["message"] = g
     elif kind.needs == "signal":
@@ -376,14 +384,21 @@ def parse_fault(spec: Any, names: Names) -> Fault:
         d["value"] = values["sigma"]
         d["seed"] = int(values["seed"])
     elif kind_name == "signal.invalid":
+        sig = names.signal(spec["signal"], what)[3]
+        scale, offset = float(sig.scale or 1.0), float(sig.offset or 0.0)
         if "invalid_value" in spec:
             d["value"] = _number(spec["invalid_value"], f"{what}: invalid_value")
+            raw = None if sig.is_float else round((d["value"] - offset) / scale)
         else:
-            sig = names.signal(spec["signal"], what)[3]
-            d["value"] = invalid_value(sig)
-            if math.isnan(d["value"]):
+            raw = invalid_raw(sig)
+            if raw is None:
                 raise FaultError(f"{what}: {spec['signal']!r} is a float signal without a named "
                                  "invalid value; give invalid_value")
+            d["value"] = raw * scale + offset
+        if raw is None:               # a float signal: its value as it is (no raw field to write)
+            d["kind"] = int(lib.RT_FAULT_SIG_VALUE)
+        else:
+            d["raw"] = int(raw)
     elif kind.params:
         d["value"] = float(values[kind.params[0].name])
     # schedule

@@ -436,6 +436,17 @@ int ct_encode(const ct_table *t, int msg, const double *values, uint8_t *data)
     return m->length;
 }
 
+int ct_put_raw(const ct_table *t, int msg, int signal, int64_t raw, uint8_t *data)
+{
+    const ct_message *m = message(t, msg);
+    if (m == NULL || signal < 0 || signal >= (int)m->n_signals) {
+        return -1;
+    }
+    const ct_signal *s = t->signals + m->first_signal + signal;
+    put_bits(data, s, (uint64_t)raw & field_mask(s->length));
+    return 0;
+}
+
 int ct_decode(const ct_table *t, int msg, const uint8_t *data, int len, double *values,
               uint8_t *written)
 {

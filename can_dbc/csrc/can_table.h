@@ -151,6 +151,11 @@ int ct_encode(const ct_table *t, int msg, const double *values, uint8_t *data);
  * untouched; written (if not NULL, one byte per signal) is set to 1 for
  * each signal written, 0 for the others. Returns the number of signals
  * written, -1 when msg is bad or len is not the message's length. */
+/* Writes a raw value into signal `signal` (index within message msg) of an
+ * encoded frame, as it is, masked to the bit field: no limiting (the value
+ * a sender uses for "invalid" may lie outside the DBC's range). Returns 0,
+ * -1 for a bad msg or signal. */
+int ct_put_raw(const ct_table *t, int msg, int signal, int64_t raw, uint8_t *data);
 int ct_decode(const ct_table *t, int msg, const uint8_t *data, int len, double *values,
               uint8_t *written);
 

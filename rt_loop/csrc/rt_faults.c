@@ -571,6 +571,15 @@ void rtf_signals(rt_fault_run *f, int g, double *values, const uint8_t *written,
     }
 }
 
+void rtf_raw(rt_fault_run *f, const ct_table *t, int m, int g, uint8_t *data)
+{
+    for (int j = 0; j < f->n_signal; j++) {
+        const rt_fault_def *d = &f->slots[f->signal_slots[j]].def;
+        if (d->message == g && d->kind == RT_FAULT_SIG_INVALID)
+            (void)ct_put_raw(t, m, d->local_signal, d->raw, data);
+    }
+}
+
 void rtf_hit_message(rt_fault_run *f, int g, unsigned flag)
 {
     int bit = flag == RTF_OMIT ? 0 : flag == RTF_FREEZE ? 1 : flag == RTF_BAD_CRC ? 2

@@ -74,6 +74,9 @@ int rtf_tick(rt_fault_run *f, rt_loop *l, const double *cmd, double maneuver_tim
 /* the signal faults of message g (loop-wide index) on its values (n signals,
  * written[k] 0: signal k not in this frame, NULL: all are) */
 void rtf_signals(rt_fault_run *f, int g, double *values, const uint8_t *written, uint32_t n);
+/* the raw values of the invalid-value faults on sent message g (channel
+ * table t, message m), written into its encoded frame */
+void rtf_raw(rt_fault_run *f, const ct_table *t, int m, int g, uint8_t *data);
 /* counts a frame a CAN fault changed: flag RTF_* of message g, or the bus off of channel c */
 void rtf_hit_message(rt_fault_run *f, int g, unsigned flag);
 void rtf_hit_channel(rt_fault_run *f, int c);

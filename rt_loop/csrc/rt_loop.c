@@ -1133,6 +1133,8 @@ static void make_frame(rt_run *r, int c, int m, int nf)
     f->reserved = 0;
     f->len = cm->length;
     (void)ct_encode(&ch->table, m, r->values, f->data);
+    if (r->f.msg_signal_faults[g])
+        rtf_raw(&r->f, &ch->table, m, g, f->data);
     /* the counter in 64 bits first: it wraps at its own modulus, never at 2^32 */
     (void)ct_protect(&ch->table, m, f->data,
                      (uint32_t)(cm->counter_modulus ? shown_seq % cm->counter_modulus : 0u));

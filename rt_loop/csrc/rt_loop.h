@@ -422,6 +422,7 @@ typedef struct {
     int32_t local_signal;             /* signal faults: index among its message's signals */
     int32_t target;                   /* physical: clutch / valve 0..1, sleeve 0..3 */
     double value;
+    int64_t raw;                      /* signal.invalid on a sent signal: the raw value written */
     uint64_t seed;                    /* noise */
     double start_s;                   /* plant time it may start at (-inf: at once) */
     double duration_s;                /* active this long; <= 0 or inf: until cleared */
