@@ -271,6 +271,14 @@ class Server:
     marked online) are set for every run: XCP calibration and stimulus
     write only there.
 
+    ``faults_path``: a TOML file of ``[[fault]]`` tables (``rt_loop.faults``),
+    checked whole and queued for the run. ``control_path``: a Unix domain
+    socket (mode 0600, removed on stop) on which ``rt_loop.control`` serves
+    JSON-line requests for the running loop (read values, set plant inputs,
+    inject and clear faults, watch conditions, stop). ``cal_lock`` is held by
+    every producer of the loop's ``cal`` ring (XCP calibration, the control
+    channel); the loop never takes it.
+
     Errors in the arguments, the mapping (``MappingError``), the parameters (``ParamError``) or the
     transport (``TransportError``) are raised with one-line messages.
     """
@@ -290,7 +298,8 @@ class Server:
                  xcp_key: str | os.PathLike | None = None,
                  stimulus_path: str | os.PathLike | None = None,
                  stimulus_start: str = "plant",
-                 faults_path: str | os.PathLike | None = None) -> None:
+                 faults_path: str | os.PathLike | None = None,
+                 control_path: str | os.PathLike | None = None) -> None:
         from can_dbc import mapping as _mapping  # noqa: PLC0415
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
@@ -399,6 +408,14 @@ class Server:
             except FaultError as e:
                 raise ServerError(str(e)) from None
 
+        #: held while pushing into the loop's cal ring (its producers: XCP, the control channel)
+        self.cal_lock = threading.Lock()
+        self.control_path = None if control_path is None else os.fspath(control_path)
+        self.control = None
+        if self.control_path is not None:
+            from rt_loop.control import check_socket_path  # noqa: PLC0415
+
+            check_socket_path(self.control_path, ServerError)
         self.transport: Transport | None = None
         self.transports: list[Transport] = []
         self.logger: TrafficLogger | None = None
@@ -533,6 +550,8 @@ class Server:
                                   f"priority {self.priority}, cpu {cfg.cpu})")
             if self.xcp_address is not None:
                 self._start_xcp(_a2l)
+            if self.control_path is not None:
+                self._start_control()
             if self.pm_qos is not None and not self.pm_qos.acquire():
                 self.warnings.append(f"PM QoS not held ({self.pm_qos.error}): idle CPUs may "
                                      "wake up late (tens to hundreds of us)")
@@ -675,7 +694,7 @@ class Server:
         self._stopped = True
         _LIVE.discard(self)
         errors: list[Exception] = []
-        for step in (self._stop_player, self._stop_xcp, self._release_pm_qos, self._stop_transport, self._stop_logger,
+        for step in (self._stop_control, self._stop_player, self._stop_xcp, self._release_pm_qos, self._stop_transport, self._stop_logger,
                      self._stop_recorder, self._close_transport):
             try:
                 step()
@@ -704,6 +723,8 @@ class Server:
                 a2l_text=a2l_text,
                 a2l_name="dct_hil", epk=a2l.epk(ffi, lib, channels=self.channels),
                 key_file=self.xcp_key, ranges=self._regions)
+            if self.xcp.backend is not None:
+                self.xcp.backend.cal_lock = self.cal_lock
             self.xcp.start()
         except OSError as e:
             self.xcp = None
@@ -712,6 +733,21 @@ class Server:
         if self.xcp_key is None and host not in ("127.0.0.1", "::1", "localhost"):
             self.warnings.append(f"XCP on {host}:{port} is open beyond loopback without "
                                  "--xcp-key: anyone who reaches it can calibrate the plant")
+
+    def _start_control(self) -> None:
+        from rt_loop.control import ControlServer  # noqa: PLC0415
+
+        try:
+            self.control = ControlServer(self, self.control_path)
+            self.control.start()
+        except OSError as e:
+            self.control = None
+            raise ServerError(f"control socket {self.control_path}: "
+                              f"{e.strerror or _one_line(e)}") from None
+
+    def _stop_control(self) -> None:
+        if self.control is not None:
+            self.control.stop()
 
     def _stop_player(self) -> None:
         if self.player is not None:

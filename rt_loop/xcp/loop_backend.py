@@ -19,8 +19,12 @@ An XCP address is a byte offset from the start of the ``rt_loop`` struct
   than RT_WRITE_BYTES is several). The answer waits for the loop (at most
   ``write_wait_s``): ERR_OUT_OF_RANGE when the plant refused the new
   parameters (the loop undid that piece), OK when applied, or when the loop
-  is not ticking (queued: applied at its first tick). This backend must be
-  the ``cal`` ring's only producer.
+  is not ticking (queued: applied at its first tick). The ``cal`` ring has
+  one producer side: every producer (this backend, the control channel,
+  ``rt_loop.control``) pushes through ``push_writes`` holding the same lock
+  (``Server.cal_lock``, given as ``cal_lock``; the loop never takes it), and
+  the write ids continue from the ring's last entry, so they increase in
+  ring order whoever queued them.
 * DAQ: a configuration goes into ``daq[(daq_gen + 1) & 1]``, then
   ``daq_gen`` is incremented; while the loop ticks, the other slot is
   written again only once ``daq_ack == daq_gen`` (waited for at most
@@ -39,6 +43,7 @@ with the ring's own atomics.
 from __future__ import annotations
 
 import struct
+import threading
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -61,7 +66,7 @@ from rt_loop.xcp.protocol import (
     merge_ranges,
 )
 
-__all__ = ["LoopBackend", "set_regions", "loop_events"]
+__all__ = ["LoopBackend", "loop_events", "push_writes", "set_regions"]
 
 _DTO_BATCH = 512
 _POLL_S = 0.0002
@@ -91,6 +96,36 @@ def set_regions(ffi: Any, lib: Any, loop: Any, regions: Sequence[tuple]) -> None
     loop.n_regions = len(regions)
 
 
+def push_writes(ffi: Any, lib: Any, loop: Any, pieces: Sequence[tuple[int, bytes]],
+                lock: Any) -> tuple[int, int] | None:
+    """Queues ``pieces`` ((offset, bytes of at most RT_WRITE_BYTES) each) into the
+    loop's ``cal`` ring, all or none, holding ``lock`` (the ring's one producer
+    side, shared by every producer). Their ids continue from the last entry
+    queued, by whichever producer. Returns (first id, last id), or None when
+    the ring has no room for all of them (nothing queued)."""
+    cal = loop.cal
+    size = int(lib.RT_WRITE_RING_SIZE)
+    with lock:
+        head = int(cal.head)
+        used = (head - int(cal.tail)) & 0xFFFFFFFF
+        if size - used < len(pieces):
+            return None
+        last_queued = int(cal.writes[(head - 1) & (size - 1)].id) if head else 0
+        first = max(last_queued, int(cal.last_applied_id), int(cal.last_refused_id)) + 1
+        writes = ffi.new("rt_write[]", len(pieces))
+        for k, (offset, blob) in enumerate(pieces):
+            w = writes[k]
+            w.time_s = 0.0
+            w.offset = offset
+            w.len = len(blob)
+            w.id = first + k
+            ffi.memmove(w.data, blob, len(blob))
+        queued = lib.rt_write_push_many(ffi.addressof(loop, "cal"), writes, len(pieces))
+        if queued != len(pieces):          # cannot happen: room was checked under the lock
+            return None
+        return first, first + len(pieces) - 1
+
+
 def loop_events(loop: Any) -> tuple[Event, ...]:
     """The loop's event channels in wall-clock time: every tick, every
     10 ms and every 100 ms of plant time (stretched by the time scale)."""
@@ -118,6 +153,7 @@ class LoopBackend(Memory, Daq):
         ranges: Sequence[tuple] | None = None,
         write_wait_s: float = 0.2,
         ack_wait_s: float = 0.2,
+        cal_lock: Any = None,
     ) -> None:
         self.ffi, self.lib, self.loop = ffi, lib, loop
         self.size = ffi.sizeof("rt_loop")
@@ -135,7 +171,8 @@ class LoopBackend(Memory, Daq):
         self._loop_ptr = loop if ffi.typeof(loop).kind == "pointer" else ffi.addressof(loop)
         self._cal = ffi.addressof(loop, "cal")
         self._ring = ffi.addressof(loop, "daq_ring")
-        self._next_id = max(int(loop.cal.last_applied_id), int(loop.cal.last_refused_id)) + 1
+        #: held while pushing into the cal ring (shared with its other producers)
+        self.cal_lock = cal_lock if cal_lock is not None else threading.Lock()
         self._dto_buf = ffi.new("rt_dto[]", _DTO_BATCH)
         self._dto_size = ffi.sizeof("rt_dto")
         self._off_time = ffi.offsetof("rt_dto", "time_ns")
@@ -228,30 +265,17 @@ class LoopBackend(Memory, Daq):
         if not self._in_range(address, data):
             self._counts["writes_out_of_range"] += 1
             return ERR_OUT_OF_RANGE
-        ffi, lib, cal = self.ffi, self.lib, self.loop.cal
-        free = int(lib.RT_WRITE_RING_SIZE) - ((int(cal.head) - int(cal.tail)) & 0xFFFFFFFF)
-        if free < len(pieces):
+        cal = self.loop.cal
+        ids = push_writes(self.ffi, self.lib, self.loop, pieces, self.cal_lock)
+        if ids is None:
             return ERR_CMD_BUSY
-        writes = ffi.new("rt_write[]", len(pieces))
-        first = self._next_id
-        for k, (offset, blob) in enumerate(pieces):
-            w = writes[k]
-            w.time_s = 0.0
-            w.offset = offset
-            w.len = len(blob)
-            w.id = first + k
-            ffi.memmove(w.data, blob, len(blob))
-        self._next_id += len(pieces)
-        last = self._next_id - 1
-        queued = lib.rt_write_push_many(self._cal, writes, len(pieces))
+        first, last = ids
         self._counts["writes"] += 1
-        self._counts["write_pieces"] += queued
-        if queued != len(pieces):                 # cannot happen: this is the only producer
-            return ERR_CMD_BUSY
+        self._counts["write_pieces"] += len(pieces)
         deadline = time.monotonic() + self.write_wait_s
         while self.ticking():
             if max(int(cal.last_applied_id), int(cal.last_refused_id)) >= last:
-                if int(cal.last_refused_id) >= first:
+                if first <= int(cal.last_refused_id) <= last:
                     self._counts["writes_refused"] += 1
                     return ERR_OUT_OF_RANGE       # the plant refused the values
                 return OK

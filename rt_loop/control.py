@@ -1,0 +1,497 @@
+"""The control channel: scripted tests drive a running plant server through a
+local Unix domain socket, one JSON object per line each way.
+
+    dct-hil serve --control /tmp/bench.sock ...
+    printf '{"op": "read", "names": ["vehicle_speed_kmh", "gear"]}\\n' | nc -U /tmp/bench.sock
+
+``ControlServer(server, path)`` (started and stopped by ``Server`` when it is
+given ``control_path``) binds ``path`` with file mode 0600 (the owner only),
+serves any number of clients from one thread and removes the socket file on
+``stop()``. It never touches the tick: it reads a sequence-counted copy of
+the loop's statistics (a ``StatsReader`` of its own), the CAN signals'
+last values, and acts only through the server's own paths: plant inputs
+through the loop's ``cal`` ring (holding ``Server.cal_lock``, the ring's
+shared producer side), faults and watches through ``Server.faults``
+(``rt_loop.faults.FaultManager``), and a stop as ``rt_loop_request_stop``
+(whoever runs the server finalises its files).
+
+Requests (``{"op": ..., ...}``) and answers (``{"ok": true, ...}``):
+
+========================  =====================================================
+``ping``                  ``time_s``: plant time
+``snapshot``              ``snapshot``: ``Server.snapshot()``
+``read {names}``          ``values``: {name: value}; a name is a plant output
+                          (``vehicle_speed_kmh``, ``time_s``, ``gear``, ...),
+                          ``maneuver_time_s``, a received value ``cmd.<name>``,
+                          or a CAN signal ``Message.Signal`` (its last value)
+``set {name, value}``     a writable plant input (``road_grade_pct``,
+                          ``accel_pedal_pct``, ... or ``override.<input>``, and
+                          the parameters marked online, ``params.<name>``);
+                          ``applied``: the loop took it (False: queued)
+``inject {spec}``         ``id``: a fault (``rt_loop.faults`` spec)
+``watch {when}``          ``id``: a watch (latches the plant time ``when`` holds)
+``clear {id}``            the fault or watch ends and is freed
+``clear_all``
+``faults``                ``faults``: the set faults and watches (state, times)
+``events``                ``events``: every start and end so far
+``config``                ``config``: ``Server.config()`` (transport, files, ...)
+``stop``                  the loop stops; ``report``: the server's report
+========================  =====================================================
+
+A request that cannot be served (not JSON, unknown op, unknown name, value
+out of range, bad fault spec) is answered ``{"ok": false, "error": "<one
+line>"}`` and changes nothing; the channel keeps serving. NaN in answers is
+written as null.
+
+``ControlClient(path)`` is the other end (``request(op, **fields)``; a
+refused request raises ``ControlError`` with the server's line).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import math
+import os
+import selectors
+import socket
+import stat
+import struct
+import threading
+import time
+from typing import Any
+
+__all__ = ["ControlClient", "ControlError", "ControlServer", "check_socket_path"]
+
+#: longest request line accepted (bytes)
+MAX_LINE = 1 << 20
+#: how long a set waits for the loop to take the write (wall seconds)
+WRITE_WAIT_S = 0.5
+#: how long a stop waits for the loop to end before answering
+STOP_WAIT_S = 10.0
+_POLL_S = 0.1
+
+
+class ControlError(RuntimeError):
+    """A refused request or a channel that cannot be used (one line)."""
+
+
+class _Refused(Exception):
+    """A request answered ok: false."""
+
+
+def _one_line(text: Any) -> str:
+    return " ".join(str(text).split())
+
+
+def check_socket_path(path: str, error: type = ControlError) -> None:
+    """Raises ``error`` (one line) when ``path`` cannot be a control socket:
+    too long for a Unix socket address, in a folder that does not exist, or an
+    existing file that is not a socket."""
+    if len(os.fsencode(path)) > 107:
+        raise error(f"control socket {path}: the path is too long for a Unix socket "
+                    "(at most 107 bytes)")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise error(f"control socket {path}: folder {folder} does not exist")
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise error(f"control socket {path}: {e.strerror}") from None
+    if not stat.S_ISSOCK(st.st_mode):
+        raise error(f"control socket {path}: exists and is not a socket")
+
+
+def _clean(value: Any) -> Any:
+    """JSON-ready: NaN and infinities become None, tuples lists."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    return value
+
+
+class ControlServer:
+    """Serves a running ``rt_loop.server.Server`` on a Unix domain socket (one thread)."""
+
+    def __init__(self, server: Any, path: str | os.PathLike | None) -> None:
+        from rt_loop.faults import FaultError  # noqa: PLC0415
+        from rt_loop.stats import StatsReader  # noqa: PLC0415
+        from rt_loop.stimulus import writable_of_regions  # noqa: PLC0415
+        from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
+
+        self.server = server
+        self.path = None if path is None else os.fspath(path)   # None: in-process only
+        if self.path is not None:
+            check_socket_path(self.path)
+        self._ffi, self._lib, self._loop = server._ffi, server._lib, server._l
+        self._FaultError = FaultError
+        self._stats = StatsReader(self._ffi, self._lib, self._loop, server.channels)
+        self._names = server.faults.names
+        #: what ``set`` may write: {name: (offset, size, lo, hi)}
+        self.writable = writable_of_regions(_a2l.calibration_regions(self._ffi, self._lib))
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._wake_r, self._wake_w = -1, -1
+        self.counts = {"clients": 0, "requests": 0, "refused": 0, "writes": 0}
+        self._ops = {
+            "ping": self._ping, "snapshot": self._snapshot, "read": self._read,
+            "set": self._set, "inject": self._inject, "watch": self._watch,
+            "clear": self._clear, "clear_all": self._clear_all, "faults": self._faults,
+            "events": self._events, "config": self._config, "stop": self._stop_loop,
+        }
+
+    # ------------------------------------------------------------ life cycle
+    def start(self) -> None:
+        """Binds the socket (mode 0600) and starts the serving thread. A stale
+        socket file (nobody listening) is replaced; a live one raises OSError
+        (EADDRINUSE)."""
+        path = self.path
+        if path is None:
+            raise ControlError("an in-process control channel has no socket to serve")
+        if os.path.exists(path):
+            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                probe.connect(path)
+            except OSError:
+                os.unlink(path)               # stale: left by a run that was killed
+            else:
+                raise OSError(errno.EADDRINUSE, "a server is already listening there")
+            finally:
+                probe.close()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)                 # created 0600, never wider, not even briefly
+        try:
+            sock.bind(path)
+        except OSError:
+            sock.close()
+            raise
+        finally:
+            os.umask(old)
+        os.chmod(path, 0o600)
+        sock.listen(8)
+        sock.setblocking(False)
+        self._sock = sock
+        self._ino = os.stat(path).st_ino
+        self._wake_r, self._wake_w = os.pipe()
+        self._thread = threading.Thread(target=self._serve, name="control", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stops the thread, closes every connection, removes the socket file."""
+        if self._sock is None:
+            return
+        self._stop.set()
+        try:
+            os.write(self._wake_w, b"x")
+        except OSError:
+            pass
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(5.0)
+        self._sock.close()
+        self._sock = None
+        try:                                   # only the file this server made
+            if os.stat(self.path).st_ino == self._ino:
+                os.unlink(self.path)
+        except OSError:
+            pass
+        for fd in (self._wake_r, self._wake_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def counters(self) -> dict:
+        return {"path": self.path, **self.counts}
+
+    # ------------------------------------------------------------ serving
+    def _serve(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self._sock, selectors.EVENT_READ, None)
+        sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        buffers: dict[socket.socket, bytearray] = {}
+        try:
+            while not self._stop.is_set():
+                for key, _ in sel.select(_POLL_S):
+                    if key.data == "wake":
+                        continue
+                    if key.data is None:
+                        try:
+                            conn, _ = self._sock.accept()
+                        except OSError:
+                            continue
+                        conn.setblocking(True)
+                        conn.settimeout(5.0)
+                        buffers[conn] = bytearray()
+                        sel.register(conn, selectors.EVENT_READ, "client")
+                        self.counts["clients"] += 1
+                        continue
+                    conn = key.fileobj
+                    if not self._receive(conn, buffers[conn]):
+                        sel.unregister(conn)
+                        del buffers[conn]
+                        conn.close()
+        finally:
+            for conn in buffers:
+                try:
+                    conn.close()
+                except OSError:
+                    pass
+            sel.close()
+
+    def _receive(self, conn: socket.socket, buf: bytearray) -> bool:
+        """Reads what arrived, answers every complete line; False: close it."""
+        try:
+            data = conn.recv(65536)
+        except OSError:
+            return False
+        if not data:
+            return False
+        buf += data
+        while True:
+            end = buf.find(b"\n")
+            if end < 0:
+                if len(buf) > MAX_LINE:
+                    self._send(conn, {"ok": False, "error": f"request longer than {MAX_LINE} "
+                                      "bytes without a newline"})
+                    return False
+                return True
+            line = bytes(buf[:end])
+            del buf[:end + 1]
+            if not line.strip():
+                continue
+            if not self._send(conn, self.handle_line(line)):
+                return False
+
+    @staticmethod
+    def _send(conn: socket.socket, answer: dict) -> bool:
+        try:
+            conn.sendall(json.dumps(_clean(answer)).encode() + b"\n")
+            return True
+        except (OSError, ValueError, TypeError):
+            return False
+
+    def handle_line(self, line: bytes | str) -> dict:
+        """The answer to one request line (never raises)."""
+        try:
+            request = json.loads(line)
+        except (ValueError, UnicodeDecodeError) as e:
+            self.counts["requests"] += 1
+            self.counts["refused"] += 1
+            return {"ok": False, "error": f"not JSON: {_one_line(e)}"}
+        return self.handle(request)
+
+    def handle(self, request: Any) -> dict:
+        """The answer to one request (a decoded JSON object; never raises).
+        In-process users (``dct_hil.bench``) call it directly: the same
+        checks and answers as over the socket."""
+        self.counts["requests"] += 1
+        try:
+            if not isinstance(request, dict):
+                raise _Refused("a request is a JSON object with an op, e.g. {\"op\": \"ping\"}")
+            op = request.get("op")
+            if op not in self._ops:
+                raise _Refused(f"unknown op {op!r}; ops: " + ", ".join(self._ops))
+            return _clean({"ok": True, **self._ops[op](request)})
+        except _Refused as e:
+            self.counts["refused"] += 1
+            return {"ok": False, "error": _one_line(e)}
+        except self._FaultError as e:
+            self.counts["refused"] += 1
+            return {"ok": False, "error": _one_line(e)}
+        except Exception as e:  # noqa: BLE001 (the channel keeps serving)
+            self.counts["refused"] += 1
+            return {"ok": False, "error": f"{type(e).__name__}: {_one_line(e)}"}
+
+    # ------------------------------------------------------------ values
+    def _copy(self) -> Any:
+        return self._stats.read()
+
+    def read_values(self, names: Any) -> dict:
+        """{name: value} of plant outputs, maneuver_time_s, cmd.<name> and
+        Message.Signal; raises _Refused naming the first unknown name."""
+        if isinstance(names, str):
+            names = [names]
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+            raise _Refused("read needs names: a list of value names")
+        s = self._copy()
+        values = {}
+        nm = self._names
+        commands = None
+        for name in names:
+            if name in nm.outputs:
+                values[name] = float(getattr(s.outputs, name))
+            elif name == "maneuver_time_s":
+                t = float(s.maneuver_time_s)
+                values[name] = t if t >= 0 else None
+            elif name == "sim_time_s":
+                values[name] = float(s.sim_time_s)
+            elif name.startswith("cmd.") and name[4:] in nm.commands:
+                if commands is None:
+                    commands = s.commands
+                values[name] = float(commands[nm.commands[name[4:]]])
+            elif name in nm.signals:
+                values[name] = float(self._loop.signal_values[nm.signals[name][2]])
+            else:
+                try:
+                    nm.operand(name, "read")
+                except self._FaultError as e:
+                    raise _Refused(str(e)) from None
+                raise _Refused(f"read: {name!r} cannot be read")
+        return values
+
+    def _ping(self, _r: dict) -> dict:
+        s = self._copy()
+        return {"time_s": float(s.sim_time_s), "state": self._stats.state}
+
+    def _snapshot(self, _r: dict) -> dict:
+        return {"snapshot": self.server.snapshot()}
+
+    def _read(self, r: dict) -> dict:
+        return {"values": self.read_values(r.get("names"))}
+
+    # ------------------------------------------------------------ writes
+    def target(self, name: Any) -> tuple[str, tuple]:
+        """(region name, (offset, size, lo, hi)) of a name ``set`` may write."""
+        if not isinstance(name, str) or not name:
+            raise _Refused("set needs name: a plant input such as road_grade_pct")
+        key = name if name in self.writable else f"override.{name}"
+        if key not in self.writable:
+            inputs = sorted(n.split(".", 1)[1] for n in self.writable
+                            if n.startswith("override."))
+            raise _Refused(f"set: {name!r} is not a plant input a test may set (inputs: "
+                           + ", ".join(inputs) + "; or an online params.<name>)")
+        if key in ("override.accel_pedal_pct", "override.brake_pedal_pct") and \
+                self.server.driver_rows:
+            raise _Refused(f"set: {name} is played by the maneuver's driver table in this run")
+        return key, self.writable[key]
+
+    def write_value(self, name: Any, value: Any) -> bool:
+        """Queues one value into the cal ring (holding the server's cal_lock);
+        True once the loop applied it, False when it is still queued."""
+        from rt_loop.xcp.loop_backend import push_writes  # noqa: PLC0415
+
+        key, (offset, size, lo, hi) = self.target(name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise _Refused(f"set: {name} value must be a number, got {value!r}")
+        x = float(value)
+        if not math.isfinite(x) or not (lo <= x <= hi):
+            raise _Refused(f"set: {name} = {value!r} is outside {lo:g} .. {hi:g}")
+        if size != 8:
+            raise _Refused(f"set: {name} is not a single value")
+        ids = push_writes(self._ffi, self._lib, self._loop, [(offset, struct.pack("<d", x))],
+                          self.server.cal_lock)
+        if ids is None:
+            raise _Refused("set: the loop's write ring is full (is the loop ticking?)")
+        self.counts["writes"] += 1
+        first, last = ids
+        cal = self._loop.cal
+        deadline = time.monotonic() + WRITE_WAIT_S
+        while self.server.running and time.monotonic() < deadline:
+            if max(int(cal.last_applied_id), int(cal.last_refused_id)) >= last:
+                if first <= int(cal.last_refused_id) <= last:
+                    raise _Refused(f"set: the loop refused {name} = {value!r}")
+                return True
+            time.sleep(0.0005)
+        return False
+
+    def _set(self, r: dict) -> dict:
+        if "value" not in r:
+            raise _Refused("set needs value")
+        return {"applied": self.write_value(r.get("name"), r["value"])}
+
+    # ------------------------------------------------------------ faults
+    def _inject(self, r: dict) -> dict:
+        spec = r.get("spec")
+        if not isinstance(spec, dict):
+            raise _Refused("inject needs spec: a fault table such as {\"kind\": \"can.omit\", "
+                           "\"message\": \"VEH_Driver\"}")
+        return {"id": self.server.faults.inject(spec)}
+
+    def _watch(self, r: dict) -> dict:
+        when = r.get("when")
+        start = r.get("start_s")
+        return {"id": self.server.faults.watch(when, start_s=start)}
+
+    def _fault_id(self, r: dict) -> int:
+        fid = r.get("id")
+        if isinstance(fid, bool) or not isinstance(fid, int):
+            raise _Refused(f"clear needs id: the number inject or watch returned, got {fid!r}")
+        return fid
+
+    def _clear(self, r: dict) -> dict:
+        self.server.faults.clear(self._fault_id(r))
+        return {}
+
+    def _clear_all(self, _r: dict) -> dict:
+        self.server.faults.clear_all()
+        return {}
+
+    def _faults(self, _r: dict) -> dict:
+        s = self._copy()
+        return {"faults": self.server.faults.status(s), "time_s": float(s.sim_time_s)}
+
+    def _events(self, _r: dict) -> dict:
+        return {"events": self.server.faults.events()}
+
+    def _config(self, _r: dict) -> dict:
+        return {"config": self.server.config()}
+
+    # ------------------------------------------------------------ stop
+    def _stop_loop(self, _r: dict) -> dict:
+        self._lib.rt_loop_request_stop(self._loop)
+        self.server.wait(STOP_WAIT_S)
+        return {"report": self.server.report(histograms=False)}
+
+
+class ControlClient:
+    """A client of the control channel: ``request(op, **fields)`` returns the
+    answer's fields (without ``ok``); a refused request raises ControlError
+    with the server's one line."""
+
+    def __init__(self, path: str | os.PathLike, timeout_s: float = 30.0) -> None:
+        self.path = os.fspath(path)
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.settimeout(timeout_s)
+        try:
+            sock.connect(self.path)
+        except OSError as e:
+            sock.close()
+            raise ControlError(f"control socket {self.path}: {e.strerror or _one_line(e)} "
+                               "(is dct-hil serve --control running?)") from None
+        self._sock = sock
+        self._file = sock.makefile("rb")
+        self._lock = threading.Lock()
+
+    def request(self, op: str, **fields: Any) -> dict:
+        line = json.dumps({"op": op, **fields}).encode() + b"\n"
+        with self._lock:
+            try:
+                self._sock.sendall(line)
+                answer = self._file.readline()
+            except OSError as e:
+                raise ControlError(f"control socket {self.path}: {e.strerror or _one_line(e)}"
+                                   ) from None
+        if not answer:
+            raise ControlError(f"control socket {self.path}: the server closed the connection")
+        reply = json.loads(answer)
+        if not reply.pop("ok", False):
+            raise ControlError(reply.get("error", "refused"))
+        return reply
+
+    def close(self) -> None:
+        try:
+            self._file.close()
+        finally:
+            self._sock.close()
+
+    def __enter__(self) -> ControlClient:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
