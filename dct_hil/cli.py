@@ -194,6 +194,10 @@ def build_parser():
     serve.add_argument("--xcp-key", metavar="FILE",
                        help="seed & key: the secret in FILE (at least 16 bytes) locks calibration "
                             "and DAQ until the master unlocks them (HMAC-SHA256 of the seed)")
+    _add_control_option(serve)
+    serve.add_argument("--faults", metavar="FILE.toml",
+                       help="inject the faults of a [[fault]] file (rt_loop.faults: kind, target, "
+                            "parameters, start_s / when / duration_s), checked whole before the run")
     serve.set_defaults(func=cmd_serve)
 
     from tcu_stub import can_tcu
@@ -250,6 +254,7 @@ def build_parser():
     demo.add_argument("--mf4", action="store_true",
                       help="record plant.mf4 (ASAM MDF4: every plant output with its unit and the "
                            "CAN traffic as bus logging) instead of plant.csv")
+    _add_control_option(demo)
     demo.set_defaults(func=cmd_demo)
 
     doctor = sub.add_parser(
@@ -328,6 +333,13 @@ def _add_mapping_options(p, what):
                    help="the CAN channel of a bus of the mapping other than the first (which is "
                         "on --channel); repeatable. Default on interfaces other than socketcan: "
                         "CHANNEL-NAME")
+
+
+def _add_control_option(parser):
+    parser.add_argument("--control", metavar="PATH",
+                        help="serve the control channel on the Unix socket PATH (mode 0600, "
+                             "removed on exit): scripted tests read values, set plant inputs, "
+                             "inject faults and wait on conditions (dct_hil.bench.Bench.attach)")
 
 
 def _add_pm_qos_options(parser):
@@ -864,6 +876,7 @@ def cmd_serve(args):
             pm_qos_us=args.pm_qos_us, mapping=mapping, bus_channels=bus_channels,
             xcp=args.xcp, xcp_protocol="tcp" if args.xcp_tcp else "udp", xcp_key=args.xcp_key,
             stimulus_path=args.stimulus, stimulus_start=args.stimulus_start,
+            faults_path=args.faults, control_path=args.control,
         )
         return run_console(server, args.stats, quiet=args.quiet, strict=args.strict)
     except (ServerError, TransportError) as e:
@@ -889,7 +902,7 @@ def cmd_demo(args):
                         time_scale=args.time_scale, priority=args.priority, quiet=args.quiet,
                         duration_s=args.duration, tcu_clock=args.tcu_clock,
                         pm_qos_us=args.pm_qos_us, strict=args.strict, mapping=mapping,
-                        bus_channels=bus_channels, mf4=args.mf4)
+                        bus_channels=bus_channels, mf4=args.mf4, control_path=args.control)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 

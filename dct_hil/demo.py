@@ -212,7 +212,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
              time_scale: float = 1.0, priority: int | None = None, quiet: bool = False,
              duration_s: float | None = None, tcu_clock: str | None = None,
              pm_qos_us: int | str | None = "auto", strict: bool = False, out=None, err=None,
-             mapping=None, bus_channels: dict | None = None, mf4: bool = False) -> int:
+             mapping=None, bus_channels: dict | None = None, mf4: bool = False,
+             control_path: str | os.PathLike | None = None) -> int:
     """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C; with
     ``strict``, 3 for a run that would exit 0 but whose timing verdict is INVALID).
 
@@ -225,7 +226,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     buses on the channels ``bus_channels`` names (``Server``); the shifts are
     compared with the offline run over the project's own contract. ``mf4``:
     the recording is ``plant.mf4`` (ASAM MDF4 with the CAN traffic as bus
-    logging) instead of ``plant.csv``."""
+    logging) instead of ``plant.csv``. ``control_path``: the server's control
+    channel on that Unix socket (``rt_loop.control``)."""
     from plant import maneuvers as mv  # noqa: PLC0415
     from plant.plots import write_plots  # noqa: PLC0415
     from rt_loop.recorder import read_recording  # noqa: PLC0415
@@ -253,7 +255,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
                     maneuver_start="tcu", maneuver_end_s=end_s,
                     record_path=paths["recording"], record_every_s=RECORD_EVERY_S,
                     log_path=paths["can_log"], time_scale=time_scale, pm_qos_us=pm_qos_us,
-                    mapping=mapping, bus_channels=bus_channels)
+                    mapping=mapping, bus_channels=bus_channels, control_path=control_path)
     tcu_mapping = None if mapping is None else server.mapping
     print(f"dct-hil demo      {maneuver}: {m.description} ({end_s:g} s"
           + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
