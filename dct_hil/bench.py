@@ -93,7 +93,7 @@ class Bench:
         self._stopped = False
         self.tcu_report: dict | None = None
         self._status_signals: list[str] | None = None
-        self._diag: Any = False
+        self._final_events: list | None = None
 
     # ------------------------------------------------------------------ set-up
     @classmethod
@@ -277,7 +277,10 @@ class Bench:
     def events(self, watches: bool = False) -> list[dict]:
         """Every fault start and end so far (plant time; the watches of
         ``wait_until`` only with ``watches``)."""
-        events = self._request("events")["events"]
+        if self._stopped and self._final_events is not None:
+            events = self._final_events
+        else:
+            events = self._request("events")["events"]
         return events if watches else [e for e in events if e["kind"] != "watch"]
 
     # ------------------------------------------------------------------ time
@@ -391,6 +394,10 @@ class Bench:
         returns the server's report (again on a second call)."""
         if self._stopped:
             return self._report or {}
+        try:
+            self._final_events = self._request("events")["events"]
+        except BenchError:
+            pass
         if self.server is None:                  # attached: the serving process finalises
             try:
                 self._report = self._request("stop")["report"]

@@ -1,0 +1,144 @@
+"""The pytest plugin of the HiL bench (registered as the ``pytest11`` entry
+point ``dct_hil``): a ``bench`` fixture, its command-line options and markers.
+
+    def test_launch(bench):                        # a fresh bench per test
+        bench.set("accel_pedal_pct", 30)
+        bench.wait_until("gear == 2", timeout_s=8)
+
+    @pytest.mark.bench(maneuver="0-100", record="out/0-100.mf4")
+    def test_full_throttle(bench): ...
+
+    @pytest.mark.tcu_under_test                    # no reference TCU: yours is on the bus
+    def test_my_tcu(bench): ...
+
+Options: ``--bench-transport embedded|socketcan`` (default embedded:
+python-can's in-process bus, the reference TCU in a thread),
+``--bench-channel NAME`` (SocketCAN: default vcan0), ``--bench-tcu
+reference|external`` (external: no reference TCU for any test),
+``--bench-time-scale X`` (slow motion, 0 < X <= 1), ``--bench-recordings
+DIR`` (one recording per test, ``DIR/<test name>.mf4``: kept when the test
+fails, deleted when it passes unless ``--bench-keep-recordings``).
+
+The marker ``bench(...)`` takes ``dct_hil.bench.Bench.start``'s keywords
+for one test (``transport``, ``channel``, ``maneuver``, ``record``,
+``params``, ``mapping``, ``time_scale``, ``faults``, ...). With
+``--junitxml`` each test using the fixture carries the properties
+``bench_recording`` (the recording's path, when kept) and
+``bench_fault_events`` (the faults' starts and ends, JSON).
+
+Importing this module costs nothing beyond pytest: the bench is imported
+when the fixture is first used.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+
+import pytest
+
+_REPORTS = pytest.StashKey[dict]()
+_SAFE = re.compile(r"[^\w.\-\[\]=+,]")
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("dct-hil", "dct-hil HiL bench (the bench fixture)")
+    group.addoption("--bench-transport", choices=("embedded", "socketcan"), default="embedded",
+                    help="embedded: python-can's in-process bus, the reference TCU in a thread "
+                         "(default); socketcan: --bench-channel, the reference TCU as a process")
+    group.addoption("--bench-channel", default=None, metavar="NAME",
+                    help="the SocketCAN interface (default vcan0)")
+    group.addoption("--bench-tcu", choices=("reference", "external"), default="reference",
+                    help="reference: the bench starts the reference TCU (default); external: the "
+                         "TCU under test is on the bus")
+    group.addoption("--bench-time-scale", type=float, default=None, metavar="X",
+                    help="run plant and reference TCU in slow motion (0 < X <= 1)")
+    group.addoption("--bench-recordings", default=None, metavar="DIR",
+                    help="record each test as DIR/<test name>.mf4: kept when it fails, deleted "
+                         "when it passes unless --bench-keep-recordings")
+    group.addoption("--bench-keep-recordings", action="store_true",
+                    help="keep the recordings of passing tests too")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers", "bench(transport=None, maneuver=None, record=None, **kwargs): settings of "
+                   "the bench fixture for this test (dct_hil.bench.Bench.start's keywords)")
+    config.addinivalue_line(
+        "markers", "tcu_under_test: the bench starts no reference TCU (the TCU under test is on "
+                   "the bus)")
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
+    report = yield
+    item.stash.setdefault(_REPORTS, {})[report.when] = report
+    return report
+
+
+def _failed(item: pytest.Item) -> bool:
+    reports = item.stash.get(_REPORTS, {})
+    return any(r.failed for r in reports.values())
+
+
+def recording_path(folder: str, name: str) -> str:
+    """``folder/<name>.mf4`` with the characters a file name should not hold replaced."""
+    return os.path.join(folder, _SAFE.sub("_", name) + ".mf4")
+
+
+def bench_settings(item: pytest.Item, config: pytest.Config) -> dict:
+    """The keywords of ``Bench.start`` for one test: options, then its marker."""
+    opt = config.option
+    kwargs: dict = {"transport": opt.bench_transport}
+    if opt.bench_channel:
+        kwargs["channel"] = opt.bench_channel
+    if opt.bench_time_scale is not None:
+        kwargs["time_scale"] = opt.bench_time_scale
+    marker = item.get_closest_marker("bench")
+    if marker is not None:
+        if marker.args:
+            raise pytest.UsageError(f"{item.nodeid}: bench(...) takes keywords only")
+        kwargs.update(marker.kwargs)
+    kwargs["tcu"] = not (item.get_closest_marker("tcu_under_test") is not None
+                         or opt.bench_tcu == "external")
+    if kwargs.get("record") is None and opt.bench_recordings:
+        kwargs["record"] = recording_path(opt.bench_recordings, item.name)
+    return kwargs
+
+
+@pytest.fixture
+def bench(request: pytest.FixtureRequest):
+    """A fresh ``dct_hil.bench.Bench`` for this test, stopped after it."""
+    from dct_hil.bench import Bench, BenchError  # noqa: PLC0415
+
+    item = request.node
+    kwargs = bench_settings(item, request.config)
+    record = kwargs.get("record")
+    explicit = item.get_closest_marker("bench") is not None and \
+        item.get_closest_marker("bench").kwargs.get("record") is not None
+    try:
+        b = Bench.start(**kwargs)
+    except BenchError as e:
+        pytest.fail(f"the bench did not start: {e}", pytrace=False)
+    events: list = []
+    try:
+        yield b
+    finally:
+        try:
+            b.stop()
+        finally:
+            try:
+                events = b.events()
+            except BenchError:
+                pass
+        item.user_properties.append(("bench_fault_events", json.dumps(events)))
+        if record is not None:
+            keep = explicit or request.config.option.bench_keep_recordings or _failed(item)
+            if keep:
+                item.user_properties.append(("bench_recording", os.fspath(record)))
+            else:
+                try:
+                    os.unlink(record)
+                except OSError:
+                    pass
