@@ -463,6 +463,7 @@ class FaultManager:
         self._slots: dict[int, int] = {}          # id -> slot
         self._faults: dict[int, Fault] = {}       # id -> fault (as injected)
         self._events: list[dict] = []
+        self._taken = 0
         self._cmd = ffi.new("rt_fault_cmd *")
         self._ev = ffi.new("rt_fault_event[]", 256)
 
@@ -566,6 +567,14 @@ class FaultManager:
                 if n < 256:
                     break
             return list(self._events)
+
+    def take_events(self) -> list[dict]:
+        """The events not taken by an earlier call (for one reader: the recorder)."""
+        events = self.events()
+        with self._lock:
+            new = events[self._taken:]
+            self._taken = len(events)
+        return new
 
     def status(self, stats: Any = None) -> list[dict]:
         """The set faults as the loop last published them (``stats``: an

@@ -308,6 +308,8 @@ class MdfRecorder(RingDrain):
         self.compression_level = int(compression_level)
         self.frames_written = 0
         self.frames_handed = 0
+        self.fault_events: Any = None     # callable: the fault events not taken yet
+        self.fault_events_written = 0
         self._lock = threading.Lock()
         self._frames: list[np.ndarray] = []      # handed by add_frames, not yet added
         self._file: _Mf4File | None = None
@@ -347,10 +349,10 @@ class MdfRecorder(RingDrain):
         # outputs, maneuver time, tick (its bits), the commands
         self._cols = np.array([base_o + outputs.index("time_s")]
                               + list(range(base_o, base_o + len(outputs)))
-                              + [fields["maneuver_time_s"].offset // 8, 0]
+                              + [fields["maneuver_time_s"].offset // 8, 0, lay.fault_mask]
                               + [base_c + k for k, _ in cmd_extra], dtype=np.intp)
         plant_dtype = np.dtype([("time", "<f8")]
-                               + [(c, "<u8" if c == "tick" else "<f8") for c in self.columns])
+                               + [(c, "<u8" if c in _BITS else "<f8") for c in self.columns])
 
         comments = output_comments()
         wall0 = time.time() if wall0 is None else float(wall0)
@@ -365,7 +367,7 @@ class MdfRecorder(RingDrain):
         empty_t = np.zeros(0, dtype="<f8")
         signals = []
         for c in self.columns:
-            dtype = "<u8" if c == "tick" else "<f8"
+            dtype = "<u8" if c in _BITS else "<f8"
             signals.append(Signal(np.zeros(0, dtype=dtype), empty_t, name=c,
                                   unit=_unit(c), comment=self._comment(c, outputs, comments)))
         mdf.append(signals, acq_name="plant",
@@ -383,7 +385,20 @@ class MdfRecorder(RingDrain):
                        acq_name="CAN", comment=f"{name}: BusChannel {buses}")
             layouts.append((name, np.dtype([("time", "<f8")]
                                            + [(f, t) for f, t in fields_])))
-        self._bus_dtypes = {name: lay for name, lay in layouts[1:]}
+        # the fault starts and ends (rt_loop.faults): one record each
+        fault_fields = [("id", "<u4"), ("event", "u1"), ("kind", "<u2")]
+        mdf.append([Signal(np.zeros(0, dtype=t), empty_t, name=f"fault.{f}", comment=c)
+                    for (f, t), c in zip(fault_fields, (
+                        "the fault's id (the run report's faults.set and faults.events)",
+                        "1 started, 2 ended (its duration over), 3 cleared",
+                        "its kind: the RT_FAULT_* code of rt_loop.h"))],
+                   acq_name="faults",
+                   comment="fault starts and ends: master time = plant time (s)")
+        layouts.append(("faults", np.dtype([("time", "<f8")]
+                                           + [(f"fault.{f}", t) for f, t in fault_fields])))
+        self._fault_dtype = layouts[-1][1]
+        self._fault_codes = {name: int(getattr(lib, k.code)) for name, k in _fault_kinds().items()}
+        self._bus_dtypes = {name: lay for name, lay in layouts[1:-1]}
         try:
             self._file = _Mf4File(self._f, mdf, layouts, self.compression_level)
         except OSError as e:
@@ -411,6 +426,9 @@ class MdfRecorder(RingDrain):
             return "plant time since the scripted maneuver started (NaN before)"
         if column == "tick":
             return "the loop's executed tick of the sample"
+        if column == "fault_mask":
+            return ("fault slots active in the tick (bit k: slot k); the faults group holds "
+                    "their starts and ends")
         return (f"received value {column[4:]} as the loop applied it in the tick "
                 "(the mapping's input or recorded value)")
 
@@ -483,6 +501,7 @@ class MdfRecorder(RingDrain):
                         if k < _LOG_BATCH:
                             break
                 self._take_frames()
+                self._take_fault_events()
                 now = time.monotonic()
                 if (now - self._last_flush >= self.flush_s
                         or self._file.pending_bytes >= _MAX_PENDING_BYTES):
@@ -491,6 +510,20 @@ class MdfRecorder(RingDrain):
             except Exception as e:  # noqa: BLE001 (reported, not fatal to the loop)
                 self.error = f"{self.path}: {_cause(e)}"
         return n
+
+    def _take_fault_events(self) -> None:
+        if self.fault_events is None or self._file is None:
+            return
+        events = self.fault_events()
+        if not events:
+            return
+        r = np.zeros(len(events), dtype=self._fault_dtype)
+        what = {"start": 1, "end": 2, "cleared": 3}
+        for i, e in enumerate(events):
+            r[i] = (e["time_s"], e["id"], what.get(e["event"], 0),
+                    self._fault_codes.get(e["kind"], 0))
+        self._file.add(len(self._file.groups) - 1, r.tobytes())
+        self.fault_events_written += len(events)
 
     def _flush(self) -> None:
         if self._file.pending_bytes:
@@ -503,6 +536,7 @@ class MdfRecorder(RingDrain):
             return
         if self.error is None:
             self._take_frames()
+            self._take_fault_events()
             self._file.close()
         else:
             self._file._f.close()
@@ -529,6 +563,15 @@ class MdfRecorder(RingDrain):
                 "blocks": self.blocks, "bytes": self.bytes,
                 "group_bytes": ({g.name: g.stored for g in self._file.groups}
                                 if self._file is not None else {})}
+
+
+_BITS = ("tick", "fault_mask")      # plant columns stored as the uint64 they are
+
+
+def _fault_kinds() -> dict:
+    from rt_loop.faults import KINDS  # noqa: PLC0415
+
+    return KINDS
 
 
 def _unit(column: str) -> str:

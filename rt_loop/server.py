@@ -562,6 +562,7 @@ class Server:
             if self.logger is not None:
                 self.logger.start(ffi, lib, loop, wall0)
             if self.recorder is not None:
+                self.recorder.fault_events = self.faults.take_events
                 if isinstance(self.recorder, Recorder):
                     self.recorder.start(ffi, lib, loop)
                 else:                     # MF4: the CAN traffic too, from the log ring or the log

@@ -407,3 +407,43 @@ def test_no_fault_message_index_is_outside_the_loop():
         assert sig.name == name.split(".")[-1]
     assert MSG["DCT_Clutch"] == NAMES.messages["DCT_Clutch"]
     assert not math.isnan(invalid_value(CLUTCH_MSG.get_signal_by_name("LinePressure")))
+
+
+# ------------------------------------------------------------------ the run's records
+@pytest.mark.parametrize("suffix", ["csv", "mf4"])
+def test_a_recording_holds_each_faults_start_and_end(tmp_path, suffix):
+    from asammdf import MDF
+
+    from rt_loop.recorder import faults_path, read_recording
+    from rt_loop.server import Server
+
+    path = tmp_path / f"run.{suffix}"
+    srv = Server(f"faults-rec-{suffix}-{tmp_path.name}", interface="virtual", priority=0,
+                 duration_s=0.6, record_path=path)
+    fid = srv.faults.inject({"kind": "can.omit", "message": "DCT_Clutch", "start_s": 0.2,
+                             "duration_s": 0.2})
+    srv.start()
+    srv.wait(10)
+    srv.stop()
+    rec = read_recording(path)
+    on = rec["time_s"][rec["fault_mask"] == 1]
+    assert on.min() == pytest.approx(0.2 + PERIOD_S, abs=1e-9)
+    assert on.max() == pytest.approx(0.4 - PERIOD_S, abs=2 * PERIOD_S)
+    assert set(np.unique(rec["fault_mask"])) == {0, 1}
+    if suffix == "csv":
+        lines = open(faults_path(path)).read().splitlines()
+        assert lines[0] == "time_s,id,kind,target,event"
+        assert [ln.split(",")[4] for ln in lines[1:]] == ["start", "end"]
+        assert [float(ln.split(",")[0]) for ln in lines[1:]] == pytest.approx([0.2, 0.4], abs=1e-9)
+    else:
+        with MDF(str(path)) as mdf:
+            ev = mdf.get("fault.event")
+            assert list(ev.samples) == [1, 2]
+            assert list(ev.timestamps) == pytest.approx([0.2, 0.4], abs=1e-9)
+            assert list(mdf.get("fault.id").samples) == [fid, fid]
+            assert list(mdf.get("fault.kind").samples) == [lib.RT_FAULT_CAN_OMIT] * 2
+    # the run report lists the fault with its plant times
+    rep = srv.report(histograms=False)["faults"]
+    assert rep["set"][0]["started_s"] == pytest.approx(0.2, abs=1e-9)
+    assert rep["set"][0]["ended_s"] == pytest.approx(0.4, abs=1e-9)
+    assert [e["event"] for e in rep["events"]] == ["start", "end"]

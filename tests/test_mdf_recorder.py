@@ -108,7 +108,7 @@ def drain_tx(c, thread):
 
 
 def csv_columns(command_names):
-    return (OUTPUTS + ["maneuver_time_s", "tick"]
+    return (OUTPUTS + ["maneuver_time_s", "tick", "fault_mask"]
             + [f"cmd_{n}" for n in command_names if n not in OUTPUTS])
 
 
