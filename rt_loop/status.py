@@ -137,6 +137,9 @@ def screen_lines(snap: dict, server: Any = None) -> list[str]:
     if server is not None and server.recorder is not None:
         lines.append(f"recording   {c['record']['written']} samples written, "
                      f"{c['record']['dropped']} lost")
+    f = snap.get("faults")
+    if f and (f["active"] or f["changes"]):
+        lines.append(f"faults      {f['active']} active, {f['changes']} starts and ends")
     return lines
 
 
@@ -160,7 +163,9 @@ def status_line(snap: dict) -> str:
             + f" | engine {p['engine_speed_rpm']:.0f}rpm {_z(p['vehicle_speed_kmh'], 1):.1f}km/h "
             f"K1 {_z(p['clutch1_pressure_bar']):.2f} K2 {_z(p['clutch2_pressure_bar']):.2f} "
             f"line {_z(p['line_pressure_bar']):.2f}bar gears {_engaged(p)} driving "
-            f"{p.get('gear', 0)}" + extra)
+            f"{p.get('gear', 0)}" + extra
+            + (f" | faults {snap['faults']['active']} active"
+               if snap.get("faults", {}).get("active") else ""))
 
 
 class LiveStatus:
@@ -312,6 +317,14 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
     if log:
         lines.append(f"log               {log['path']} ({log['format']}): {log['written']} frames, "
                      f"{log['dropped']} lost" + (f"; ERROR {log['error']}" if log["error"] else ""))
+    faults = report.get("faults") or {}
+    if faults.get("events") or faults.get("set"):
+        lines.append(f"faults            {len(faults.get('set', []))} set, "
+                     f"{len(faults.get('events', []))} starts and ends (in {stats_path}: faults)")
+        for e in faults.get("events", [])[:20]:
+            lines.append(f"  {e['time_s']:10.4f} s  {e['event']:<7} #{e['id']} {e['target']}")
+        if len(faults.get("events", [])) > 20:
+            lines.append(f"  ... {len(faults['events']) - 20} more")
     lines.append(f"stats             {stats_path}")
     if report.get("verdict"):
         lines += verdict_lines(report["verdict"])
