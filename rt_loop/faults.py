@@ -167,6 +167,7 @@ class Names:
         self.messages: dict[str, int] = {}           # "Msg" and "bus:Msg" -> loop-wide index
         self.message_info: list[Any] = []            # loop-wide index -> MappedMessage
         self.signals: dict[str, tuple[int, int, int, Any]] = {}  # name -> (g, k, value index, sig)
+        self.protection: dict[str, str] = {}         # the protection fields: name -> crc/counter
         first_value = 0
         g = 0
         counts: dict[str, int] = {}
@@ -185,6 +186,8 @@ class Names:
                     entry = (g, k, first_value + k, by_name[sname].signal)
                     for key in keys:
                         self.signals[f"{key}.{sname}"] = entry
+                        if by_name[sname].protection_field is not None:
+                            self.protection[f"{key}.{sname}"] = by_name[sname].protection_field
                 first_value += len(table.signal_names(mi))
                 g += 1
 
@@ -335,6 +338,10 @@ def parse_fault(spec: Any, names: Names) -> Fault:
         if "signal" not in spec:
             raise FaultError(f"{what} needs signal = Message.Signal")
         g, k, index, sig = names.signal(spec["signal"], what)
+        field_ = names.protection.get(spec["signal"])
+        if field_ is not None and names.message_info[g].direction == "send":
+            raise FaultError(f"{what}: {spec['signal']!r} is the message's protection {field_} "
+                             "(written after the signals): use can.freeze_counter or can.bad_crc")
         d.update(message=g, local_signal=k, signal=index)
     elif kind.needs == "bus":
         bus = spec.get("bus")

@@ -342,6 +342,8 @@ NAMES = Names(ffi, lib, CHANNELS)
     ({"kind": "can.omit", "message": "TCU_ClutchCmd"}, ["does not send", "TCU_ClutchCmd"]),
     ({"kind": "signal.hold", "signal": "DCT_Clutch.Nope"}, ["DCT_Clutch.Nope"]),
     ({"kind": "signal.value", "signal": "DCT_Clutch.LinePressure"}, ["needs value"]),
+    ({"kind": "signal.hold", "signal": "DCT_Clutch.AliveCounter"},
+     ["protection counter", "can.freeze_counter"]),
     ({"kind": "clutch.friction_fade", "clutch": 1, "loss": 1.5}, ["loss", "outside"]),
     ({"kind": "clutch.friction_fade", "clutch": 3, "loss": 0.5}, ["clutch = 1 or 2"]),
     ({"kind": "fork.jammed", "sleeve": "7-8"}, ["sleeve"]),
