@@ -339,9 +339,10 @@ def parse_fault(spec: Any, names: Names) -> Fault:
             raise FaultError(f"{what} needs signal = Message.Signal")
         g, k, index, sig = names.signal(spec["signal"], what)
         field_ = names.protection.get(spec["signal"])
-        if field_ is not None and names.message_info[g].direction == "send":
+        if field_ is not None:
             raise FaultError(f"{what}: {spec['signal']!r} is the message's protection {field_} "
-                             "(written after the signals): use can.freeze_counter or can.bad_crc")
+                             "(written after and checked before the signals): use "
+                             "can.freeze_counter or can.bad_crc on a message the plant sends")
         d.update(message=g, local_signal=k, signal=index)
     elif kind.needs == "bus":
         bus = spec.get("bus")
