@@ -137,8 +137,9 @@ def bench(request: pytest.FixtureRequest):
             keep = explicit or request.config.option.bench_keep_recordings or _failed(item)
             if keep:
                 item.user_properties.append(("bench_recording", os.fspath(record)))
-            else:
-                try:
-                    os.unlink(record)
-                except OSError:
-                    pass
+            else:                     # the recording and a CSV recording's fault events beside it
+                for path in (record, os.path.splitext(os.fspath(record))[0] + ".faults.csv"):
+                    try:
+                        os.unlink(path)
+                    except OSError:
+                        pass
