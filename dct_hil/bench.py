@@ -210,11 +210,14 @@ class Bench:
                    channel=config.get("channel"))
 
     def _await_tcu(self, timeout_s: float) -> None:
-        """Until every TCU message has been accepted and none is timed out."""
+        """Until every TCU message the mapping needs (not ``optional``, such as a
+        status a foreign TCU may not have) has been accepted and none is timed out."""
+        optional = {m.name for m in self.server.mapping.messages if getattr(m, "optional", False)}
         end = time.monotonic() + timeout_s
         while True:
             snap = self._request("snapshot")["snapshot"]
-            msgs = snap["counts"]["tcu_messages"]
+            msgs = {n: m for n, m in snap["counts"]["tcu_messages"].items()
+                    if n.rsplit(":", 1)[-1] not in optional}
             if msgs and all(m["accepted"] > 0 and not m["timed_out"] for m in msgs.values()):
                 return
             if snap["state"] != "running":
@@ -225,8 +228,10 @@ class Bench:
                                  f"{self._tcu.status_line()}")
             if time.monotonic() > end:
                 missing = [n for n, m in msgs.items() if not m["accepted"]] or list(msgs)
+                line = getattr(self._tcu, "status_line", lambda: "")()
                 raise BenchError(f"the TCU was not heard within {timeout_s:g} s (no accepted "
-                                 f"frame of {', '.join(missing)})")
+                                 f"frame of {', '.join(missing)})" + (f"; TCU: {line}" if line
+                                                                     else ""))
             time.sleep(0.02)
 
     # ------------------------------------------------------------------ requests
