@@ -355,26 +355,25 @@ class Bench:
     def tcu_status(self) -> dict:
         """The TCU's status message (``TCU_Status``) as {signal: value}; with
         ``tcu_stub.diagnostics`` the active faults also as DTC names
-        (``dtcs``). Raises BenchError when the mapping has no such message."""
+        (``dtcs``). Raises BenchError when the mapping has no such message or
+        the TCU has sent none (a TCU need not have it)."""
+        msgs = self.snapshot()["counts"]["tcu_messages"]
+        key = next((n for n in msgs if n.rsplit(":", 1)[-1] == "TCU_Status"), None)
+        if key is None:
+            raise BenchError("tcu_status: the served mapping has no TCU_Status message")
+        if msgs[key]["accepted"] == 0:
+            raise BenchError("tcu_status: no TCU_Status frame received (the TCU on the bus "
+                             "sends no status)")
         if self._status_signals is None:
-            names = self._request("read", names=["time_s"])  # reachable at all
-            del names
-            try:
-                probe = self._request("read", names=["TCU_Status.ActiveFaults"])
-                del probe
-            except BenchError as e:
-                raise BenchError(f"tcu_status: the served mapping has no TCU_Status message "
-                                 f"with ActiveFaults ({e})") from None
             from can_dbc import codec  # noqa: PLC0415
 
-            try:
-                msg = next(m for m in codec.messages("TCU") if m.name == "TCU_Status")
-                sigs = [s.name for s in msg.signals if s.name not in ("CRC", "AliveCounter")]
-            except (StopIteration, Exception):  # noqa: BLE001
-                sigs = ["ActiveFaults"]
-            self._status_signals = [f"TCU_Status.{s}" for s in sigs]
+            msg = next((m for m in codec.messages("TCU") if m.name == "TCU_Status"), None)
+            sigs = ([s.name for s in msg.signals if s.name not in ("CRC", "AliveCounter")]
+                    if msg is not None else ["ActiveFaults"])
+            prefix = key if ":" in key else "TCU_Status"
+            self._status_signals = [f"{prefix}.{s}" for s in sigs]
         values = self._request("read", names=self._status_signals)["values"]
-        out = {name.split(".", 1)[1]: v for name, v in values.items()}
+        out = {name.rsplit(".", 1)[1]: v for name, v in values.items()}
         decode = _dtc_decoder()
         if decode is not None and out.get("ActiveFaults") is not None:
             out["dtcs"] = decode(int(out["ActiveFaults"]))

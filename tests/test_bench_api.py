@@ -3,6 +3,7 @@ a bench started in-process, one attached through the control socket, the
 wait on plant time and its timeout, errors, recordings kept on failure and
 deleted on success, and the JUnit properties."""
 
+import importlib.util
 import os
 import tempfile
 import threading
@@ -63,7 +64,7 @@ def test_sleep_set_read_inject(quiet_bench):
     (lambda b: b.wait_until("gear === 3", timeout_s=1), "cannot read"),
     (lambda b: b.wait_until("gear == 3", timeout_s=0), "timeout_s"),
     (lambda b: b.clear(1234), "no fault 1234"),
-    (lambda b: b.tcu_status(), "TCU_Status"),
+    (lambda b: b.tcu_status(), "TCU_Status"),        # no TCU: no status received
 ])
 def test_bench_errors_are_one_line(quiet_bench, call, cause):
     with pytest.raises(BenchError) as e:
@@ -88,6 +89,9 @@ def test_reference_tcu_heard_recording_and_report(tmp_path):
         assert all(m["accepted"] > 0 for m in snap["counts"]["tcu_messages"].values())
         b.set("accel_pedal_pct", 30)
         b.wait_until("vehicle_speed_kmh > 1", timeout_s=2.0)
+        if importlib.util.find_spec("tcu_stub.diagnostics") is not None:   # a diagnosing TCU
+            status = b.tcu_status()
+            assert status["ActiveFaults"] == 0 and status["dtcs"] == []
     report = b.stop()                                          # again: the same report
     assert report["run"]["state"] == "stopped"
     assert b.tcu_report is not None
