@@ -59,7 +59,8 @@ PLANT_SIGNAL_SOURCES = {
                    "TurnaroundMax": "st.turnaround_max_us", "SimState": "st.sim_state"},
 }
 # TCU message signal -> the command value it sets (and the dct_inputs field it drives;
-# None for a signal the plant does not act on, recorded with the commands only)
+# None for a signal the plant does not act on, recorded with the commands only: TargetGear
+# and the TCU's diagnosis, TCU_Status, which a TCU may leave out: optional in the mapping)
 TCU_SIGNAL_TARGETS = {
     "TCU_ClutchCmd": {"SolenoidCurrent1": ("solenoid_current1_a", "solenoid_current1_a"),
                       "SolenoidCurrent2": ("solenoid_current2_a", "solenoid_current2_a"),
@@ -71,12 +72,22 @@ TCU_SIGNAL_TARGETS = {
     "TCU_EngineCmd": {"EngineTorqueRequest": ("engine_torque_request_nm", "engine_torque_request_nm"),
                       "TorqueRequestActive": ("torque_request_active", "torque_request_active"),
                       "TargetGear": ("target_gear", None)},
+    "TCU_Status": {"ActiveFaults": ("tcu_active_faults", None),
+                   "InhibitedGears": ("tcu_inhibited_gears", None),
+                   "LimpHome": ("tcu_limp_home", None),
+                   "ShiftActive": ("tcu_shift_active", None),
+                   "TcuPhase": ("tcu_phase", None),
+                   "TcuState": ("tcu_state", None),
+                   "FaultCount": ("tcu_fault_count", None),
+                   "LastFault": ("tcu_last_fault", None)},
 }
 # safe values while a TCU message is timed out (the mapping's safe values)
 TCU_SAFE_VALUES = {
     "TCU_ClutchCmd": {"SolenoidCurrent1": 0.0, "SolenoidCurrent2": 0.0, "LineSolenoidCurrent": 0.0},
     "TCU_ShiftCmd": {"ForkForce1": 0.0, "ForkForce2": 0.0, "ForkForce3": 0.0, "ForkForce4": 0.0},
     "TCU_EngineCmd": {"EngineTorqueRequest": 0.0, "TorqueRequestActive": 0, "TargetGear": 0},
+    "TCU_Status": {"ActiveFaults": 0, "InhibitedGears": 0, "LimpHome": 0, "ShiftActive": 0, "TcuPhase": 0,
+                   "TcuState": 0, "FaultCount": 0, "LastFault": 0},
 }
 
 

@@ -26,6 +26,9 @@ The format, with every key::
     direction = "send"               # send, receive or ignore; default: what the nodes imply
     cycle_ms = 10                    # default: the DBC's GenMsgCycleTime
     timeout_cycles = 10              # received messages only (default 10)
+    optional = false                 # received messages only: true when the device under test may
+                                     # leave it out (a status it may not have): never receiving it is
+                                     # no failure of the run; its values stay safe (default false)
     protection = { kind = "p1", crc = "Motor_1_CRC", counter = "Motor_1_BZ", data_id = 0x123 }
 
     [message.Motor_1.signals]        # sent: where each signal's value comes from
@@ -114,7 +117,7 @@ STATUS_FIELDS = ("sim_time_s", "overrun_count", "turnaround_max_us", "sim_state"
 
 DIRECTIONS = ("send", "receive", "ignore")
 _BUS_KEYS = ("name", "dbc", "bitrate", "data_bitrate", "fd", "plant_nodes", "tcu_nodes")
-_MESSAGE_KEYS = ("bus", "direction", "cycle_ms", "timeout_cycles", "protection", "signals")
+_MESSAGE_KEYS = ("bus", "direction", "cycle_ms", "timeout_cycles", "optional", "protection", "signals")
 _SEND_KINDS = ("output", "status", "constant", "toggle", "counter")
 _SEND_KEYS = _SEND_KINDS + ("factor", "offset", "unit", "reference", "table", "abs")
 _RECEIVE_KINDS = ("input", "record")
@@ -312,6 +315,7 @@ class MappedMessage:
     signals: tuple[MappedSignal, ...]         # every signal of the message, in DBC order
     mapped: bool                              # named in the mapping file (else restbus / nodes only)
     message: Any = field(default=None, compare=False, repr=False)  # the cantools Message
+    optional: bool = False                    # received: the device under test may not send it
 
     def signal(self, name):
         for s in self.signals:
@@ -820,6 +824,11 @@ class _Loader:
             timeout = DEFAULT_TIMEOUT_CYCLES if timeout is None else timeout
             if isinstance(timeout, bool) or not isinstance(timeout, int) or not 1 <= timeout <= 1000:
                 self.fail(f"{key}.timeout_cycles", f"must be a whole number 1..1000, got {timeout!r}")
+        optional = entry.get("optional", False)
+        if not isinstance(optional, bool):
+            self.fail(f"{key}.optional", f"must be true or false, got {optional!r}")
+        if optional and direction != "receive":
+            self.fail(f"{key}.optional", f"only received messages are optional; {msg.name} is {kind}")
         # protection
         try:
             prot = parse_protection(entry.get("protection", "none"), f"{self.path}: {key}.protection")
@@ -863,7 +872,7 @@ class _Loader:
         return MappedMessage(bus=bus.name, name=msg.name, frame_id=msg.frame_id,
                              is_extended=bool(msg.is_extended_frame), is_fd=is_fd, length=msg.length,
                              direction=direction, cycle_ms=cycle, timeout_cycles=timeout, protection=prot,
-                             signals=tuple(signals), mapped=mapped, message=msg)
+                             signals=tuple(signals), mapped=mapped, message=msg, optional=optional)
 
     def check_layout(self, bus, msg, kind, dbc):
         """A used message: every signal inside the frame, no two overlapping
@@ -1395,6 +1404,8 @@ def show(mapping):
             timing = f"every {_fmt(m.cycle_ms)} ms"
             if m.direction == "receive":
                 timing += f", timed out after {m.timeout_cycles} cycles ({_fmt(m.timeout_cycles * m.cycle_ms)} ms)"
+                if m.optional:
+                    timing += ", optional"
             fd = ", FD" if m.is_fd else ""
             tag = "" if m.mapped else ", restbus" if m.direction == "send" else ", by its node"
             out.append(f"  {m.direction:<7} {_ident(m)} {m.name} ({m.length} B{fd}{tag}) {timing}; "

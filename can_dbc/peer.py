@@ -38,7 +38,7 @@ SIDES = {"tcu": ("TCU", "PLANT"), "plant": ("PLANT", "TCU")}
 
 class _RxStats:
     __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last", "last_t_any",
-                 "rejects_in_row")
+                 "rejects_in_row", "last_reject")
 
     def __init__(self):
         self.received = 0
@@ -50,6 +50,7 @@ class _RxStats:
         self.last = None              # decoded values of the last accepted frame
         self.last_t_any = None
         self.rejects_in_row = 0       # frames rejected since the last accepted one
+        self.last_reject = None       # why the last of them was (bad_length, bad_crc, bad_counter)
 
 
 class CanPeer:
@@ -227,11 +228,13 @@ class CanPeer:
 
     def rx_snapshot(self):
         """{message: (decoded values of the last accepted frame or None,
-        monotonic time it was received or None, frames rejected since then)}
-        for every received message, in one consistent copy. The value dicts are the peer's own (never changed after they
+        monotonic time it was received or None, frames rejected since then,
+        why the last of those was rejected or None)} for every received
+        message, in one consistent copy. The value dicts are the peer's own (never changed after they
         were stored): read them, do not modify them."""
         with self._lock:
-            return {name: (st.last, st.last_t, st.rejects_in_row) for name, st in self._rx_stats.items()}
+            return {name: (st.last, st.last_t, st.rejects_in_row, st.last_reject)
+                    for name, st in self._rx_stats.items()}
 
     def last(self, message):
         """Decoded values of the last accepted frame of a received message (None before the first)."""
@@ -400,6 +403,7 @@ class CanPeer:
                     else:
                         st.rejects_in_row += 1
                         st.rejected[status] += 1
+                        st.last_reject = status
                 self._changed.notify_all()
 
 

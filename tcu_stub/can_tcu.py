@@ -73,14 +73,23 @@ bus, and this task's period, stretches by 1 / s. Each tick:
    accepted for 10 of its DBC cycle times (``GenMsgCycleTime``, scaled by
    1 / time_scale). Until then the last accepted values stand in, as a
    production TCU debounces E2E errors: a single corrupted frame is counted,
-   not answered by opening both clutches;
+   not answered by opening both clutches. ``sensors["stale_messages"]``
+   names each stale message and why (missing, timeout, or the kind of the
+   last rejected frame: bad_crc, bad_counter, bad_length) for the logic's
+   diagnostics (``tcu_stub.diagnostics``): a trouble code per cause, and the
+   engine message (``VEH_Driver``; on a matrix the needed messages that carry
+   only the pedals and the engine torque) ridden out without torque requests
+   instead of opening the clutches;
 2. calls ``logic.step(t_s, sensors)`` with ``t_s = k * PERIOD_S``: TCU time
    from the tick index, never a wall-clock difference;
 3. sends right away the messages due this tick, each with its own
    AliveCounter and CRC (``can_dbc.codec.encode``): ``TCU_ClutchCmd`` every
-   tick (2 ms), ``TCU_ShiftCmd`` and ``TCU_EngineCmd`` every 5th tick (10 ms),
-   as the DBC's ``GenMsgCycleTime`` says. The frames leave from the task right
-   after the computation, as on a real TCU, not from a free-running sender.
+   tick (2 ms), ``TCU_ShiftCmd``, ``TCU_EngineCmd`` and ``TCU_Status`` (the
+   diagnosis: trouble codes, limp home, phase) every 5th tick (10 ms), as the
+   DBC's ``GenMsgCycleTime`` says; on a matrix its messages, each carrying the
+   diagnosis's signals it has a recorded target for (``TcuMatrix.records``).
+   The frames leave from the task right after the computation, as on a real
+   TCU, not from a free-running sender.
 
 Late ticks: a tick that starts more than one period after its deadline skips
 the missed deadlines (counted in ``skipped_ticks``) and runs at the next one;
@@ -115,8 +124,9 @@ long, as timeouts.
 Safe state
 ----------
 While stale, the logic opens both clutches (0 A), applies no fork force and
-requests no torque, and the node records a stale episode (TCU start and end
-time and, per message, why: missing, rejected or timeout). ``stop()`` ends the
+requests no torque (unless only the engine message is stale: then it drives
+on without torque requests), and the node records a stale episode (TCU start
+and end time and, per message, why: missing, rejected or timeout). ``stop()`` ends the
 task, then sends one final frame of each TCU message with the contract's safe
 values (``codec.TCU_SAFE_VALUES``: 0 A, no fork force, no torque request), so
 the last commands on the bus are safe; the plant's own timeout does the same
@@ -125,7 +135,9 @@ if even those are lost.
 Records: ``events`` (the shifts the logic started, TCU time), stale episodes,
 counters (ticks, skipped ticks, frames sent and send errors per message,
 frames received, accepted and rejected per message and reason, unknown ids),
-the SimTime of the last SIM_Status; ``report()`` returns them as JSON-ready
+the SimTime of the last SIM_Status, the diagnosis (``diagnostics``: trouble
+codes active and set since the start, their events, inhibited gears, limp
+home); ``report()`` returns them as JSON-ready
 data, ``write_report(path)`` writes them; ``status_line()`` is the one-line
 live status ``dct-hil tcu`` prints once a second.
 """
@@ -144,6 +156,7 @@ from can_dbc import codec
 from dct_hil import argtypes
 from can_dbc.own_frames import OwnFrames, is_echoing_bus
 from can_dbc.peer import CanPeer
+from tcu_stub.diagnostics import ENGINE_SIGNALS, decode_active_faults
 from tcu_stub.logic import PERIOD_S, TcuLogic
 from tcu_stub.mapped_link import MissingSignalError, TcuMatrix, cycle_ticks, message_key
 
@@ -164,6 +177,7 @@ _HIST_BINS = 5000                      # 10 us bins up to 50 ms; later goes in t
 _MAX_EPISODES = 1000                   # stale episodes kept in the report (all are counted)
 #: frames of one plant message rejected in a row that make the TCU stale
 REJECTS_TO_STALE = 3
+_EPISODE_CAUSES = ("missing", "timeout")      # else "rejected" (the kind goes to the logic)
 
 PLANT_NEEDED = tuple(m.name for m in codec.messages("PLANT")
                      if any(src.startswith("o.") for src in codec.PLANT_SIGNAL_SOURCES.get(m.name, {}).values()))
@@ -280,7 +294,7 @@ class _Histogram:
 class _MappedRx:
     """Reception of one message the plant sends on a mapped bus."""
     __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last",
-                 "rejects_in_row", "state")
+                 "rejects_in_row", "last_reject", "state")
 
     def __init__(self, state):
         self.received = 0
@@ -291,6 +305,7 @@ class _MappedRx:
         self.max_interval_s = 0.0
         self.last = None
         self.rejects_in_row = 0
+        self.last_reject = None       # why the last rejected frame was
         self.state = state            # the table codec's receive state (last counter)
 
 
@@ -429,9 +444,10 @@ class MappedPeer:
     # -- what was received --------------------------------------------------
     def rx_snapshot(self):
         """{key: (decoded values of the last accepted frame or None, monotonic
-        time it was received or None, frames rejected since then)}."""
+        time it was received or None, frames rejected since then, why the last
+        of those was rejected or None)}."""
         with self._lock:
-            return {k: (st.last, st.last_t, st.rejects_in_row) for k, st in self._rx.items()}
+            return {k: (st.last, st.last_t, st.rejects_in_row, st.last_reject) for k, st in self._rx.items()}
 
     def counts(self, key):
         """{received, accepted, bad_length, bad_crc, bad_counter} of a received message."""
@@ -542,6 +558,7 @@ class MappedPeer:
                 else:
                     st.rejects_in_row += 1
                     st.rejected[status] += 1
+                    st.last_reject = status
                 self._changed.notify_all()
 
 
@@ -621,9 +638,15 @@ class CanTcu:
             self._clock_message, self._clock_ticks = message_key(fastest), cycle_ticks(fastest.cycle_ms)
         self._timeout_s = {name: TIMEOUT_CYCLES * self._cycle_ms[name] / 1000.0 / self.time_scale
                            for name in self._needed}
+        # the needed messages that carry nothing but the engine's quantities (pedals, torque):
+        # their loss the logic rides out (tcu_stub.diagnostics), the others make it stale
+        diag = getattr(self.logic, "diag", None)
+        if diag is not None:
+            diag.engine_messages = frozenset(self._engine_messages())
         self._every_ticks = {name: max(1, int(round(self._cycle_ms[name] / 1000.0 / PERIOD_S)))
                              for name in self._tx_names}
         self._next_due = {name: 0 for name in self._tx_names}
+        self._tx_absent = None            # the messages the logic's results do not carry (first tick)
 
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -652,6 +675,17 @@ class CanTcu:
         self.stopped_at = None
         if start:
             self.start()
+
+    def _engine_messages(self):
+        engine = set(ENGINE_SIGNALS)
+        if self.matrix is None:
+            carried = {name: set(self._signals[name]) for name in self._needed}
+        else:
+            carried = {name: set() for name in self._needed}
+            for quantity, reader in self.matrix.readers.items():
+                if reader.key in carried:
+                    carried[reader.key].add(quantity)
+        return [name for name, quantities in carried.items() if quantities and quantities <= engine]
 
     @classmethod
     def open(cls, interface="socketcan", channel="vcan0", bitrate=None, time_scale=1.0, logic=None,
@@ -757,6 +791,8 @@ class CanTcu:
         ``safe`` value (the signal value that gives it)."""
         ok = True
         for name in self._tx_names:
+            if self._tx_absent and name in self._tx_absent:
+                continue
             try:
                 if self.matrix is None:
                     values = codec.TCU_SAFE_VALUES[name]
@@ -909,12 +945,12 @@ class CanTcu:
         sensors = {}
         causes = {}
         for name in self._needed:
-            values, t_ok, rejects_in_row = snap[name]
+            values, t_ok, rejects_in_row, why = snap[name]
             if values is None:
                 causes[name] = "missing"
                 continue
             if rejects_in_row >= REJECTS_TO_STALE:
-                causes[name] = "rejected"
+                causes[name] = why or "rejected"          # bad_crc, bad_counter, bad_length
             elif now - t_ok > self._timeout_s[name]:
                 causes[name] = "timeout"
             if self.matrix is None:
@@ -928,14 +964,25 @@ class CanTcu:
             sensors = self.matrix.view(decoded)
             sim_time = self.matrix.status_value(decoded, "sim_time_s")
         sensors["stale"] = bool(causes)
+        sensors["stale_messages"] = causes
         return sensors, causes, sim_time
+
+    def _absent_messages(self, cmd):
+        """The contract's TCU messages none of whose signals a logic's result carries (a logic
+        without the diagnosis sends no TCU_Status); they are not sent."""
+        if self.matrix is not None:
+            return frozenset()
+        return frozenset(name for name in self._tx_names
+                         if not any(sig in cmd for sig in self._tx_signals[name]))
 
     def _tick(self, k, now, snap=None):
         t_s = k * PERIOD_S
         sensors, causes, sim_time = self._read_sensors(now, snap)
         cmd = self.logic.step(t_s, sensors)
+        if self._tx_absent is None:
+            self._tx_absent = self._absent_messages(cmd)
         for name in self._tx_names:
-            if k >= self._next_due[name]:
+            if k >= self._next_due[name] and name not in self._tx_absent:
                 every = self._every_ticks[name]
                 if self.matrix is None:
                     self.peer.send_now(name, {sig: cmd[sig] for sig in self._tx_signals[name]})
@@ -958,7 +1005,7 @@ class CanTcu:
                     if len(self.stale_episodes) < _MAX_EPISODES:
                         self.stale_episodes.append(self._episode)
                 for name, why in causes.items():
-                    self._episode["causes"].setdefault(name, why)
+                    self._episode["causes"].setdefault(name, why if why in _EPISODE_CAUSES else "rejected")
             elif self._episode is not None:
                 self._episode["end_s"] = t_s
                 self._episode = None
@@ -1007,8 +1054,12 @@ class CanTcu:
         n = s.get("EngineSpeed")
         speeds = (f"v {v:5.1f} km/h  engine {n:5.0f} rpm" if v is not None and n is not None
                   else "v   -   km/h  engine   -   rpm")
+        diag = getattr(logic, "diag", None)
+        faults = decode_active_faults(diag.active_bits) if diag is not None else ()
         return (f"TCU {t_s:8.2f} s  {logic.phase:<17} gear {logic.gear} -> {logic.target_gear}  "
-                f"{'STALE' if stale else 'ok   '}  {speeds}  rx {rx}  tx {tx}  skipped {skipped}")
+                f"{'STALE' if stale else 'ok   '}  {speeds}  rx {rx}  tx {tx}  skipped {skipped}"
+                + (f"  DTC {','.join(faults)}" if faults else "")
+                + ("  LIMP HOME" if diag is not None and diag.limp_home else ""))
 
     def report(self):
         """Everything recorded, as JSON-ready data."""
@@ -1025,6 +1076,7 @@ class CanTcu:
                            "frame_id": s["frame_id"], "cycle_ms": self._cycle_ms[name],
                            "frames": s["frames"], "errors": s["errors"]}
                     for name, s in peer["sent"].items()}
+            diag = getattr(self.logic, "diag", None)
             rep = {
                 "node": "TCU",
                 "interface": self.interface,
@@ -1044,6 +1096,7 @@ class CanTcu:
                 "gear": self.logic.gear,
                 "target_gear": self.logic.target_gear,
                 "shifts": [{"t_s": round(t, 6), "from_gear": a, "to_gear": b} for t, a, b in self.logic.events],
+                "diagnostics": diag.report() if diag is not None else None,
                 "stale": {
                     "now": self.stale,
                     "ticks": self.stale_ticks,
@@ -1190,6 +1243,13 @@ def summary_lines(rep):
     lines.append(f"  shifts: {len(rep['shifts'])} {shifts}{more}".rstrip())
     lines.append(f"  stale episodes: {rep['stale']['episode_count']}"
                  + (", stale now" if rep["stale"]["now"] else ""))
+    diag = rep.get("diagnostics") or {}
+    if diag.get("stored"):
+        lines.append(f"  trouble codes set: {', '.join(diag['stored'])} ({diag['fault_count']} times)"
+                     + (f"; active now: {', '.join(diag['active'])}" if diag.get("active") else "")
+                     + ("; limp home" if diag.get("limp_home") else "")
+                     + (f"; gears inhibited: {', '.join(map(str, diag['inhibited_gears']))}"
+                        if diag.get("inhibited_gears") else ""))
     if rep["unknown_frames"]:
         by_bus = rep.get("buses")
         detail = (" (" + ", ".join(f"{n} {b['unknown_frames']}" for n, b in by_bus.items()) + ")"

@@ -19,7 +19,13 @@ Control structure, from the top:
    clutches open while a torque request blips the engine up to the lower
    gear's shaft, then the on-coming clutch closes), ``stale``
    (plant messages missing: both clutches open, 0 A; when they return the
-   TCU picks the gear for the speed and closes its clutch by slip control).
+   TCU picks the gear for the speed and closes its clutch by slip control),
+   ``shift_open`` (an interrupted shift: both clutches open, the engine held
+   at the new gear's shaft speed by a torque request, then ``launch`` closes
+   the clutch by slip control: the shift into a gear of the same half, and
+   the way out of a gear the diagnostics took away), ``safe`` (the safe
+   state: both clutches open, no fork force, no torque request, held until
+   reset).
 2. Shift schedule: up and down engine-speed lines over the pedal, turned
    into vehicle-speed thresholds per gear; the down line sits well below the
    up line divided by the gear step (hysteresis). Kick-down at full pedal
@@ -45,9 +51,27 @@ Control structure, from the top:
 The schedule and the slip estimate use the output shaft speed (wheel speed
 as the gearbox sees it), not VehicleSpeed, so a spinning wheel cannot keep
 the engine on the rev limiter. ``events`` lists every shift started.
+
+Diagnostics (tcu_stub/diagnostics.py, ``self.diag``): monitors of the input
+shaft speeds, the clutch and line pressures, clutch slip, gear engagement and
+the plant messages set trouble codes (TCU_Status.ActiveFaults) and latch
+reactions the phases apply: gears inhibited (a half avoided, a gear that did
+not engage), limp home in one gear of the healthy half, the lock pressure
+raised, torque requests off while the engine message is lost, the safe
+state. With gears inhibited the schedule is the restricted one
+(``_restricted_schedule``): the next allowed gear, a gear of the same half
+reached by an interrupted shift, hysteresis kept across the skipped gears,
+in limp home upshifts only to protect the engine. In a healthy run no trouble
+code sets and nothing of this acts. ``sensors["stale_messages"]`` ({message:
+cause}, from the CAN node) tells the stale messages apart: the engine
+message's loss is ridden out, any other stale message is ``stale`` as before.
+The result also carries the TCU_Status signals (ActiveFaults, InhibitedGears,
+LimpHome, ShiftActive, TcuPhase, TcuState, FaultCount, LastFault).
 """
 
 import math
+
+from tcu_stub.diagnostics import SPEED_INVALID_RPM, Diagnostics
 
 # ------------------------------------------------------------------ timing
 PERIOD_S = 0.002                    # TCU task period, s
@@ -60,6 +84,9 @@ TOP_GEAR = 6
 # gear -> (input shaft 0/1, sleeve 0..3, side +1/-1)
 GEAR_LAYOUT = {1: (0, 0, 1), 2: (1, 1, 1), 3: (0, 0, -1), 4: (1, 1, -1), 5: (0, 2, 1), 6: (1, 3, 1)}
 SHAFT_SLEEVES = {0: (0, 2), 1: (1, 3)}
+SHAFT_GEARS = {0: (1, 3, 5), 1: (2, 4, 6)}
+# gear -> input shaft speed / its output shaft's speed (gears 1-4 on output shaft 1, 5 and 6 on 2)
+GEAR_RATIO = {g: r / FINAL_DRIVE[0 if g <= 4 else 1] for g, r in GEAR_OVERALL_RATIO.items()}
 ENGINE_INERTIA_KGM2 = 0.20          # crank + flywheel + clutch drum
 IDLE_RPM = 750.0
 
@@ -126,6 +153,16 @@ DOWN_OFFGOING_SHARE = 0.6           # off-going capacity share of engine torque 
 SHIFT_TIMEOUT_S = 1.5
 PRESELECT_MAX_RPM = 5000.0          # a lower gear is pre-selected only if its shaft stays below this
 
+# ------------------------------------------------------------ restricted schedule (gears inhibited)
+RESTRICTED_UP_MIN_RPM = 1300.0      # skipping gears up: the new gear's engine speed at least this
+RESTRICTED_UP_DOWN_FACTOR = 1.2     # ... and this factor above the down line (no shift back)
+RESTRICTED_DOWN_MAX_RPM = 4000.0    # skipping gears down: the new gear's engine speed at most this
+LIMP_UPSHIFT_RPM = 5500.0           # limp home: shift up only above this (engine protection)
+SELECT_MAX_RPM = 4500.0             # a gear picked for the speed (leaving a gear): at most this
+LEAVE_STANDSTILL_KMH = 5.0          # a gear taken away below this speed: standstill, launch again
+OPEN_SYNC_RPM = 120.0               # interrupted shift: the engine up to this below the shaft: close
+OPEN_SYNC_S = 1.0                   # ... or after this long
+
 # ------------------------------------------------------------ traction (drive slip) limit
 TRACTION_FORCE_N = 7500.0           # drive force the front tyres carry near peak slip (calibration)
 TRACTION_ACCEL_MPS2 = 5.0           # vehicle acceleration at that force
@@ -141,6 +178,16 @@ ENGINE_FULL_LOAD = ((600.0, 120.0), (1000.0, 170.0), (1500.0, 240.0), (1800.0, 2
                     (5500.0, 255.0), (6000.0, 234.0), (6500.0, 200.0), (7000.0, 0.0))
 
 RPM_PER_KMH = 1.0 / 3.6 / TYRE_RADIUS_M * 60.0 / (2.0 * math.pi)  # wheel rpm per km/h
+
+#: TCU_Status.TcuPhase: the phase names in their code order
+PHASES = ("standstill", "launch", "drive", "upshift_torque", "upshift_inertia", "downshift_inertia",
+          "downshift_torque", "shift_open", "stale", "safe")
+PHASE_CODES = {name: i for i, name in enumerate(PHASES)}
+SHIFT_PHASES = frozenset(("upshift_torque", "upshift_inertia", "downshift_inertia", "downshift_torque",
+                          "shift_open"))
+FAULT_COUNT_MAX = 255               # TCU_Status.FaultCount saturates here
+_FORK_KEYS = ("ForkPosition1", "ForkPosition2", "ForkPosition3", "ForkPosition4")
+_SYNC_KEYS = ("SyncState1", "SyncState2", "SyncState3", "SyncState4")
 
 
 def _interp(x, table):
@@ -207,9 +254,23 @@ class TcuLogic:
     """The TCU: ``step`` every PERIOD_S with the plant signals, returns the commands."""
 
     PERIOD_S = PERIOD_S
+    GEAR_LAYOUT = GEAR_LAYOUT
+    GEAR_RATIO = GEAR_RATIO
+    CLUTCH_LOCK_BAR = CLUTCH_LOCK_BAR
 
     def __init__(self):
         self.loops = (ClutchLoop(0), ClutchLoop(1))
+        self.diag = Diagnostics()
+        self._handlers = {
+            "standstill": self._standstill,
+            "launch": self._launch,
+            "drive": self._drive,
+            "upshift_torque": self._upshift_torque,
+            "upshift_inertia": self._upshift_inertia,
+            "downshift_inertia": self._downshift_inertia,
+            "downshift_torque": self._downshift_torque,
+            "shift_open": self._shift_open,
+        }
         self.reset()
 
     def reset(self):
@@ -230,30 +291,63 @@ class TcuLogic:
         self.launch_rpm = LAUNCH_RPM_MIN
         self.t_s = 0.0
         self.events = []              # (time_s, from_gear, to_gear) of every shift started
+        self.held = (0.0, 0.0, 0.0)   # pedal, brake, engine torque last received (the engine message lost)
+        self.n_shaft = (0.0, 0.0)
         for loop in self.loops:
             loop.reset()
+        self.diag.reset()
 
     # ---------------------------------------------------------- sensors
     def _read(self, s):
         self.s = s
-        self.pedal = float(s.get("AccelPedal", 0.0))
-        self.brake = float(s.get("BrakePedal", 0.0))
+        if self.diag.engine_lost:             # the engine message stale: its last values stand in
+            self.pedal, self.brake, self.t_engine = self.held
+        else:
+            self.pedal = float(s.get("AccelPedal", 0.0))
+            self.brake = float(s.get("BrakePedal", 0.0))
+            self.t_engine = float(s.get("EngineTorque", 0.0))
+            self.held = (self.pedal, self.brake, self.t_engine)
         self.n_engine = float(s.get("EngineSpeed", 0.0))
-        self.n_shaft = (float(s.get("InputShaft1Speed", 0.0)), float(s.get("InputShaft2Speed", 0.0)))
+        self.n_out = (float(s.get("OutputShaft1Speed", 0.0)), float(s.get("OutputShaft2Speed", 0.0)))
         self.v_kmh = float(s.get("VehicleSpeed", 0.0))
         # the schedule runs on the output shaft speed (driven wheels), as the gearbox sees it
-        self.v_sched_kmh = float(s.get("OutputShaft1Speed", 0.0)) / FINAL_DRIVE[0] / RPM_PER_KMH
-        self.t_engine = float(s.get("EngineTorque", 0.0))
+        self.v_sched_kmh = self.n_out[0] / FINAL_DRIVE[0] / RPM_PER_KMH
         self.p_meas = (float(s.get("ClutchPressure1", 0.0)), float(s.get("ClutchPressure2", 0.0)))
+        line = s.get("LinePressure")
+        self.line_bar = None if line is None else float(line)
+        self.fork_mm = tuple(float(s.get(k, 0.0)) for k in _FORK_KEYS)
+        self.sync_state = tuple(int(round(float(s.get(k, 0)))) for k in _SYNC_KEYS)
+        self.engaged_gear = (self._engaged_on(0), self._engaged_on(1))
+        # input shaft speeds as received (the diagnostics judge these) and as used: an
+        # invalid value (the DBC's invalid code, not finite) is replaced at once by the
+        # speed of the gear engaged on that shaft, else by the last valid one
+        self.n_shaft_raw = (float(s.get("InputShaft1Speed", 0.0)), float(s.get("InputShaft2Speed", 0.0)))
+        n1, n2 = self.n_shaft_raw
+        if not (abs(n1) <= SPEED_INVALID_RPM) or not (abs(n2) <= SPEED_INVALID_RPM):
+            n1, n2 = self._substitute(0, n1), self._substitute(1, n2)
+        self.n_shaft = (n1, n2)
+
+    def _substitute(self, shaft, n):
+        if abs(n) <= SPEED_INVALID_RPM:
+            return n
+        g = self.engaged_gear[shaft]
+        if g:
+            return self.n_out[0 if g <= 4 else 1] * GEAR_RATIO[g]
+        return self.n_shaft[shaft]
+
+    def _engaged_on(self, shaft):
+        """The gear engaged on an input shaft (0: none)."""
+        for g in SHAFT_GEARS[shaft]:
+            _, sleeve, side = GEAR_LAYOUT[g]
+            if self._sleeve_engaged(sleeve, side):
+                return g
+        return 0
 
     def _sleeve_engaged(self, sleeve, side):
-        pos = float(self.s.get(f"ForkPosition{sleeve + 1}", 0.0))
-        state = int(round(float(self.s.get(f"SyncState{sleeve + 1}", 0))))
-        return state == SYNC_ENGAGED and pos * side >= FORK_ENGAGED_MM
+        return self.sync_state[sleeve] == SYNC_ENGAGED and self.fork_mm[sleeve] * side >= FORK_ENGAGED_MM
 
     def _sleeve_neutral(self, sleeve):
-        pos = float(self.s.get(f"ForkPosition{sleeve + 1}", 0.0))
-        return abs(pos) <= FORK_NEUTRAL_MM + 0.5
+        return abs(self.fork_mm[sleeve]) <= FORK_NEUTRAL_MM + 0.5
 
     def gear_ready(self, gear):
         """``gear`` engaged and the other sleeve of its shaft in neutral."""
@@ -279,11 +373,21 @@ class TcuLogic:
         f = -FORK_NEUTRAL_N_PER_MM * pos - FORK_NEUTRAL_NS_PER_MM * vel
         return min(max(f, -FORK_NEUTRAL_MAX_N), FORK_NEUTRAL_MAX_N)
 
+    def requested_gear(self, shaft):
+        """The gear the forks are asked to engage on an input shaft (0: neutral, or the safe state)."""
+        if self.phase in ("safe", "stale"):
+            return 0
+        for g in SHAFT_GEARS[shaft]:
+            _, sleeve, side = GEAR_LAYOUT[g]
+            if self.sleeve_side[sleeve] == side:
+                return g
+        return 0
+
     def _fork_forces(self):
         forces = []
         for k, side in enumerate(self.sleeve_side):
-            pos = float(self.s.get(f"ForkPosition{k + 1}", 0.0))
-            state = int(round(float(self.s.get(f"SyncState{k + 1}", 0))))
+            pos = self.fork_mm[k]
+            state = self.sync_state[k]
             if state == 1 and pos != 0.0 and side != (1 if pos > 0 else -1):
                 # never let go of a sleeve on its cone: finish that synchronisation first
                 side = 1 if pos > 0 else -1
@@ -329,18 +433,151 @@ class TcuLogic:
         if self.target_gear != g:
             return self.target_gear
         rising = self.pedal > PEDAL_ON_PCT and self.brake < BRAKE_ON_PCT
+        if self.diag.inhibited:
+            return self._restricted_preselection(g, rising)
         if g == 1:
             return 2
         if not rising and gear_rpm(g - 1, self.v_sched_kmh) < PRESELECT_MAX_RPM:
             return g - 1
         return g + 1 if g < TOP_GEAR else 0
 
+    # ---------------------------------------------------------- gears inhibited (diagnostics)
+    def allowed(self, gear):
+        """``gear`` (1..6) is not inhibited by the diagnostics."""
+        return not (self.diag.inhibited >> (gear - 1)) & 1
+
+    def _next_allowed(self, g, step, shaft=None):
+        """The next allowed gear from ``g`` in direction ``step`` (+1/-1), on ``shaft`` if given; 0: none."""
+        n = g + step
+        while 1 <= n <= TOP_GEAR:
+            if self.allowed(n) and (shaft is None or GEAR_LAYOUT[n][0] == shaft):
+                return n
+            n += step
+        return 0
+
+    def _restricted_preselection(self, g, rising):
+        """The allowed gear to pre-select on the other input shaft (0: none: its sleeves neutral)."""
+        other = 1 - GEAR_LAYOUT[g][0]
+        up = self._next_allowed(g, 1, other)
+        down = self._next_allowed(g, -1, other)
+        if down and not rising and gear_rpm(down, self.v_sched_kmh) < PRESELECT_MAX_RPM:
+            return down
+        if up:
+            return up
+        if down and gear_rpm(down, self.v_sched_kmh) < PRESELECT_MAX_RPM:
+            return down
+        return 0
+
+    def _restricted_schedule(self, g=None):
+        """The schedule over the allowed gears from ``g`` (default ``gear``): the next allowed
+        gear up or down; a skip of gears keeps the hysteresis (the new gear lands between the
+        lines); in limp home up only above LIMP_UPSHIFT_RPM."""
+        g = self.gear if g is None else g
+        up_rpm = _interp(self.pedal, UPSHIFT_RPM)
+        down_rpm = _interp(self.pedal, DOWNSHIFT_RPM)
+        rpm = gear_rpm(g, self.v_sched_kmh)
+        up = self._next_allowed(g, 1)
+        if up and self.brake <= BRAKE_ON_PCT:
+            high = rpm > (LIMP_UPSHIFT_RPM if self.diag.limp_home else up_rpm)
+            lands = up == g + 1 or gear_rpm(up, self.v_sched_kmh) > max(RESTRICTED_UP_MIN_RPM,
+                                                                         RESTRICTED_UP_DOWN_FACTOR * down_rpm)
+            if high and lands:
+                return up
+        down = self._next_allowed(g, -1)
+        if down and rpm < down_rpm and (down == g - 1 or
+                                        gear_rpm(down, self.v_sched_kmh) < RESTRICTED_DOWN_MAX_RPM):
+            return down
+        return g
+
+    def _gear_for_speed(self):
+        """The lowest allowed gear the restricted schedule would hold at this speed, with
+        the engine at most SELECT_MAX_RPM; else the lowest allowed gear below that speed,
+        else the highest allowed gear; 0 when none is allowed."""
+        below = highest = 0
+        for g in range(1, TOP_GEAR + 1):
+            if not self.allowed(g):
+                continue
+            highest = g
+            if gear_rpm(g, self.v_sched_kmh) <= SELECT_MAX_RPM:
+                if self._restricted_schedule(g) == g:
+                    return g
+                below = below or g
+        return below or highest
+
+    def _gear_taken(self):
+        """The phase drives (or shifts) through a gear the diagnostics inhibited."""
+        p = self.phase
+        if p in ("standstill", "stale", "safe"):
+            return False
+        if p == "shift_open":
+            return not self.allowed(self.target_gear)
+        if not self.allowed(self.gear):
+            return True
+        if p in SHIFT_PHASES:
+            return not self.allowed(self.target_gear) or not self.allowed(self.shift_from)
+        return False
+
+    def _leave_gear(self):
+        """Out of an inhibited gear: its clutch open now; slow: standstill (launch again in
+        an allowed gear), else the allowed gear for the speed by an interrupted shift."""
+        self.torque_request_nm = None
+        if self.v_sched_kmh < LEAVE_STANDSTILL_KMH:
+            self.phase = "standstill"
+            self.pressure_bar = [0.0, 0.0]
+            return
+        g = self._gear_for_speed()
+        if g:
+            self._start_open_shift(g)
+
+    def _start_open_shift(self, gear):
+        if gear != self.gear:
+            self.events.append((self.t_s, self.gear, gear))
+        self.shift_from = self.gear
+        self.target_gear = gear
+        self.shift_t0 = self.t_s
+        self.phase = "shift_open"
+        self.pressure_bar = [0.0, 0.0]
+
+    def _shift_open(self):
+        """Interrupted shift: both clutches open, the new gear engaged, the engine brought to
+        its shaft speed by a torque request; then its clutch closes by the lock ramp of
+        ``drive``: at once when the engine is at or above the shaft (the clutch pulls it
+        down, as in an upshift's inertia phase), else when the engine has come up to it or
+        after OPEN_SYNC_S; a shaft too slow for that: ``launch`` (slip control)."""
+        target = self.target_gear
+        shaft = GEAR_LAYOUT[target][0]
+        self._want_gears(target)
+        self.pressure_bar = [0.0, 0.0]
+        # the request is the engine's net torque: below zero its drag pulls it down
+        below = gear_rpm(target, self.v_sched_kmh) - self.n_engine
+        self.torque_request_nm = min(max(BLIP_KP_NM_PER_RPM * below, -BLIP_MAX_NM), BLIP_MAX_NM)
+        if not self.gear_ready(target):
+            return
+        n_in = self.n_shaft[shaft]
+        slow = n_in < LAUNCH_RPM_MIN
+        if not slow and self.n_engine < n_in - OPEN_SYNC_RPM and self.t_s - self.shift_t0 < OPEN_SYNC_S:
+            return                                # the engine still on its way up to the shaft
+        self.gear = target
+        self.torque_request_nm = None
+        if slow:
+            self.phase = "launch"
+        else:
+            self.phase = "drive"
+            self.pressure_bar[shaft] = torque_to_bar(shaft, 0.0)
+
     # ---------------------------------------------------------- phases
     def _standstill(self):
-        self._want_gears(1, 2)
-        self.gear = self.target_gear = 1
+        first = 1
+        if self.diag.inhibited:                 # launch in the lowest allowed gear
+            first = self._next_allowed(0, 1)
+            if not first:
+                return
+            self._want_gears(first, self._next_allowed(first, 1, 1 - GEAR_LAYOUT[first][0]))
+        else:
+            self._want_gears(1, 2)
+        self.gear = self.target_gear = first
         self.pressure_bar = [0.0, 0.0]
-        if self.pedal > PEDAL_ON_PCT and self.brake < BRAKE_ON_PCT and self.gear_ready(1):
+        if self.pedal > PEDAL_ON_PCT and self.brake < BRAKE_ON_PCT and self.gear_ready(first):
             self._start_launch()
 
     def _start_launch(self):
@@ -373,7 +610,8 @@ class TcuLogic:
         shaft = GEAR_LAYOUT[self.gear][0]
         other = 1 - shaft
         bars = [0.0, 0.0]
-        bars[shaft] = _ramp(self.pressure_bar[shaft], CLUTCH_LOCK_BAR, LOCK_RAMP_BAR_PER_S, PERIOD_S)
+        lock = CLUTCH_MAX_BAR if self.diag.boost[shaft] else CLUTCH_LOCK_BAR
+        bars[shaft] = _ramp(self.pressure_bar[shaft], lock, LOCK_RAMP_BAR_PER_S, PERIOD_S)
         self.pressure_bar = bars
         if self.gear == 1 and self.pedal <= PEDAL_ON_PCT and self.n_shaft[shaft] < OPEN_BELOW_INPUT_RPM:
             self.phase = "standstill"
@@ -382,10 +620,16 @@ class TcuLogic:
             # too slow for this gear (a missed downshift): slip it like a launch
             self._start_launch()
             return
-        target = self._scheduled_gear()
-        if target != self.gear and GEAR_LAYOUT[target][0] != other:
-            # kick-down over two steps lands on the same shaft: go one step now
-            target = self.gear - 1 if target < self.gear else self.gear + 1
+        if self.diag.inhibited:
+            target = self._restricted_schedule()
+            if target != self.gear and GEAR_LAYOUT[target][0] != other:
+                self._start_open_shift(target)    # a gear of the same half: an interrupted shift
+                return
+        else:
+            target = self._scheduled_gear()
+            if target != self.gear and GEAR_LAYOUT[target][0] != other:
+                # kick-down over two steps lands on the same shaft: go one step now
+                target = self.gear - 1 if target < self.gear else self.gear + 1
         self.target_gear = target
         self._want_gears(self.gear, self._preselection())
         if target != self.gear and self.gear_ready(target):
@@ -447,6 +691,7 @@ class TcuLogic:
         self._want_gears(self.shift_from, self.target_gear)
         t_e = max(self.t_engine, 0.0)
         bars = [0.0, 0.0]
+        no_blip = False
         if self.torque_request_nm is None and t_e > 2 * COAST_PULL_NM:
             bars[off] = torque_to_bar(off, DOWN_OFFGOING_SHARE * t_e)
             bars[on] = torque_to_bar(on, 0.0)
@@ -454,8 +699,11 @@ class TcuLogic:
             bars[on] = torque_to_bar(on, 0.0)
             below = self.n_shaft[on] - self.n_engine
             self.torque_request_nm = min(max(BLIP_KP_NM_PER_RPM * below, 0.0), BLIP_MAX_NM)
+            # no torque requests (engine message lost): the on-coming clutch pulls the engine up
+            no_blip = not self.diag.torque_ok
         self.pressure_bar = bars
-        if self.n_engine > self.n_shaft[on] - SYNC_DONE_RPM or self.t_s - self.shift_t0 > SHIFT_TIMEOUT_S:
+        if self.n_engine > self.n_shaft[on] - SYNC_DONE_RPM or self.t_s - self.shift_t0 > SHIFT_TIMEOUT_S \
+                or no_blip:
             self.phase = "downshift_torque"
             self.gear = self.target_gear
             self.shift_t0 = self.t_s
@@ -524,24 +772,23 @@ class TcuLogic:
     def step(self, t_s, sensors):
         """One TCU period: sensors (DBC signal names) -> commands (DBC signal names)."""
         self.t_s = float(t_s)
+        stale = self.diag.messages(self.t_s, sensors)
         self._read(sensors)
-        if sensors.get("stale"):
-            if self.phase != "stale":
+        if stale:
+            if self.phase != "stale" and self.phase != "safe":
                 self.phase = "stale"
+            self._stale()
+            return self._commands(stale=True)
+        self.diag.monitor(self.t_s, self)
+        if self.diag.safe_state:
+            self.phase = "safe"
             self._stale()
             return self._commands(stale=True)
         if self.phase == "stale":
             self._recover()
-        handler = {
-            "standstill": self._standstill,
-            "launch": self._launch,
-            "drive": self._drive,
-            "upshift_torque": self._upshift_torque,
-            "upshift_inertia": self._upshift_inertia,
-            "downshift_inertia": self._downshift_inertia,
-            "downshift_torque": self._downshift_torque,
-        }[self.phase]
-        handler()
+        if self.diag.inhibited and self._gear_taken():
+            self._leave_gear()
+        self._handlers[self.phase]()
         return self._commands()
 
     def _recover(self):
@@ -552,9 +799,15 @@ class TcuLogic:
         if self.v_kmh < 5.0:
             self.phase = "standstill"
             return
-        g = 1
-        while g < TOP_GEAR and gear_rpm(g, self.v_sched_kmh) > _interp(self.pedal, UPSHIFT_RPM):
-            g += 1
+        if self.diag.inhibited:
+            g = self._gear_for_speed()
+            if not g:
+                self.phase = "standstill"
+                return
+        else:
+            g = 1
+            while g < TOP_GEAR and gear_rpm(g, self.v_sched_kmh) > _interp(self.pedal, UPSHIFT_RPM):
+                g += 1
         self.gear = self.target_gear = g
         self.phase = "launch"
         self._want_gears(g, self._preselection())
@@ -575,7 +828,8 @@ class TcuLogic:
             limit = self._traction_limit()
             if limit is not None:
                 request = limit if request is None else min(request, limit)
-        active = request is not None and not stale
+        active = request is not None and not stale and self.diag.torque_ok
+        d = self.diag
         return {
             "SolenoidCurrent1": i1,
             "SolenoidCurrent2": i2,
@@ -587,4 +841,12 @@ class TcuLogic:
             "EngineTorqueRequest": request if active else 0.0,
             "TorqueRequestActive": 1 if active else 0,
             "TargetGear": self.target_gear,
+            "ActiveFaults": d.active_bits,
+            "FaultCount": min(d.fault_count, FAULT_COUNT_MAX),
+            "LastFault": d.last_fault,
+            "InhibitedGears": d.inhibited,
+            "LimpHome": 1 if d.limp_home else 0,
+            "ShiftActive": 1 if self.phase in SHIFT_PHASES else 0,
+            "TcuPhase": PHASE_CODES[self.phase],
+            "TcuState": d.state(self.phase),
         }

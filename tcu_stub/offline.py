@@ -114,20 +114,27 @@ RECORDED = ("vehicle_speed_kmh", "vehicle_accel_mps2", "engine_speed_rpm", "inpu
 
 
 def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, stale_fn=None,
-                on_period=None, link=None):
+                on_period=None, link=None, sensor_fault=None):
     """Run plant + stub TCU for ``duration_s``.
 
     ``driver_fn(t_s, plant_outputs) -> (accel_pedal_pct, brake_pedal_pct)`` is
-    called every 10 ms. ``stale_fn(t_s) -> bool`` (optional) marks the plant
-    messages as missing. ``on_period(k, plant)`` (optional) is called every
+    called every 10 ms. ``stale_fn(t_s)`` (optional) marks plant messages as
+    lost: True for all of them (cause unknown), or {message: cause} for some
+    (causes as the CAN node gives them: "missing", "timeout", "bad_crc",
+    "bad_counter", "bad_length"; ``sensors["stale_messages"]``); a false
+    value for none. ``sensor_fault(t_s, sensors)`` (optional) edits the TCU's
+    view each period before the TCU sees it (a signal fault on the sensor
+    side: stuck, offset, the invalid value ...); it may return a dict to use
+    instead. ``on_period(k, plant)`` (optional) is called every
     TCU period ``k`` once the pedals and commands are applied, before the
     plant steps (a copy of ``plant.inputs`` there replays the run). ``link``:
     the CAN matrix between them (default ``ContractLink``, the project's own
     contract; ``tcu_stub.mapped_link.MappedLink(mapping)`` for a vehicle's
     matrix described by a mapping file). Returns a
     dict of arrays (``time_s``, the names in
-    ``RECORDED``, ``tcu_target_gear``, ``tcu_gear``, ``tcu_phase``) and
-    ``shifts``: a list of (time_s, from_gear, to_gear)."""
+    ``RECORDED``, ``tcu_target_gear``, ``tcu_gear``, ``tcu_phase``,
+    ``tcu_active_faults``, ``tcu_limp_home``) and ``shifts``: a list of
+    (time_s, from_gear, to_gear)."""
     if duration_s <= 0:
         raise ValueError(f"duration_s must be positive, got {duration_s}")
     tcu = tcu or TcuLogic()
@@ -135,7 +142,8 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
     tcu_per_driver = max(1, int(round(DRIVER_PERIOD_S / PERIOD_S)))
     tcu_per_record = max(1, int(round(record_every_s / PERIOD_S)))
     n = int(round(duration_s / PERIOD_S))
-    rec = {k: [] for k in ("time_s",) + RECORDED + ("tcu_target_gear", "tcu_gear", "tcu_phase")}
+    rec = {k: [] for k in ("time_s",) + RECORDED + ("tcu_target_gear", "tcu_gear", "tcu_phase",
+                                                   "tcu_active_faults", "tcu_limp_home")}
     t0 = plant.time_s
     link = ContractLink() if link is None else link
     for k in range(n):
@@ -147,8 +155,20 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
             plant.inputs["brake_pedal_pct"] = brake
             plant.update_outputs()
         sensors = link.sensors(out, k)
-        if stale_fn is not None and stale_fn(t):
-            sensors["stale"] = True
+        if stale_fn is not None:
+            lost = stale_fn(t)
+            if isinstance(lost, dict):
+                if lost:
+                    sensors["stale"] = True
+                    sensors["stale_messages"] = dict(lost)
+                else:
+                    sensors["stale_messages"] = {}
+            elif lost:
+                sensors["stale"] = True
+        if sensor_fault is not None:
+            edited = sensor_fault(t, sensors)
+            if edited is not None:
+                sensors = edited
         cmd = tcu.step(t, sensors)
         link.apply(plant, cmd, k)
         if on_period is not None:
@@ -160,6 +180,8 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
             rec["tcu_target_gear"].append(tcu.target_gear)
             rec["tcu_gear"].append(tcu.gear)
             rec["tcu_phase"].append(tcu.phase)
+            rec["tcu_active_faults"].append(tcu.diag.active_bits)
+            rec["tcu_limp_home"].append(1 if tcu.diag.limp_home else 0)
         plant.step(steps_per_tcu)
     result = {k: (np.array(v) if k != "tcu_phase" else v) for k, v in rec.items()}
     result["shifts"] = list(tcu.events)

@@ -794,7 +794,7 @@ def test_contract_check_accepts_and_rejects_as_codec(c, contract, loop_table, da
 
 
 def test_contract_find_and_lookup(c, contract):
-    assert len(contract) == 10
+    assert len(contract) == 11
     for i, m in enumerate(contract.messages):
         assert contract.find(m.frame_id) == i and contract.index(m.name) == i
     assert contract.find(0x7FF) == -1 and contract.find(0x100, extended=True) == -1
@@ -891,11 +891,11 @@ def test_duplicate_identifiers_are_refused(c):
 
 def test_bench_runs_in_c_and_accepts_every_frame(c, capsys):
     r = table.bench(iterations=2000, repeat=2)
-    assert len(r["tx_messages"]) == 7 and len(r["rx_messages"]) == 3
+    assert len(r["tx_messages"]) == 7 and len(r["rx_messages"]) == 4
     assert r["ns_per_tick"] > 0 and len(r["runs_ns"]) == 2
     assert table.main(["--bench", "--iterations", "1000", "--repeat", "1"]) == 0
     out = capsys.readouterr().out
-    assert "7 plant messages encoded + protected, 3 TCU messages checked + decoded" in out
+    assert "7 plant messages encoded + protected, 4 TCU messages checked + decoded" in out
     assert "ns per tick" in out
     assert table.main([]) == 2
 

@@ -214,10 +214,13 @@ def test_the_shipped_mapping_says_exactly_what_the_hard_wired_contract_says():
             safe[s.name] = t.safe
         assert targets == {k: v[1] for k, v in codec.TCU_SIGNAL_TARGETS[x.name].items()}
         assert safe == codec.TCU_SAFE_VALUES[x.name]
+        # a TCU may leave out its status (recorded only), nothing else
+        assert x.optional == (x.name == "TCU_Status"), x.name
+    assert not any(x.optional for x in sent)
 
     # the C codec's order: sent then received, each by identifier
     order = m.codec_order("dct")
-    assert [x.direction for x in order] == ["send"] * 7 + ["receive"] * 3
+    assert [x.direction for x in order] == ["send"] * 7 + ["receive"] * 4
     assert [x.frame_id for x in order[:7]] == sorted(x.frame_id for x in sent)
     assert [x.frame_id for x in order[7:]] == sorted(x.frame_id for x in received)
     # the bus load the contract's summary gives
@@ -237,8 +240,8 @@ def test_check_and_show_of_the_shipped_mapping(capsys):
     code, out, err = run_cli(capsys, "mapping", "check", "dct_hil")
     assert code == 0, err
     assert "valid at 2000 Hz" in out
-    assert "sends 7 messages" in out and "receives 3" in out
-    assert "worst-case bus load at 1 Mbit/s: 33.9 %" in out
+    assert "sends 7 messages" in out and "receives 4" in out
+    assert "worst-case bus load at 1 Mbit/s: 35.2 %" in out
     assert "warning" not in out
     code, out, err = run_cli(capsys, "mapping", "show", M.DEFAULT_MAPPING)
     assert code == 0, err
@@ -251,6 +254,8 @@ def test_check_and_show_of_the_shipped_mapping(capsys):
     assert any(re.match(r"\s+EngineSpeed\s+rpm\s+<- engine_speed_rpm$", x) for x in lines)
     assert any(re.match(r"\s+SimTime\s+s\s+<- status sim_time_s$", x) for x in lines)
     assert any(re.match(r"\s+TargetGear\s+-\s+-> record target_gear, safe 0$", x) for x in lines)
+    assert any(re.match(r"\s+receive 0x150 TCU_Status .* timed out after 10 cycles \(100 ms\), optional;", x)
+               for x in lines)
     assert any(re.match(r"\s+CRC\s+-\s+protection crc$", x) for x in lines)
 
 
@@ -438,6 +443,10 @@ BAD_MAPPINGS = {
                             "message.Getriebe_1.signals.Strom_K1"]),
     "timeout on a sent message": (_sub("[message.Motor_1]\n", "[message.Motor_1]\ntimeout_cycles = 3\n"), None,
                                   ["message.Motor_1.timeout_cycles:", "only received messages time out"]),
+    "optional on a sent message": (_sub("[message.Motor_1]\n", "[message.Motor_1]\noptional = true\n"), None,
+                                   ["message.Motor_1.optional:", "only received messages are optional"]),
+    "optional not a flag": (_sub("timeout_cycles = 5", "timeout_cycles = 5\noptional = 1"), None,
+                            ["message.Getriebe_1.optional:", "must be true or false, got 1"]),
     "bad direction": (_sub("timeout_cycles = 5", 'timeout_cycles = 5\ndirection = "both"'), None,
                       ["message.Getriebe_1.direction:", "'both': choose one of send, receive, ignore"]),
     "unknown node": (_sub('"Kombi"]', '"Kombi", "Radio"]'), None,
@@ -607,7 +616,7 @@ def test_a_template_of_the_contract_dbc_loads_after_filling_and_equals_the_shipp
     assert '\nEngineSpeed = { output = "engine_speed_rpm" }\n' in body     # the contract's own name
     assert '\nSimTime = { status = "sim_time_s" }\n' in body
     assert '\nTargetGear = { record = "target_gear", safe = 0 }\n' in body
-    assert body.count('# protection = { kind = "?", crc = "CRC", counter = "AliveCounter" }') == 10
+    assert body.count('# protection = { kind = "?", crc = "CRC", counter = "AliveCounter" }') == 11
     # as written it is valid, and check says what it lacks
     code, report, err = run_cli(capsys, "mapping", "check", out)
     assert code == 0, err
@@ -617,7 +626,9 @@ def test_a_template_of_the_contract_dbc_loads_after_filling_and_equals_the_shipp
     out.write_text(body.replace('# protection = { kind = "?"', 'protection = { kind = "dct"'))
     filled, shipped = M.load(str(out)), M.load(M.DEFAULT_MAPPING)
     assert filled.buses[0].dbc == shipped.buses[0].dbc
-    assert [dataclasses.replace(x, bus="dct", mapped=True) for x in filled.messages] == list(shipped.messages)
+    # the same but for optional, the mapping author's word (the DBC cannot say it)
+    assert [dataclasses.replace(x, bus="dct", mapped=True, optional=x.name == "TCU_Status")
+            for x in filled.messages] == list(shipped.messages)
     assert M.bus_load(filled, "dct_hil") == dataclasses.replace(M.bus_load(shipped, "dct"), bus="dct_hil")
 
 

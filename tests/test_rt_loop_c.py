@@ -243,7 +243,7 @@ def test_prepare_starts_timed_out_on_safe_values():
     assert s.state == lib.RT_STATE_IDLE and s.seq % 2 == 0 and s.ticks == 0
     assert s.n_channels == 1 and s.n_messages == len(CHANNELS.messages) == len(TABLE)
     assert loop.c.chan[0].first_message == 0
-    assert [s.msgs[g].timed_out for g in RX_MSGS] == [1] * len(RX_MSGS) == [1] * 3
+    assert [s.msgs[g].timed_out for g in RX_MSGS] == [1] * len(RX_MSGS) == [1] * 4
     assert [s.msgs[g].timed_out for g in TX_MSGS] == [0] * len(TX_MSGS)
     assert [s.msgs[g].timeouts for g in RX_MSGS] == [0] * len(RX_MSGS)
     assert command(s, "solenoid_current1_a") == 0 and command(s, "torque_request_active") == 0

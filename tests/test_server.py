@@ -39,7 +39,7 @@ from rt_loop.transport import (
 PLANT_2MS = ("DCT_ShaftSpeeds", "DCT_OutputSpeeds", "DCT_Clutch")
 PLANT_10MS = ("DCT_Shift", "VEH_Motion", "VEH_Driver")
 PLANT_MESSAGES = PLANT_2MS + PLANT_10MS + ("SIM_Status",)
-TCU_MESSAGES = ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd")
+TCU_MESSAGES = ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd", "TCU_Status")
 WAIT_S = 20.0
 
 
