@@ -45,7 +45,9 @@ bit name                    condition                                        det
 7   gear_engagement         a gear the TCU asks for (pre-selection, launch   1000 ms       the gear inhibited
                             or shift gear) not engaged (SyncState engaged,                 (InhibitedGears), the
                             fork beyond 7 mm) after ENGAGE_SET_S of                        next allowed gear used
-                            continuous request (fork jammed, blocker failed)
+                            continuous request (a jammed fork; a failed
+                            blocker ring engages, with a clash the TCU
+                            does not see)
 8   engine_message          the engine message (VEH_Driver: EngineTorque,    the node's    torque requests off
                             the pedals) stale: timed out or rejected         stale time    (TorqueRequestActive
                                                                              (10 cycles,   0) until it heals; the
@@ -66,11 +68,18 @@ its shaft speed is healthy, nothing while the plant messages are stale. A
 message missing since the start (no frame yet) is the start-up, not a fault,
 for ``STARTUP_S`` after the plant's first frames.
 
+An invalid input shaft speed is replaced at once (before its DTC sets) by
+the speed of the gear engaged on that shaft, else by the last valid value.
+
 Avoiding a half (input speed, clutch pressure, slip limp home): its gears are
 inhibited and its sleeves go to neutral; a drive in one of its gears opens
 that clutch in the TCU period the DTC sets (0 A at once) and the TCU engages
-the allowed gear for the speed on the other half, closing its clutch by slip
-control as after a stale episode (``shift_open``, then ``launch``). Limp home
+the gear for the speed on the other half (``shift_open``: both clutches open,
+the engine brought to the new gear's shaft speed by a torque request), then
+closes its clutch by the lock ramp (by slip control, ``launch``, below 1100
+rpm). While the avoided half still holds a gear with its clutch pressure up
+(a valve stuck closed), the TCU requests zero engine torque, so that sleeve
+can leave its gear, and keeps the other clutch open: no tie-up. Limp home
 (``LimpHome`` 1) also inhibits the healthy half's gears below the limp gear
 (``LIMP_GEAR``: 2nd on K2, 3rd on K1) and shifts up only to protect the
 engine (``logic.LIMP_UPSHIFT_RPM``). Shifts between two gears of one half are
@@ -294,6 +303,7 @@ class Diagnostics:
         self.plant_seen_t_s = None       # TCU time of the first period with the plant's frames
         self._t_prev = None
         self._dt = 0.0
+        self._can_busy = False
         self._engage_gear = [0, 0]
         self._engage_wait_s = [0.0, 0.0]
         self._slip_limp_s = [0.0, 0.0]
@@ -333,8 +343,12 @@ class Diagnostics:
             self.plant_seen_t_s = seen = t_s
         self.stale = stale
         self.engine_lost = engine
-        for m in self._can:
-            self._update(m, bool(kinds >> m.bit & 1), t_s)
+        if kinds or self._can_busy:
+            busy = False
+            for m in self._can:
+                self._update(m, bool(kinds >> m.bit & 1), t_s)
+                busy = busy or m.active or m.fail_s > 0.0
+            self._can_busy = busy
         self._update(self._engine, engine_fault if seen is not None else None, t_s)
         self.torque_ok = not engine and not self._engine.active
         return stale
@@ -396,7 +410,7 @@ class Diagnostics:
             if want != self._engage_gear[s]:
                 self._engage_gear[s] = want
                 self._engage_wait_s[s] = 0.0
-            if want and not logic.gear_ready(want):
+            if want and want != g:
                 self._engage_wait_s[s] += dt
             else:
                 self._engage_wait_s[s] = 0.0
@@ -435,6 +449,8 @@ class Diagnostics:
 
     def _update(self, monitor, failing, t_s):
         """Debounce one monitor, keep the bits and the events; True when it set."""
+        if not failing and not monitor.active and monitor.fail_s == 0.0:
+            return False                  # healthy and idle, or not evaluated: nothing to count
         was = monitor.active
         new = monitor.update(failing, self._dt)
         if monitor.active != was:

@@ -162,6 +162,7 @@ SELECT_MAX_RPM = 4500.0             # a gear picked for the speed (leaving a gea
 LEAVE_STANDSTILL_KMH = 5.0          # a gear taken away below this speed: standstill, launch again
 OPEN_SYNC_RPM = 120.0               # interrupted shift: the engine up to this below the shaft: close
 OPEN_SYNC_S = 1.0                   # ... or after this long
+TIED_BAR = 0.5                      # ... but not while the other half holds a gear with this above its kiss point
 
 # ------------------------------------------------------------ traction (drive slip) limit
 TRACTION_FORCE_N = 7500.0           # drive force the front tyres carry near peak slip (calibration)
@@ -186,8 +187,8 @@ PHASE_CODES = {name: i for i, name in enumerate(PHASES)}
 SHIFT_PHASES = frozenset(("upshift_torque", "upshift_inertia", "downshift_inertia", "downshift_torque",
                           "shift_open"))
 FAULT_COUNT_MAX = 255               # TCU_Status.FaultCount saturates here
-_FORK_KEYS = ("ForkPosition1", "ForkPosition2", "ForkPosition3", "ForkPosition4")
-_SYNC_KEYS = ("SyncState1", "SyncState2", "SyncState3", "SyncState4")
+# input shaft -> ((gear, sleeve, side), ...)
+_SHAFT_SLEEVE_SIDES = {shaft: tuple((g,) + GEAR_LAYOUT[g][1:] for g in gears) for shaft, gears in SHAFT_GEARS.items()}
 
 
 def _interp(x, table):
@@ -315,8 +316,11 @@ class TcuLogic:
         self.p_meas = (float(s.get("ClutchPressure1", 0.0)), float(s.get("ClutchPressure2", 0.0)))
         line = s.get("LinePressure")
         self.line_bar = None if line is None else float(line)
-        self.fork_mm = tuple(float(s.get(k, 0.0)) for k in _FORK_KEYS)
-        self.sync_state = tuple(int(round(float(s.get(k, 0)))) for k in _SYNC_KEYS)
+        get = s.get
+        self.fork_mm = (float(get("ForkPosition1", 0.0)), float(get("ForkPosition2", 0.0)),
+                        float(get("ForkPosition3", 0.0)), float(get("ForkPosition4", 0.0)))
+        self.sync_state = (int(round(float(get("SyncState1", 0)))), int(round(float(get("SyncState2", 0)))),
+                           int(round(float(get("SyncState3", 0)))), int(round(float(get("SyncState4", 0)))))
         self.engaged_gear = (self._engaged_on(0), self._engaged_on(1))
         # input shaft speeds as received (the diagnostics judge these) and as used: an
         # invalid value (the DBC's invalid code, not finite) is replaced at once by the
@@ -337,9 +341,8 @@ class TcuLogic:
 
     def _engaged_on(self, shaft):
         """The gear engaged on an input shaft (0: none)."""
-        for g in SHAFT_GEARS[shaft]:
-            _, sleeve, side = GEAR_LAYOUT[g]
-            if self._sleeve_engaged(sleeve, side):
+        for g, sleeve, side in _SHAFT_SLEEVE_SIDES[shaft]:
+            if self.sync_state[sleeve] == SYNC_ENGAGED and self.fork_mm[sleeve] * side >= FORK_ENGAGED_MM:
                 return g
         return 0
 
@@ -375,11 +378,11 @@ class TcuLogic:
 
     def requested_gear(self, shaft):
         """The gear the forks are asked to engage on an input shaft (0: neutral, or the safe state)."""
-        if self.phase in ("safe", "stale"):
+        if self.phase == "safe" or self.phase == "stale":
             return 0
-        for g in SHAFT_GEARS[shaft]:
-            _, sleeve, side = GEAR_LAYOUT[g]
-            if self.sleeve_side[sleeve] == side:
+        sides = self.sleeve_side
+        for g, sleeve, side in _SHAFT_SLEEVE_SIDES[shaft]:
+            if sides[sleeve] == side:
                 return g
         return 0
 
@@ -546,8 +549,16 @@ class TcuLogic:
         after OPEN_SYNC_S; a shaft too slow for that: ``launch`` (slip control)."""
         target = self.target_gear
         shaft = GEAR_LAYOUT[target][0]
+        other = 1 - shaft
         self._want_gears(target)
         self.pressure_bar = [0.0, 0.0]
+        # the other half still drives (its clutch did not open: a valve stuck, a pressure
+        # that stays): no tie-up; no engine torque, so its sleeve can leave its gear
+        tied = self.p_meas[other] > CLUTCH_KISS_BAR[other] + TIED_BAR and not all(
+            self._sleeve_neutral(k) and self.sync_state[k] != SYNC_ENGAGED for k in SHAFT_SLEEVES[other])
+        if tied:
+            self.torque_request_nm = 0.0
+            return
         # the request is the engine's net torque: below zero its drag pulls it down
         below = gear_rpm(target, self.v_sched_kmh) - self.n_engine
         self.torque_request_nm = min(max(BLIP_KP_NM_PER_RPM * below, -BLIP_MAX_NM), BLIP_MAX_NM)

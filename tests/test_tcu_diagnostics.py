@@ -333,6 +333,28 @@ def test_clutch2_pressure_stuck_from_a_shift_start_limp_home():
     assert tr["limp"][-1] == 1
 
 
+def test_clutch1_stuck_closed_no_tie_up_its_gear_out_first_then_limp_home_in_2nd():
+    """The K1 valve's spool stuck at the lock pressure: seen when the 3-4 upshift commands K1
+    open. K1 cannot open, so 3rd must leave its sleeve (zero engine torque unloads the dog
+    teeth) before K2 closes in the limp gear: no tie-up of 3rd and 2nd."""
+    t_f = 10.0                                           # 3rd, K1 locked at 14 bar
+    tr, tcu, rec, plant = drive(19.0, plant_faults=(t_f, {"spool_stuck": {0: 1}}))
+    t_set = set_time(tcu, "clutch1_pressure")
+    onset = _pressure_onset(tr, plant["clutch1_pressure_bar"], 1, t_f)
+    say("clutch1_pressure (spool stuck closed)", onset=onset - t_f, detected=t_set - onset)
+    assert t_set - onset <= D.PRESSURE_SET_S + 2 * PERIOD_S
+    assert [(a, b) for t, a, b in tcu.events if t >= t_f][:1] == [(3, 4)]      # seen in the 3-4 shift
+    n = len(tr["t"])
+    k = at(tr, t_set)
+    p1, p2 = plant["clutch1_pressure_bar"][:n], plant["clutch2_pressure_bar"][:n]
+    assert p1[k:].min() > 10.0                                                   # K1 stays closed
+    k2_closes = at(tr, first(tr, p2 > KISS_BAR[1] + 1.0, t_set + 0.1))
+    neutral = plant["sync1_state"][:n] == 0
+    assert neutral[k2_closes] and neutral[k2_closes:].all()                      # 3rd out before, for good
+    assert tr["limp"][-1] == 1 and tr["gear"][-1] == 2 and tr["phase"][-1] == "drive"
+    assert rec["vehicle_speed_kmh"][-1] > rec["vehicle_speed_kmh"][int(t_set / 0.01)]    # pulling
+
+
 # ---------------------------------------------------------------------------
 # line pressure
 # ---------------------------------------------------------------------------
@@ -501,3 +523,120 @@ def test_status_signals_in_the_result_and_reset():
     tcu.diag.limp_home = True
     tcu.reset()
     assert tcu.diag.inhibited == 0 and not tcu.diag.limp_home and tcu.diag.fault_count == 0
+
+
+# ---------------------------------------------------------------------------
+# on CAN: TCU_Status on the bus, the node's stale causes reach the diagnostics
+# ---------------------------------------------------------------------------
+
+# a stand-in plant at standstill with 1st and 2nd engaged (nothing for the TCU to wait for)
+ENGAGED_STANDSTILL = {"EngineSpeed": 750, "InputShaft1Speed": 0, "InputShaft2Speed": 0,
+                      "OutputShaft1Speed": 0, "OutputShaft2Speed": 0, "ClutchPressure1": 0,
+                      "ClutchPressure2": 0, "LinePressure": 20, "ForkPosition1": 8.0,
+                      "ForkPosition2": 8.0, "ForkPosition3": 0, "ForkPosition4": 0, "SyncState1": 2,
+                      "SyncState2": 2, "SyncState3": 0, "SyncState4": 0, "VehicleSpeed": 0,
+                      "LongAccel": 0, "RoadGrade": 0, "AccelPedal": 0, "BrakePedal": 30,
+                      "EngineTorque": 20, "SimTime": 1.0, "SimState": 1}
+CAN_WAIT_S = 20.0
+
+
+@pytest.fixture
+def can_bench():
+    """(channel, stand-in plant, listener) on a virtual bus of their own."""
+    import uuid
+
+    import can
+
+    from can_dbc.peer import CanPeer
+
+    channel = f"diag-test-{uuid.uuid4().hex[:10]}"
+    listener = can.Bus(interface="virtual", channel=channel)
+    plant = CanPeer.open("plant", interface="virtual", channel=channel, values=ENGAGED_STANDSTILL)
+    yield channel, plant, listener
+    plant.close()
+    listener.shutdown()
+
+
+def _status_frames(listener):
+    from can_dbc import codec
+
+    msg = codec.message("TCU_Status")
+    out = []
+    while True:
+        f = listener.recv(timeout=0.0)
+        if f is None:
+            return out
+        if f.arbitration_id == msg.frame_id:
+            assert codec.E2eReceiver(names=["TCU_Status"]).check(f.arbitration_id, f.data) == codec.OK
+            out.append(codec.decode(msg.frame_id, f.data)[1])
+
+
+def test_on_can_the_engine_message_lost_is_reported_in_tcu_status_and_rides_out(can_bench):
+    from tcu_stub.can_tcu import CanTcu
+
+    channel, plant, listener = can_bench
+    with CanTcu.open("virtual", channel) as tcu:
+        assert tcu.wait_for(lambda t: t.t_s > 0.3 and not t.stale, timeout=CAN_WAIT_S)
+        assert tcu.sent("TCU_Status") >= 0.3 / 0.01 - 2           # every 10 ms
+        healthy = _status_frames(listener)
+        assert healthy and all(f["ActiveFaults"] == 0 for f in healthy)
+        assert healthy[-1]["TcuState"] == D.STATE_NORMAL and healthy[-1]["TcuPhase"] == 0
+        plant.enable("VEH_Driver", False)
+        assert tcu.wait_for(lambda t: t.logic.diag.engine_lost, timeout=CAN_WAIT_S)
+        assert tcu.wait_for(lambda t: t.commands["ActiveFaults"] != 0, timeout=CAN_WAIT_S)
+        assert tcu.logic.phase == "standstill"                     # not stale: it rides it out
+        assert tcu.commands["TorqueRequestActive"] == 0
+        n = tcu.sent("TCU_Status")
+        assert tcu.wait_for(lambda t: t.sent("TCU_Status") >= n + 2, timeout=CAN_WAIT_S)
+        rep = tcu.report()
+    frames = _status_frames(listener)
+    reported = [f for f in frames if f["ActiveFaults"]]
+    assert reported and D.decode_active_faults(reported[0]["ActiveFaults"]) == ["engine_message", "can_timeout"]
+    assert reported[0]["TcuState"] == D.STATE_SUBSTITUTE and reported[0]["FaultCount"] == 2
+    assert reported[0]["LastFault"] in (D.DTC_ENGINE_MESSAGE + 1, D.DTC_CAN_TIMEOUT + 1)
+    assert rep["diagnostics"]["stored"] == ["engine_message", "can_timeout"]
+    assert rep["stale"]["episodes"][-1]["causes"] == {"VEH_Driver": "timeout"}
+
+
+def test_on_can_rejected_frames_set_the_dtc_of_their_kind(can_bench):
+    from can_dbc import codec
+    from tcu_stub.can_tcu import REJECTS_TO_STALE, CanTcu
+
+    channel, plant, listener = can_bench
+    with CanTcu.open("virtual", channel, time_scale=0.1) as tcu:        # 200 ms timeouts of 2 ms messages
+        assert tcu.wait_for(lambda t: t.t_s > 0.1 and not t.stale, timeout=CAN_WAIT_S)
+        clutch = codec.message("DCT_Clutch").frame_id
+        plant.enable("DCT_Clutch", False)
+        for k in range(REJECTS_TO_STALE):
+            good = codec.encode("DCT_Clutch", {"LinePressure": 20.0}, (k + 7) % 16)
+            plant.inject(clutch, bytes([good[0]]) + bytes([good[1] & 0xF0 | 0x0]) + good[2:])  # counter 0, CRC stale
+        assert tcu.wait_for(lambda t: t.stale, timeout=CAN_WAIT_S)
+        assert tcu.wait_for(lambda t: t.commands["ActiveFaults"] != 0, timeout=CAN_WAIT_S)
+        names = D.decode_active_faults(tcu.commands["ActiveFaults"])
+        assert tcu.logic.phase == "stale" and tcu.commands["SolenoidCurrent1"] == 0.0
+        n = tcu.sent("TCU_Status")
+        assert tcu.wait_for(lambda t: t.sent("TCU_Status") >= n + 2, timeout=CAN_WAIT_S)
+        assert any(f["ActiveFaults"] == 1 << D.DTC_CAN_CRC for f in _status_frames(listener))
+        plant.enable("DCT_Clutch", True)
+        assert tcu.wait_for(lambda t: not t.stale, timeout=CAN_WAIT_S)
+        rep = tcu.report()
+    assert names == ["can_crc"]
+    assert rep["stale"]["episodes"][-1]["causes"] == {"DCT_Clutch": "rejected"}
+
+
+def test_on_the_vehicle_matrix_shift_active_and_tcu_state_go_into_tcu_gear():
+    from can_dbc.mapping import load_options
+    from tcu_stub.mapped_link import MappedLink, TcuMatrix
+
+    matrix = TcuMatrix(load_options("vehicle"))
+    assert {n: (m.name, s.name) for n, (m, s) in matrix.records.items()} == {
+        "TargetGear": ("TCU_Gear", "GearTarget"), "ShiftActive": ("TCU_Gear", "ShiftActive"),
+        "TcuState": ("TCU_Gear", "TcuState")}
+    gear_msg = next(m for m in matrix.received if m.name == "TCU_Gear")
+    values = matrix.command_values(gear_msg, {"TargetGear": 3, "ShiftActive": 1, "TcuState": 3})
+    assert (values["GearTarget"], values["ShiftActive"], values["TcuState"]) == (3, 1, 3)
+    # the diagnosis rides along offline through the vehicle matrix too
+    plant = Plant()
+    tcu = TcuLogic()
+    r = run_offline(plant, pedal(30.0), 6.0, tcu=tcu, link=MappedLink(load_options("vehicle")))
+    assert r["shifts"] and tcu.diag.fault_count == 0
