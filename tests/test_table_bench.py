@@ -10,7 +10,7 @@ import pytest
 from can_dbc import mapping, table
 
 #: (name, sent, received, {bus: (sent, received)}) of the shipped mappings
-SHIPPED = [("dct_hil", 7, 3, {"dct": (7, 3)}),
+SHIPPED = [("dct_hil", 7, 4, {"dct": (7, 4)}),
            ("vehicle", 14, 5, {"pt": (9, 3), "io": (5, 2)})]
 
 
@@ -67,10 +67,10 @@ def test_both_mappings_are_timed_and_written_as_json(c, tmp_path, capsys):
     # printed: the definition, per mapping its messages, frames, figure, bound and verdict
     assert "one tick's work: the frames due in the loop's costliest tick" in out
     assert "dct_hil (can_dbc/mappings/dct_hil.toml): 7 plant messages encoded + protected, " \
-           "3 TCU messages checked + decoded (1 bus: dct 7 + 3)" in out
+           "4 TCU messages checked + decoded (1 bus: dct 7 + 4)" in out
     assert "vehicle (can_dbc/mappings/vehicle.toml): 14 plant messages encoded + protected, " \
            "5 TCU messages checked + decoded (2 buses: pt 9 + 3, io 5 + 2)" in out
-    assert "every message at once (7 encoded, 3 decoded" in out
+    assert "every message at once (7 encoded, 4 decoded" in out
     assert "every message at once (14 encoded, 5 decoded" in out
     assert out.count("bound 1000 ns: ") == 2
     assert f"figures in {path}" in out
