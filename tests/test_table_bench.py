@@ -46,7 +46,9 @@ def _check_result(r, name, n_tx, n_rx, buses):
     assert r["bound_ns"] == 1000.0 and r["pass"] is (r["ns_per_tick"] <= 1000.0)
     sched = r["schedule"]
     assert 1 <= r["schedule_worst_tick_tx"] == len(sched["tx_messages"]) <= n_tx
-    assert sched["ns_per_tick"] > 0 and 0 < sched["rx_burst_ns"] <= sched["ns_per_tick"]
+    # the burst is part of the tick, but the two are timed apart (best of a few runs each):
+    # allow the timer's noise between them
+    assert sched["ns_per_tick"] > 0 and 0 < sched["rx_burst_ns"] <= 1.25 * sched["ns_per_tick"]
 
 
 def test_both_mappings_are_timed_and_written_as_json(c, tmp_path, capsys):
