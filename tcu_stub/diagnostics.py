@@ -42,12 +42,13 @@ bit name                    condition                                        det
                             (friction fade)                                                on for 500 ms more:
                                                                                            limp home on K2
 6   clutch2_slip            the same for K2                                  200 ms        the same, on K1
-7   gear_engagement         a gear the TCU asks for (pre-selection, launch   1000 ms       the gear inhibited
-                            or shift gear) not engaged (SyncState engaged,                 (InhibitedGears), the
-                            fork beyond 7 mm) after ENGAGE_SET_S of                        next allowed gear used
-                            continuous request (a jammed fork; a failed
-                            blocker ring engages, with a clash the TCU
-                            does not see)
+7   gear_engagement         a gear the TCU asks for (pre-selection, launch   1000 ms       its shaft's sleeves
+                            or shift gear) not engaged (SyncState engaged,                 let go (0.1 s), the
+                            fork beyond 7 mm) after ENGAGE_SET_S of                        gear asked again; a
+                            continuous request (a jammed fork; a failed                    second failure in a
+                            blocker ring engages, with a clash the TCU                     row: the gear inhibited
+                            does not see)                                                  (InhibitedGears), the
+                                                                                           next allowed gear used
 8   engine_message          the engine message (VEH_Driver: EngineTorque,    the node's    torque requests off
                             the pedals) stale: timed out or rejected         stale time    (TorqueRequestActive
                                                                              (10 cycles,   0) until it heals; the
@@ -121,6 +122,7 @@ SLIP_RPM = 100.0                    # healthy runs: a locked clutch slips at mos
 SLIP_SET_S = 0.2
 SLIP_LIMP_S = 0.5                   # slip still there this long with the raised pressure: limp home
 ENGAGE_SET_S = 1.0                  # healthy runs: a requested gear engages within 0.56 s
+ENGAGE_RELEASE_S = 0.1              # a first failure: the shaft's sleeves go to neutral this long, then a retry
 STARTUP_S = 1.0                     # a message never received counts as lost this long after the plant's first frames
 MAX_DT_S = 0.02                     # longest time one period counts (a TCU paused for longer)
 PERIOD_FIRST_S = 0.002              # the first period's time (no earlier period to measure from)
@@ -176,7 +178,8 @@ DTCS = {d.bit: d for d in (
     Dtc(DTC_CLUTCH2_SLIP, "clutch2_slip", "K2 commanded closed and slipping by more than 100 rpm", "200 ms",
         "K2 lock pressure raised to 19 bar; still slipping 500 ms later: limp home on K1"),
     Dtc(DTC_GEAR_ENGAGEMENT, "gear_engagement", "a requested gear not engaged after 1 s of request",
-        "1000 ms", "the gear inhibited (InhibitedGears), the next allowed gear used"),
+        "1000 ms", "its shaft's sleeves let go for 0.1 s and the gear asked again; failing again: "
+        "the gear inhibited (InhibitedGears), the next allowed gear used"),
     Dtc(DTC_ENGINE_MESSAGE, "engine_message", "the engine message (VEH_Driver) timed out or rejected",
         "the node's: 10 cycles or 3 rejected frames",
         "no torque requests (TorqueRequestActive 0) until it heals; the last values stand in"),
@@ -306,6 +309,8 @@ class Diagnostics:
         self._can_busy = False
         self._engage_gear = [0, 0]
         self._engage_wait_s = [0.0, 0.0]
+        self._engage_failed = 0          # gear bits: failed once since they last engaged
+        self.release_s = [0.0, 0.0]      # per input shaft: its sleeves let go (to neutral) this long
         self._slip_limp_s = [0.0, 0.0]
 
     # ------------------------------------------------------------ messages
@@ -405,20 +410,31 @@ class Diagnostics:
                     self._limp(s)
             elif slip_fail is False:
                 self._slip_limp_s[s] = 0.0
-            # gear engagement: the gear asked for on this shaft
+            # gear engagement: the gear asked for on this shaft (not counted while its
+            # sleeves are let go for a retry)
             want = logic.requested_gear(s)
             if want != self._engage_gear[s]:
                 self._engage_gear[s] = want
                 self._engage_wait_s[s] = 0.0
-            if want and want != g:
+            if self.release_s[s] > 0.0:
+                self.release_s[s] = max(self.release_s[s] - dt, 0.0)
+                self._engage_wait_s[s] = 0.0
+            elif want and want != g:
                 self._engage_wait_s[s] += dt
             else:
                 self._engage_wait_s[s] = 0.0
+                if want:
+                    self._engage_failed &= ~(1 << (want - 1))     # engaged: a retry again next time
         engage_fail = False
         for s in (0, 1):
             if self._engage_wait_s[s] >= ENGAGE_SET_S - 1e-9:
                 engage_fail = True
-                self.inhibited |= 1 << (self._engage_gear[s] - 1)
+                bit = 1 << (self._engage_gear[s] - 1)
+                if self._engage_failed & bit:
+                    self.inhibited |= bit                      # the retry failed too
+                else:
+                    self._engage_failed |= bit                 # let the sleeves go, then once more
+                    self.release_s[s] = ENGAGE_RELEASE_S
                 self._engage_wait_s[s] = 0.0
         self._update(self._engage, engage_fail, t_s)
         # reactions

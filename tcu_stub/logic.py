@@ -187,6 +187,7 @@ PHASE_CODES = {name: i for i, name in enumerate(PHASES)}
 SHIFT_PHASES = frozenset(("upshift_torque", "upshift_inertia", "downshift_inertia", "downshift_torque",
                           "shift_open"))
 FAULT_COUNT_MAX = 255               # TCU_Status.FaultCount saturates here
+_SLEEVE_SHAFT = (0, 1, 0, 1)        # sleeve -> input shaft
 # input shaft -> ((gear, sleeve, side), ...)
 _SHAFT_SLEEVE_SIDES = {shaft: tuple((g,) + GEAR_LAYOUT[g][1:] for g in gears) for shaft, gears in SHAFT_GEARS.items()}
 
@@ -388,9 +389,17 @@ class TcuLogic:
 
     def _fork_forces(self):
         forces = []
+        release = self.diag.release_s
         for k, side in enumerate(self.sleeve_side):
             pos = self.fork_mm[k]
             state = self.sync_state[k]
+            if release[_SLEEVE_SHAFT[k]] > 0.0:
+                # a gear that did not engage: its shaft's sleeves let go for a retry
+                # (a synchronisation that cannot finish, its gear's speed running away)
+                f = self._neutral_force(k, pos)
+                forces.append(f)
+                self.fork_pos_prev[k] = pos
+                continue
             if state == 1 and pos != 0.0 and side != (1 if pos > 0 else -1):
                 # never let go of a sleeve on its cone: finish that synchronisation first
                 side = 1 if pos > 0 else -1
