@@ -13,18 +13,16 @@ To test another TCU: copy this file, put your TCU on the bus (``pytest
 --bench-transport socketcan --bench-channel can0 --bench-tcu external``) and
 adapt the limits and the DTC names (``DTC``) to its specification.
 
-Reactions that rely on the TCU's diagnosis (its ``TCU_Status`` message:
-ActiveFaults, LimpHome, ShiftActive, TcuPhase, and the DTC table of
-``tcu_stub.diagnostics``) are expected failures while the reference TCU has
-no such diagnosis; they run for real once it does.
+The TCU's diagnosis comes in its ``TCU_Status`` message (ActiveFaults,
+LimpHome, ShiftActive, TcuPhase, InhibitedGears; the DTC table of
+``tcu_stub.diagnostics``).
 """
 
 from __future__ import annotations
 
-import importlib.util
-
 import pytest
 
+import tcu_stub.diagnostics as diagnostics
 from dct_hil.bench import BenchTimeout
 
 pytestmark = pytest.mark.hil
@@ -47,31 +45,10 @@ CLUTCH_DRIVES = ("TCU_ClutchCmd.SolenoidCurrent1 > 0.3 or "
                  "TCU_ClutchCmd.SolenoidCurrent2 > 0.3")
 
 
-def _diagnostics():
-    """The reference TCU's DTC table (tcu_stub.diagnostics) and TCU_Status, if present."""
-    if importlib.util.find_spec("tcu_stub.diagnostics") is None:
-        return None
-    from can_dbc import codec
-
-    if not any(m.name == "TCU_Status" for m in codec.messages("TCU")):
-        return None
-    import tcu_stub.diagnostics as diagnostics
-
-    return diagnostics
-
-
-DIAGNOSTICS = _diagnostics()
-needs_diagnosis = pytest.mark.xfail(
-    DIAGNOSTICS is None, strict=True,
-    reason="the reference TCU has no diagnosis yet (tcu_stub.diagnostics and the TCU_Status "
-           "message: ActiveFaults, LimpHome, ShiftActive)")
-
-
 def DTC(name: str) -> str:  # noqa: N802 (reads like the table it names)
     """A DTC's name as the TCU reports it (``tcu_status()["dtcs"]``), checked
     against the TCU's table when it has one."""
-    if DIAGNOSTICS is not None:
-        assert name in DIAGNOSTICS.DTC_NAMES, f"{name!r} is not in the TCU's DTC table"
+    assert name in diagnostics.DTC_NAMES, f"{name!r} is not in the TCU's DTC table"
     return name
 
 
@@ -112,10 +89,8 @@ def dtcs(bench) -> set:
 
 
 def reported(bench, name: str, within_s: float = 0.1) -> None:
-    """With a diagnosing TCU: ``name`` is among its active DTCs within
-    ``within_s`` of plant time (TCU_Status comes every 10 ms)."""
-    if DIAGNOSTICS is None:
-        return
+    """``name`` is among the TCU's active DTCs within ``within_s`` of plant
+    time (TCU_Status comes every 10 ms)."""
     end = bench.time_s + within_s
     while DTC(name) not in dtcs(bench):
         assert bench.time_s < end, f"{name} not reported within {within_s:g} s: {bench.tcu_status()}"
@@ -165,9 +140,6 @@ def test_coast_downshift_when_braking(bench):
     assert t - t0 <= COAST_DOWNSHIFT_S
 
 
-@pytest.mark.xfail(DIAGNOSTICS is None, strict=True, reason="reference TCU: after a kick-down 3-2 held at full pedal, "
-                   "releasing to 30 % leaves the 1-3 sleeve synchronizing (SyncState1 1, fork "
-                   "3 mm) and the TCU stays in 2nd (target 3) up to 4900 rpm")
 def test_upshift_again_after_kickdown(bench):
     drive_to_gear(bench, 3)
     bench.set("accel_pedal_pct", 100)
@@ -187,10 +159,9 @@ def test_engine_message_lost_ends_torque_request(bench):
     # from the limit on no torque request while the engine's message is missing
     holds_not(bench, "TCU_EngineCmd.TorqueRequestActive == 1", 0.5)
     reported(bench, "engine_message")
-    if DIAGNOSTICS is not None:               # the last values stand in: the gearbox drives on
-        currents = bench.read_many(["TCU_ClutchCmd.SolenoidCurrent1",
-                                    "TCU_ClutchCmd.SolenoidCurrent2"])
-        assert max(currents.values()) > 0.3, f"no clutch driving: {currents}"
+    # the last values stand in: the gearbox drives on
+    currents = bench.read_many(["TCU_ClutchCmd.SolenoidCurrent1", "TCU_ClutchCmd.SolenoidCurrent2"])
+    assert max(currents.values()) > 0.3, f"no clutch driving: {currents}"
 
 
 def test_shaft_speeds_lost_open_both_clutches(bench):
@@ -233,7 +204,6 @@ def test_recovers_when_the_message_returns(bench):
 
 
 # ---------------------------------------------------------------- faults: signals and hardware
-@needs_diagnosis
 def test_input_shaft2_speed_invalid_avoids_even_gears(bench):
     bench.inject("signal.invalid", signal="DCT_ShaftSpeeds.InputShaft2Speed")
     bench.set("accel_pedal_pct", 30)
@@ -243,7 +213,6 @@ def test_input_shaft2_speed_invalid_avoids_even_gears(bench):
     holds_not(bench, "gear == 2 or gear == 4 or gear == 6", 2.0)
 
 
-@needs_diagnosis
 def test_clutch2_pressure_stuck_while_shifting_limp_home(bench):
     bench.inject("signal.hold", signal="DCT_Clutch.ClutchPressure2",
                  when="TCU_Status.ShiftActive == 1")
@@ -252,7 +221,6 @@ def test_clutch2_pressure_stuck_while_shifting_limp_home(bench):
     reported(bench, "clutch2_pressure")
 
 
-@needs_diagnosis
 def test_line_pressure_loss_limp_home(bench):
     drive_to_gear(bench, 2)
     reaction(bench, "TCU_Status.LimpHome == 1", DIAG_S, "hydraulics.line_pressure_loss", loss=0.8)
@@ -260,7 +228,6 @@ def test_line_pressure_loss_limp_home(bench):
     bench.wait_until(CLUTCHES_OPEN, timeout_s=0.1)      # the safe state
 
 
-@needs_diagnosis
 def test_fork_jammed_reports_engagement_failure_and_uses_another_gear(bench):
     bench.inject("fork.jammed", sleeve="2-4")
     bench.set("accel_pedal_pct", 30)
@@ -270,8 +237,17 @@ def test_fork_jammed_reports_engagement_failure_and_uses_another_gear(bench):
     assert int(bench.tcu_status()["InhibitedGears"]) & 0b10, "2nd must stay inhibited"
 
 
-@needs_diagnosis
 def test_solenoid_open_reports_pressure_implausible(bench):
     drive_to_gear(bench, 2)
     reaction(bench, "TCU_Status.ActiveFaults != 0", DIAG_S, "valve.solenoid_open", clutch=2)
     reported(bench, "clutch2_pressure")
+
+
+def test_clutch_friction_fade_is_diagnosed_as_slip(bench):
+    drive_to_gear(bench, 3)                   # 3rd: K1 closed, about 60 Nm at 30 % pedal
+    bench.wait_until("TCU_Status.ShiftActive == 0", timeout_s=2.0)
+    bench.sleep(0.5)                          # K1 at its lock pressure
+    # 95 % of the friction lost: K1 holds about 20 Nm at its lock pressure, it slips
+    reaction(bench, "TCU_Status.ActiveFaults != 0", DIAG_S, "clutch.friction_fade", clutch=1,
+             loss=0.95)
+    reported(bench, "clutch1_slip")
