@@ -111,6 +111,9 @@ class StatsReader:
             for key, field, _, _ in TIMES
         }
         names = channels.message_names()
+        #: received messages the mapping marks optional (a TCU may leave them out)
+        self.optional = {names[i] for i, (_, m) in enumerate(channels.messages)
+                         if m.direction == "receive" and getattr(m, "optional", False)}
         self.buses = list(channels.buses)
         #: (index in rt_stats.msgs, name) of the received and of the sent messages
         self.rx_messages = [(i, names[i]) for i, (_, m) in enumerate(channels.messages)
@@ -156,7 +159,8 @@ class StatsReader:
             m = s.msgs[i]
             tcu[name] = {"accepted": int(m.frames), "bad_length": int(m.bad_length),
                          "bad_crc": int(m.bad_crc), "bad_counter": int(m.bad_counter),
-                         "timeouts": int(m.timeouts), "timed_out": bool(m.timed_out)}
+                         "timeouts": int(m.timeouts), "timed_out": bool(m.timed_out),
+                         "optional": name in self.optional}
         plant = {name: {"sent": int(s.msgs[i].frames), "dropped": int(s.msgs[i].dropped)}
                  for i, name in self.tx_messages}
         channels = {}

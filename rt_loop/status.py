@@ -269,7 +269,7 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
     def timeouts(name: str, m: dict) -> str:
         # a message never received was timed out from the start: no timeout event
         if m.get("accepted") == 0:
-            return f"{name} never received"
+            return f"{name} never received" + (" (optional)" if m.get("optional") else "")
         n = m["timeouts"]
         if not n:
             return f"{name} 0"
@@ -277,7 +277,8 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
                 + (", still timed out at the end" if m["timed_out"] else ", came back"))
 
     messages = c["tcu_messages"]
-    if messages and all(m.get("accepted") == 0 for m in messages.values()):
+    needed = [m for m in messages.values() if not m.get("optional")]
+    if needed and all(m.get("accepted") == 0 for m in needed):
         tcu = "none: no TCU frame received (every TCU message timed out from the start)"
     else:
         tcu = "; ".join(timeouts(name, m) for name, m in messages.items())

@@ -203,8 +203,9 @@ def tcu_message_rules(report: dict | None) -> tuple[list[str], list[str]]:
     messages = _d(counts.get("tcu_messages"))
     if not messages:
         return findings, notes
+    # a message the mapping marks optional (a TCU status) is judged only once it came
     heard = {name: _n(_d(m).get("accepted")) for name, m in messages.items()
-             if _d(m).get("accepted") is not None}
+             if _d(m).get("accepted") is not None and not _d(m).get("optional")}
     if heard and not any(heard.values()):
         wall = _f(run.get("wall_s"))
         during = f" in {wall:.1f} s" if wall is not None else ""
@@ -217,6 +218,8 @@ def tcu_message_rules(report: dict | None) -> tuple[list[str], list[str]]:
         m = _d(m)
         if name in heard and heard[name] == 0:
             never.append(name)
+            continue
+        if m.get("optional") and not _n(m.get("accepted")):
             continue
         timeouts, still = _n(m.get("timeouts")), bool(m.get("timed_out"))
         if not timeouts:

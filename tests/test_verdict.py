@@ -196,6 +196,26 @@ def test_a_tcu_message_never_received_while_others_were_is_a_finding():
     assert "TCU_ShiftCmd never received" in text and "TCU_ClutchCmd 0" in text
 
 
+def test_an_optional_tcu_message_never_received_is_no_finding():
+    # a TCU written from the README need not send the TCU's status message
+    r = clean_report()
+    r["counts"]["tcu_messages"]["TCU_Status"] = {"accepted": 0, "timeouts": 0,
+                                                 "timed_out": True, "optional": True}
+    v = vd.serve_verdict(r)
+    assert v["valid"] and v["findings"] == []
+    text = "\n".join(rt_status.summary_lines(r, "s.json"))
+    assert "TCU_Status never received (optional)" in text
+    # the TCU's own messages missing: still a TCU that took no part
+    for name in TCU_MESSAGES:
+        r["counts"]["tcu_messages"][name] = {"accepted": 0, "timeouts": 0, "timed_out": True}
+    assert vd.serve_verdict(r)["findings"][0].startswith("no TCU frame received")
+    # once it came, it is judged as the others: its timeout is a finding
+    r = clean_report()
+    r["counts"]["tcu_messages"]["TCU_Status"] = {"accepted": 10, "timeouts": 1,
+                                                 "timed_out": False, "optional": True}
+    assert any("TCU_Status" in f for f in vd.serve_verdict(r)["findings"])
+
+
 def test_every_timeout_during_a_maneuver_invalidates():
     r = clean_report()
     r["counts"]["tcu_messages"]["TCU_ClutchCmd"].update(timeouts=3, timed_out=False)
