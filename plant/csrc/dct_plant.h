@@ -860,6 +860,7 @@ typedef struct {
     double front_static_n;            /* static axle loads on level road */
     double rear_static_n;
     dct_faults faults;                /* the faults dct_plant_prepare accepted: those in effect */
+    double faults_on;                 /* 1: any of them is not zero (0: the step skips them) */
 } dct_derived;
 
 typedef struct {

@@ -50,8 +50,14 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     c->hydraulics_in.current_a[0] = u->solenoid_current1_a;
     c->hydraulics_in.current_a[1] = u->solenoid_current2_a;
     c->hydraulics_in.line_current_a = u->line_solenoid_current_a;
-    /* a stuck spool, a jammed fork (faults.c) */
-    dct_faults_apply_couplings(&pl->derived.faults, &c->hydraulics_in, &c->gearbox_in);
+    /* a stuck spool, a jammed fork (faults.c); without faults none, at no cost */
+    if (pl->derived.faults_on > 0.5) {
+        dct_faults_apply_couplings(&pl->derived.faults, &c->hydraulics_in, &c->gearbox_in);
+    } else {
+        c->hydraulics_in.spool_stuck[0] = c->hydraulics_in.spool_stuck[1] = 0.0;
+        for (int k = 0; k < DCT_N_SLEEVES; k++)
+            c->gearbox_in.fork_jammed[k] = 0.0;
+    }
     if (p->hydraulics.pressure_commanded > 0.5) {
         double pressure[2] = {u->clutch1_pressure_bar, u->clutch2_pressure_bar};
         for (int k = 0; k < 2; k++) {
@@ -318,7 +324,8 @@ static int apply_inputs(dct_plant *pl)
     a->engine_torque_request_nm = limit(pl, u->engine_torque_request_nm, -200.0, 1000.0);
     a->torque_request_active = u->torque_request_active > 0.5 ? 1.0 : 0.0;
     a->engine_on = u->engine_on > 0.5 ? 1.0 : 0.0;
-    dct_faults_apply_inputs(&pl->derived.faults, a);
+    if (pl->derived.faults_on > 0.5)
+        dct_faults_apply_inputs(&pl->derived.faults, a);
     return DCT_OK;
 }
 
@@ -438,6 +445,11 @@ int dct_plant_prepare(dct_plant *pl)
                             &pl->error_index);
     if (st != DCT_OK)
         return st;
+    const double *f = (const double *)&pl->derived.faults;
+    pl->derived.faults_on = 0.0;
+    for (size_t i = 0; i < sizeof pl->derived.faults / sizeof *f; i++)
+        if (f[i] != 0.0)
+            pl->derived.faults_on = 1.0;
     const dct_params *p = &pl->effective;
     dct_gearbox_prepare(&p->gearbox, &pl->derived.gearbox);
     dct_hydraulics_prepare(&p->hydraulics, p->clutch, &pl->derived.hydraulics);

@@ -364,6 +364,7 @@ static int effects(rt_fault_run *f, rt_loop *l)
     }
     memset(f->msg_flags, 0, sizeof f->msg_flags);
     memset(f->msg_signal_faults, 0, sizeof f->msg_signal_faults);
+    memset(f->msg_invalid, 0, sizeof f->msg_invalid);
     memset(f->chan_off, 0, sizeof f->chan_off);
     f->n_signal = 0;
     dct_faults pf;
@@ -431,6 +432,8 @@ static int effects(rt_fault_run *f, rt_loop *l)
                 f->signal_slots[f->n_signal++] = (uint8_t)i;
                 if (f->msg_signal_faults[d->message] < 255)
                     f->msg_signal_faults[d->message]++;
+                if (d->kind == RT_FAULT_SIG_INVALID)
+                    f->msg_invalid[d->message] = 1;
                 int c = channel_of(l, d->message);
                 if (l->chan[c].msgs[d->message - l->chan[c].first_message].direction == RT_DIR_TX)
                     tx_signal = 1;
@@ -573,6 +576,8 @@ void rtf_signals(rt_fault_run *f, int g, double *values, const uint8_t *written,
 
 void rtf_raw(rt_fault_run *f, const ct_table *t, int m, int g, uint8_t *data)
 {
+    if (!f->msg_invalid[g])
+        return;
     for (int j = 0; j < f->n_signal; j++) {
         const rt_fault_def *d = &f->slots[f->signal_slots[j]].def;
         if (d->message == g && d->kind == RT_FAULT_SIG_INVALID)
@@ -592,10 +597,17 @@ void rtf_hit_channel(rt_fault_run *f, int c)
     f->slots[f->chan_off_slot[c]].hits++;
 }
 
-void rtf_publish(const rt_fault_run *f, rt_stats *s)
+void rtf_publish(const rt_fault_run *f, rt_stats *s, int changed)
 {
     s->fault_mask = f->mask;
     s->fault_changes = f->changes;
+    if (!changed) {                   /* only the hits of the active faults move */
+        for (uint64_t m = f->mask; m; m &= m - 1u) {
+            int i = __builtin_ctzll(m);
+            s->faults[i].hits = f->slots[i].hits;
+        }
+        return;
+    }
     for (int i = 0; i < RT_MAX_FAULTS; i++) {
         const rtf_slot *x = &f->slots[i];
         rt_fault_stats *o = &s->faults[i];

@@ -58,6 +58,7 @@ typedef struct {
     double msg_cycle_s[RT_MAX_MESSAGES];        /* RTF_CYCLE: its cycle */
     uint64_t msg_frozen_seq[RT_MAX_MESSAGES];   /* RTF_FREEZE: the frame number it repeats */
     uint8_t msg_signal_faults[RT_MAX_MESSAGES]; /* active signal faults on its signals */
+    uint8_t msg_invalid[RT_MAX_MESSAGES];       /* 1: one of them writes an invalid raw value */
     uint8_t msg_fault_slot[RT_MAX_MESSAGES][5]; /* the slot behind each RTF_* flag (hits) */
     uint8_t chan_off[RT_MAX_CHANNELS];          /* 1: the plant node is off this bus */
     uint8_t chan_off_slot[RT_MAX_CHANNELS];
@@ -80,7 +81,8 @@ void rtf_raw(rt_fault_run *f, const ct_table *t, int m, int g, uint8_t *data);
 /* counts a frame a CAN fault changed: flag RTF_* of message g, or the bus off of channel c */
 void rtf_hit_message(rt_fault_run *f, int g, unsigned flag);
 void rtf_hit_channel(rt_fault_run *f, int c);
-/* the published copy (inside the statistics' write section) */
-void rtf_publish(const rt_fault_run *f, rt_stats *s);
+/* the published copy (inside the statistics' write section): every slot
+ * after a change, else only the hits of the active ones */
+void rtf_publish(const rt_fault_run *f, rt_stats *s, int changed);
 
 #endif

@@ -1121,11 +1121,15 @@ static void make_frame(rt_run *r, int c, int m, int nf)
     uint64_t shown_seq = fault & RTF_FREEZE ? r->f.msg_frozen_seq[g] : seq;
     const rt_source *src = ch->sources + cm->first_signal;
     double *shown = l->signal_values + ch->first_signal_value + cm->first_signal;
-    for (uint32_t k = 0; k < cm->n_signals; k++)
-        r->values[k] = source_value(r, &src[k], ch->ranges, shown_seq);
-    if (r->f.msg_signal_faults[g])
+    if (r->f.msg_signal_faults[g]) {
+        for (uint32_t k = 0; k < cm->n_signals; k++)
+            r->values[k] = source_value(r, &src[k], ch->ranges, shown_seq);
         rtf_signals(&r->f, g, r->values, NULL, cm->n_signals);
-    memcpy(shown, r->values, cm->n_signals * sizeof r->values[0]);
+        memcpy(shown, r->values, cm->n_signals * sizeof r->values[0]);
+    } else {
+        for (uint32_t k = 0; k < cm->n_signals; k++)
+            shown[k] = r->values[k] = source_value(r, &src[k], ch->ranges, shown_seq);
+    }
     rt_frame *f = &r->tx_frames[nf];
     f->id = cm->id | (cm->extended ? CAN_EFF_FLAG : 0u);
     f->flags = ch->msgs[m].flags;
@@ -1551,7 +1555,7 @@ static void copy_counts(rt_stats *s, rt_run *r)
     s->maneuver_state = r->maneuver_state;
     s->maneuver_time_s = r->maneuver_time_s;
     if (r->faults_dirty || r->f.mask) {  /* starts, ends, and the hits of active faults */
-        rtf_publish(&r->f, s);
+        rtf_publish(&r->f, s, r->faults_dirty);
         r->faults_dirty = 0;
     }
 }
@@ -1718,7 +1722,10 @@ int rt_loop_run(rt_loop *l)
             break;
         }
         check_timeouts(&r, n);
-        int fc = rtf_tick(&r.f, l, r.cmd, r.maneuver_time_s);
+        /* faults: nothing set and no command queued costs two loads */
+        int fc = r.f.n_used || atomic_load_explicit(A32(&l->fault_cmds.head), ACQUIRE) !=
+                                   atomic_load_explicit(A32(&l->fault_cmds.tail), RELAXED)
+                     ? rtf_tick(&r.f, l, r.cmd, r.maneuver_time_s) : 0;
         if (fc) {
             r.faults_dirty = 1;
             if (fc & RTF_CYCLES_CHANGED)
