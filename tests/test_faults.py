@@ -49,44 +49,67 @@ def run_with(fault, seconds=0.3, before=0.05, **loop_kw):
 
 
 def split(frames, msg, start, end):
-    """A message's frames (len, data) before/while/after the fault (by plant
-    time: the log stamps the deadline time, which equals plant time here up to
-    skipped ticks, so the frames next to the edges are left out)."""
-    own = [(t, n, d) for t, fid, n, d in frames if fid == msg.frame_id]
+    """A message's frames (len, data) before/while/after the fault, by plant
+    time. The log stamps each frame with its tick's deadline, which runs ahead
+    of plant time by the deadlines a loaded host made the loop skip; the send
+    schedule counts executed ticks instead, so the k-th frame of a message
+    sent every cycle went out at a plant time within (k, k + 1] cycles. The
+    frames within 20 ms of the fault's edges are left out."""
+    cycle = msg.cycle_time / 1000.0
+    own = [(k * cycle, n, d) for k, (_, fid, n, d) in
+           enumerate(f for f in frames if f[1] == msg.frame_id)]
     margin = 0.02
-    during = [(n, d) for t, n, d in own if start + margin <= t <= end - margin]
+    during = [(n, d) for t, n, d in own if start + margin <= t <= end - margin - cycle]
     after = [(n, d) for t, n, d in own if t >= end + margin]
-    before = [(n, d) for t, n, d in own if t <= start - margin]
+    before = [(n, d) for t, n, d in own if t + cycle <= start - margin]
     return before, during, after
 
 
 # ------------------------------------------------------------------ CAN faults
 def test_omit_keeps_the_message_off_the_bus_and_counts_each_frame():
     frames, start, end, status = run_with({"kind": "can.omit", "message": "DCT_Clutch"})
-    before, during, after = split(frames, CLUTCH_MSG, start, end)
-    assert before and after and not during
+    sent = sum(1 for f in frames if f[1] == CLUTCH_MSG.frame_id)
     assert status["hits"] == pytest.approx((end - start) / 0.002, abs=1)
-    # the other messages go on
-    _, shaft_during, _ = split(frames, SHAFT_MSG, start, end)
-    assert len(shaft_during) > 50
+    # every frame of the run's cycles either sent or omitted (counted)
+    assert sent + status["hits"] == pytest.approx(status["run_s"] / 0.002, abs=2)
+    # the other messages go on, every cycle
+    shaft = sum(1 for f in frames if f[1] == SHAFT_MSG.frame_id)
+    assert shaft == pytest.approx(status["run_s"] / 0.002, abs=2)
 
 
 def test_frozen_counter_repeats_with_a_valid_checksum_then_counts_on():
     frames, start, end, status = run_with({"kind": "can.freeze_counter", "message": "DCT_Clutch"})
-    before, during, after = split(frames, CLUTCH_MSG, start, end)
-    counters = {d[1] & 0x0F for _, d in during}
-    assert len(counters) == 1 and len(during) > 50
-    assert all(e2e_ok(CLUTCH_MSG.frame_id, d) for _, d in during)
-    seq = [d[1] & 0x0F for _, d in after]
-    assert all((b - a) % 16 == 1 for a, b in zip(seq, seq[1:]))
-    assert status["hits"] >= len(during)
+    # by the frames' order, not the log's deadline stamps (a loaded host's skipped
+    # deadlines move those away from plant time): one run of a repeated counter,
+    # counting on by one before it
+    own = [d for _, fid, _, d in frames if fid == CLUTCH_MSG.frame_id]
+    seq = [d[1] & 0x0F for d in own]
+    runs, k = [], 0
+    while k < len(seq):
+        j = k
+        while j + 1 < len(seq) and seq[j + 1] == seq[k]:
+            j += 1
+        runs.append((k, j))
+        k = j + 1
+    long = [(a, b) for a, b in runs if b > a]
+    assert len(long) == 1, long
+    a, b = long[0]
+    assert b - a + 1 == status["hits"] + 1   # the frame before the fault, then each frozen one
+    assert status["hits"] > 50
+    assert all(e2e_ok(CLUTCH_MSG.frame_id, d) for d in own)
+    assert all((y - x) % 16 == 1 for x, y in zip(seq[:a + 1], seq[1:a + 1]))
+    # the sender's count went on meanwhile: one jump back to it, then by one again
+    assert seq[b + 1] == (seq[b] + status["hits"] + 1) % 16
+    assert all((y - x) % 16 == 1 for x, y in zip(seq[b + 1:], seq[b + 2:]))
 
 
 def test_bad_checksum_while_active_only():
-    frames, start, end, _ = run_with({"kind": "can.bad_crc", "message": "DCT_ShaftSpeeds"})
-    before, during, after = split(frames, SHAFT_MSG, start, end)
-    assert during and not any(e2e_ok(SHAFT_MSG.frame_id, d) for _, d in during)
-    assert all(e2e_ok(SHAFT_MSG.frame_id, d) for _, d in before + after)
+    frames, start, end, status = run_with({"kind": "can.bad_crc", "message": "DCT_ShaftSpeeds"})
+    ok = [e2e_ok(SHAFT_MSG.frame_id, d) for _, fid, _, d in frames if fid == SHAFT_MSG.frame_id]
+    bad = [k for k, good in enumerate(ok) if not good]
+    # one block of bad checksums, one per frame of the fault, valid before and after
+    assert len(bad) == status["hits"] > 100 and bad == list(range(bad[0], bad[0] + len(bad)))
+    assert 0 < bad[0] and bad[-1] < len(ok) - 100
 
 
 def frame_times(frames, msg):
@@ -171,9 +194,13 @@ def test_noise_is_seeded_gaussian_and_reproducible():
     n = min(len(r) for r in runs)
     k = 20
     a, b = runs[0][:n], runs[1][:n]
-    # the runs may be offset by a few frames at the edges: find the alignment
-    best = min(range(-3, 4), key=lambda o: np.abs(a[k:n - k] - b[k + o:n - k + o]).sum())
-    assert np.allclose(a[k:n - k], b[k + best:n - k + best], atol=1e-3)
+    # the windows may hold a few frames more or less at their edges: the same
+    # values, frame for frame, at one offset (chance cannot match 80 noisy values)
+    def match(o):
+        x, y = (a[k:n - k], b[k + o:n - k + o]) if o >= 0 else (a[k - o:n - k - o], b[k:n - k])
+        m = min(len(x), len(y))
+        return m >= 80 and np.allclose(x[:m], y[:m], atol=1e-3)
+    assert any(match(o) for o in range(-k, k + 1))
 
 
 def test_invalid_is_the_dbcs_invalid_value():
