@@ -37,36 +37,6 @@ static inline void add64(uint64_t *p, uint64_t n)
     atomic_store_explicit(A64(p), atomic_load_explicit(A64(p), RELAXED) + n, RELAXED);
 }
 
-int rt_fault_push_many(rt_fault_cmd_ring *r, const rt_fault_cmd *in, int n)
-{
-    if (n <= 0)
-        return 0;
-    uint32_t head = atomic_load_explicit(A32(&r->head), RELAXED);
-    uint32_t tail = atomic_load_explicit(A32(&r->tail), ACQUIRE);
-    uint32_t space = RT_FAULT_CMD_RING_SIZE - (head - tail);
-    uint32_t k = (uint32_t)n < space ? (uint32_t)n : space;
-    for (uint32_t i = 0; i < k; i++)
-        r->cmds[(head + i) & (RT_FAULT_CMD_RING_SIZE - 1u)] = in[i];
-    atomic_store_explicit(A32(&r->head), head + k, RELEASE);
-    if (k < (uint32_t)n)
-        add64(&r->dropped, (uint64_t)n - k);
-    return (int)k;
-}
-
-int rt_fault_events_pop_many(rt_fault_event_ring *r, rt_fault_event *out, int n)
-{
-    if (n <= 0)
-        return 0;
-    uint32_t tail = atomic_load_explicit(A32(&r->tail), RELAXED);
-    uint32_t head = atomic_load_explicit(A32(&r->head), ACQUIRE);
-    uint32_t avail = head - tail;
-    uint32_t k = (uint32_t)n < avail ? (uint32_t)n : avail;
-    for (uint32_t i = 0; i < k; i++)
-        out[i] = r->events[(tail + i) & (RT_FAULT_EVENT_RING_SIZE - 1u)];
-    atomic_store_explicit(A32(&r->tail), tail + k, RELEASE);
-    return (int)k;
-}
-
 static void event(rt_loop *l, const rtf_slot *s, int slot, uint32_t what, double time_s)
 {
     rt_fault_event_ring *g = &l->fault_events;

@@ -260,6 +260,8 @@ static inline void count_dropped(uint64_t *dropped, uint64_t n)
 
 RT_DEFINE_PUSH_MANY(rt_ring_push_many, rt_ring, rt_frame, frames, RT_RING_SIZE)
 RT_DEFINE_PUSH_MANY(rt_write_push_many, rt_write_ring, rt_write, writes, RT_WRITE_RING_SIZE)
+RT_DEFINE_PUSH_MANY(rt_fault_push_many, rt_fault_cmd_ring, rt_fault_cmd, cmds,
+                    RT_FAULT_CMD_RING_SIZE)
 
 /* The consumer's side of each single-producer single-consumer ring: copies
  * up to n entries out, then frees their slots; returns how many. */
@@ -282,6 +284,8 @@ RT_DEFINE_POP_MANY(rt_ring_pop_many, rt_ring, rt_frame, frames, RT_RING_SIZE)
 RT_DEFINE_POP_MANY(rt_log_pop_many, rt_log_ring, rt_log_entry, entries, RT_LOG_SIZE)
 RT_DEFINE_POP_MANY(rt_rec_pop_many, rt_rec_ring, rt_sample, samples, RT_REC_SIZE)
 RT_DEFINE_POP_MANY(rt_daq_pop_many, rt_daq_ring, rt_dto, dtos, RT_DAQ_RING_SIZE)
+RT_DEFINE_POP_MANY(rt_fault_events_pop_many, rt_fault_event_ring, rt_fault_event, events,
+                   RT_FAULT_EVENT_RING_SIZE)
 
 int rt_ring_push(rt_ring *r, const rt_frame *f)
 {
