@@ -140,8 +140,8 @@ _WATCH = Kind("watch", "RT_FAULT_WATCH", "", (), "no effect: latches when its co
 SLEEVES = {"1": 0, "2": 1, "3": 2, "4": 3, "1-3": 0, "2-4": 1, "5-R": 2, "6-N": 3}
 _SCHEDULE = ("start_s", "when", "duration_s")
 _OPS = {"<": "RT_OP_LT", "<=": "RT_OP_LE", ">": "RT_OP_GT", ">=": "RT_OP_GE",
-        "==": "RT_OP_EQ", "!=": "RT_OP_NE"}
-_TERM = re.compile(r"^\s*([A-Za-z_][\w.:\-]*)\s*(<=|>=|==|!=|<|>)\s*(\S+)\s*$")
+        "==": "RT_OP_EQ", "!=": "RT_OP_NE", "&": "RT_OP_BITS"}
+_TERM = re.compile(r"^\s*([A-Za-z_][\w.:\-]*)\s*(<=|>=|==|!=|<|>|&)\s*(\S+)\s*$")
 _INVALID_NAMES = re.compile(r"invalid|^sna$|not.?available|error|fault|n/a", re.I)
 STATE_NAMES = {0: "free", 1: "armed", 2: "active", 3: "ended"}
 EVENT_NAMES = {1: "start", 2: "end", 3: "cleared"}
@@ -231,6 +231,17 @@ def _number(value: Any, what: str) -> float:
     return x
 
 
+def _mask(value: str, what: str) -> float:
+    """A bit mask: a positive integer below 2**53 (decimal, 0x.. or 0b..)."""
+    try:
+        x = int(value, 0)
+    except ValueError:
+        raise FaultError(f"{what} must be an integer mask such as 4096 or 0x1000, got {value!r}") from None
+    if not 0 < x < 2 ** 53:
+        raise FaultError(f"{what} must be a mask between 1 and 2**53 - 1, got {value!r}")
+    return float(x)
+
+
 def parse_condition(text: Any, names: Names, what: str = "when") -> list[tuple[str, int, str, float]]:
     """The terms (operand kind, index, op, value) and the join of a condition
     text; raises FaultError naming what cannot be read."""
@@ -249,10 +260,13 @@ def parse_condition(text: Any, names: Names, what: str = "when") -> list[tuple[s
         m = _TERM.match(t)
         if not m:
             raise FaultError(f"{what}: cannot read {t.strip()!r} (write NAME OP NUMBER, OP one of "
-                             "< <= > >= == !=)")
+                             "< <= > >= == != &)")
         name, op, value = m.groups()
         source, index = names.operand(name, what)
-        x = _number(value, f"{what}: the value in {t.strip()!r}")
+        if op == "&":
+            x = _mask(value, f"{what}: the mask in {t.strip()!r}")
+        else:
+            x = _number(value, f"{what}: the value in {t.strip()!r}")
         out.append((source, index, _OPS[op], x))
     return out, ("or" in joins)
 

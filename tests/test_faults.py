@@ -266,6 +266,29 @@ def test_a_watch_latches_the_plant_time_its_condition_first_held():
     assert wid == 1
 
 
+def test_a_bit_test_holds_when_any_bit_of_the_mask_is_set():
+    """``&`` reads the signal as an integer: TCU_Status.ActiveFaults 0x0004 and
+    0x0100 leave a watch on 0x1010 armed, 0x1000 latches it."""
+    status = TCU_MESSAGES["TCU_Status"]
+    with Loop() as loop:
+        fm = manager(loop)
+        fm.watch("TCU_Status.ActiveFaults & 0x1010")
+        counter = 0
+        for bits in (0x0004, 0x0100):
+            for _ in range(20):
+                loop.push([tcu_frame(status, counter, ActiveFaults=bits)])
+                counter = (counter + 1) % 16
+                time.sleep(0.001)
+            assert fm.status()[0]["state"] == "armed", hex(bits)
+        for _ in range(5000):
+            if fm.status()[0]["state"] == "active":
+                break
+            loop.push([tcu_frame(status, counter, ActiveFaults=0x1000)])
+            counter = (counter + 1) % 16
+            time.sleep(0.001)
+        assert fm.status()[0]["state"] == "active", "0x1000 has a bit of the mask"
+
+
 def test_recorder_samples_carry_the_active_faults():
     with Loop(record_every=1) as loop:
         fm = manager(loop)
@@ -379,6 +402,8 @@ NAMES = Names(ffi, lib, CHANNELS)
     ({"kind": "can.omit", "message": "DCT_Clutch", "when": "gear == 3 and a > 1 or b < 2"},
      ["mixes"]),
     ({"kind": "can.omit", "message": "DCT_Clutch", "when": "gear == three"}, ["number"]),
+    ({"kind": "can.omit", "message": "DCT_Clutch", "when": "gear & 1.5"}, ["integer mask"]),
+    ({"kind": "can.omit", "message": "DCT_Clutch", "when": "gear & 0"}, ["between 1"]),
     ({"kind": "can.omit", "message": "DCT_Clutch", "delay_ms": 3}, ["delay_ms", "not a parameter"]),
     ({"kind": "can.length", "message": "DCT_Clutch", "length": 12}, ["12 bytes"]),
     ({"kind": "can.omit", "message": "DCT_Clutch", "duration_s": -1}, ["duration_s"]),

@@ -88,7 +88,8 @@ static int condition_ok(const rt_loop *l, const rt_condition *w)
         return 0;
     for (uint32_t i = 0; i < w->n_terms; i++) {
         const rt_term *t = &w->terms[i];
-        if (t->op > RT_OP_NE || isnan(t->value))
+        if (t->op > RT_OP_BITS || isnan(t->value)
+            || (t->op == RT_OP_BITS && !(t->value >= 1.0 && t->value < 18446744073709551616.0)))
             return 0;
         switch (t->source) {
         case RT_OPD_OUTPUT:
@@ -275,6 +276,8 @@ static inline int compare(uint8_t op, double x, double v)
         return x >= v;
     case RT_OP_EQ:
         return fabs(x - v) <= 1e-9 * (fabs(v) > 1.0 ? fabs(v) : 1.0);
+    case RT_OP_BITS:
+        return x >= 1.0 && x < 18446744073709551616.0 && ((uint64_t)x & (uint64_t)v) != 0;
     default:
         return !(fabs(x - v) <= 1e-9 * (fabs(v) > 1.0 ? fabs(v) : 1.0));
     }

@@ -381,6 +381,9 @@ typedef struct {
 #define RT_OP_GE 3
 #define RT_OP_EQ 4                    /* within 1e-9 of the value (relative above 1) */
 #define RT_OP_NE 5
+/* RT_OP_BITS: any bit of value (an integer mask) set in the value read, truncated to an
+ * integer (below 1 or NaN: no bit) */
+#define RT_OP_BITS 6
 
 /* rt_fault_cmd.op */
 #define RT_FCMD_SET 1                 /* arm slot with def (a fault in the slot ends first) */
