@@ -367,8 +367,8 @@ class ControlServer:
             raise _Refused(f"set: {name!r} is not a plant input a test may set (inputs: "
                            + ", ".join(inputs) + "; or an online params.<name>)")
         if key in ("override.accel_pedal_pct", "override.brake_pedal_pct") and \
-                self.server.driver_rows:
-            raise _Refused(f"set: {name} is played by the maneuver's driver table in this run")
+                self.server.maneuver_playing:
+            raise _Refused(f"set: {name} is played by the maneuver's driver table now")
         return key, self.writable[key]
 
     def write_value(self, name: Any, value: Any) -> bool:

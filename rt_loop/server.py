@@ -416,6 +416,12 @@ class Server:
             from rt_loop.control import check_socket_path  # noqa: PLC0415
 
             check_socket_path(self.control_path, ServerError)
+        #: the live scope (``rt_loop.scope``): min and max of chosen values per bucket of ticks
+        self.scope = None
+        self._maneuver: str | None = None            # the name of the maneuver started last
+        self._recording: dict | None = None          # the recording running, if any
+        self._rec_lock = threading.Lock()
+        self._rec_log_on = False                     # log_frames switched on for a recording
         self.transport: Transport | None = None
         self.transports: list[Transport] = []
         self.logger: TrafficLogger | None = None
@@ -534,6 +540,8 @@ class Server:
             mf4 = self.recorder is not None and not isinstance(self.recorder, Recorder)
             cfg.log_frames = int(self.logger is not None or mf4)
             self.channels.install(loop, self.transports)
+            if self.driver_rows:
+                self._maneuver = "scripted"
             from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
             from rt_loop.xcp.loop_backend import set_regions  # noqa: PLC0415
 
@@ -548,6 +556,10 @@ class Server:
                 raise ServerError(f"the loop refused its set-up: {os.strerror(abs(rc))} "
                                   f"(rt_loop_prepare returned {rc}; rate {self.rate_hz:g} Hz, "
                                   f"priority {self.priority}, cpu {cfg.cpu})")
+            from rt_loop.scope import Scope  # noqa: PLC0415
+
+            self.scope = Scope(ffi, lib, loop, self.channels, self.step_s)
+            self.scope.start()
             if self.xcp_address is not None:
                 self._start_xcp(_a2l)
             if self.control_path is not None:
@@ -562,6 +574,8 @@ class Server:
             if self.logger is not None:
                 self.logger.start(ffi, lib, loop, wall0)
             if self.recorder is not None:
+                self._recording = {"path": self.record_path, "started_s": 0.0,
+                                   "log_on": False}
                 self.recorder.fault_events = self.faults.take_events
                 if isinstance(self.recorder, Recorder):
                     self.recorder.start(ffi, lib, loop)
@@ -695,7 +709,8 @@ class Server:
         self._stopped = True
         _LIVE.discard(self)
         errors: list[Exception] = []
-        for step in (self._stop_control, self._stop_player, self._stop_xcp, self._release_pm_qos, self._stop_transport, self._stop_logger,
+        for step in (self._stop_control, self._stop_player, self._stop_xcp, self._release_pm_qos,
+                     self._stop_scope, self._stop_transport, self._stop_logger,
                      self._stop_recorder, self._close_transport):
             try:
                 step()
@@ -771,8 +786,174 @@ class Server:
             self.logger.stop()
 
     def _stop_recorder(self) -> None:
-        if self.recorder is not None:
+        with self._rec_lock:
+            if self.recorder is not None and self._recording is not None:
+                self._recording = None
+                self.recorder.stop()
+
+    def _stop_scope(self) -> None:
+        if self.scope is not None:
+            self.scope.stop()
+
+    # ----------------------------------------------------------- while running
+    @staticmethod
+    def loop_maneuvers() -> list[str]:
+        """The shipped maneuvers the loop can play itself (pedal tables)."""
+        from plant.driver import ScriptedDriver  # noqa: PLC0415
+        from plant.maneuvers import MANEUVERS, get_maneuver  # noqa: PLC0415
+
+        return [n for n in MANEUVERS if isinstance(get_maneuver(n).driver, ScriptedDriver)
+                and len(get_maneuver(n).driver.table) <= MAX_DRIVER_ROWS]
+
+    @property
+    def maneuver_playing(self) -> bool:
+        """A maneuver is waiting for the TCU or playing (the loop drives the pedals)."""
+        state = int(self._l.stats.maneuver_state)
+        return state in (int(self._lib.RT_MANEUVER_WAITING), int(self._lib.RT_MANEUVER_RUNNING))
+
+    @property
+    def maneuver_name(self) -> str | None:
+        """The maneuver started last (``--maneuver`` or ``start_maneuver``), None: none."""
+        return self._maneuver
+
+    def _maneuver_command(self, op: int, fill: Callable[[Any], None] | None = None) -> None:
+        lib, loop = self._lib, self._l
+        if not self.running:
+            raise ServerError("the loop is not running")
+        seq = int(loop.maneuver_seq)
+        deadline = time.monotonic() + 1.0
+        while int(lib.rt_maneuver_acked(loop)) != seq:      # the last command not taken yet
+            if time.monotonic() > deadline:
+                raise ServerError("the loop did not take the last maneuver command (is it "
+                                  "ticking?)")
+            time.sleep(0.001)
+        refused = int(loop.maneuver_refused)
+        if fill is not None:
+            fill(loop.maneuver_next)
+        loop.maneuver_op = op
+        seq = (seq + 1) & 0xFFFFFFFF
+        lib.rt_maneuver_publish(loop, seq)
+        deadline = time.monotonic() + 1.0
+        while int(lib.rt_maneuver_acked(loop)) != seq and self.running:
+            if time.monotonic() > deadline:
+                return                    # queued: the loop takes it at its next tick
+            time.sleep(0.0005)
+        if int(loop.maneuver_refused) != refused:
+            raise ServerError("the loop refused the maneuver command")
+
+    def start_maneuver(self, maneuver: Any, end_s: float | None = None) -> None:
+        """Plays a maneuver from the next tick while the loop runs: a shipped
+        one by name (``loop_maneuvers``), a ``ScriptedDriver`` or rows
+        (t_s, accel %, brake %). It replaces one playing; at its end (``end_s``,
+        by name its duration) the last row's pedals stay and the loop goes
+        on. Pedal sets are refused while it plays."""
+        name = None
+        if isinstance(maneuver, str):
+            from plant.maneuvers import get_maneuver  # noqa: PLC0415
+
+            if maneuver not in self.loop_maneuvers():
+                raise ServerError(f"maneuver {maneuver!r}: the loop plays "
+                                  + ", ".join(self.loop_maneuvers()))
+            m = get_maneuver(maneuver)
+            name, driver, end_s = maneuver, m.driver, (m.duration_s if end_s is None else end_s)
+        else:
+            driver = maneuver
+        rows, linear = _check_driver(driver)
+        end = 0.0 if end_s is None else _check_duration(end_s)
+
+        def fill(d: Any) -> None:
+            d.rows = len(rows)
+            for i, (t, accel, brake) in enumerate(rows):
+                d.t_s[i], d.accel_pedal_pct[i], d.brake_pedal_pct[i] = t, accel, brake
+            d.linear = int(linear)
+            d.start_on_tcu = 0
+            d.end_s = end
+            d.keep_running = 1
+
+        self._maneuver_command(int(self._lib.RT_MCMD_START), fill)
+        self._maneuver = name or "table"
+
+    def stop_maneuver(self) -> None:
+        """Ends the maneuver playing (the accelerator released, the brake as
+        it was); nothing when none plays."""
+        self._maneuver_command(int(self._lib.RT_MCMD_STOP))
+
+    @property
+    def recording(self) -> dict | None:
+        """The recording running: {path, started_s (plant time)}, None: none."""
+        r = self._recording
+        return None if r is None else {"path": r["path"], "started_s": r["started_s"]}
+
+    def start_recording(self, path: str | os.PathLike, every_s: float | None = None) -> str:
+        """Starts recording every plant output each ``every_s`` of plant time
+        (default the server's ``record_every_s``) into ``path`` (CSV, or MF4
+        with the CAN traffic by the suffix) while the loop runs; returns the
+        path. One recording at a time."""
+        ffi, lib, loop = self._ffi, self._lib, self._l
+        path = os.fspath(path)
+        if every_s is None:
+            every = self.record_every
+        else:
+            try:
+                x = float(every_s)
+            except (TypeError, ValueError):
+                raise ServerError(f"record interval {every_s!r} is not a number") from None
+            if not (math.isfinite(x) and x > 0):
+                raise ServerError(f"record interval must be above 0 s, got {every_s!r}")
+            every = max(1, int(round(x / self.step_s)))
+        with self._rec_lock:
+            if not self.running:
+                raise ServerError("the loop is not running")
+            if self._recording is not None:
+                raise ServerError(f"a recording runs already: {self._recording['path']}")
+            mf4 = path.lower().endswith((".mf4", ".mdf"))
+            try:
+                if mf4:
+                    from rt_loop.mdf_recorder import MdfRecorder  # noqa: PLC0415
+
+                    rec = MdfRecorder(path, self.channels.command_names,
+                                      channels=list(self.bus_channels.values()))
+                else:
+                    rec = Recorder(path, self.channels.command_names)
+            except OSError as e:
+                raise ServerError(_one_line(e)) from None
+            self.faults.take_events()              # the recording's events start now
+            rec.fault_events = self.faults.take_events
+            log_on = False
+            if mf4:
+                if self.logger is None:
+                    log_on = not int(loop.cfg.log_frames)
+                    loop.cfg.log_frames = 1
+                    rec.start(ffi, lib, loop, drain_log=True)
+                else:
+                    rec.start(ffi, lib, loop, drain_log=False)
+                    self.logger.forward = rec.add_frames
+            else:
+                rec.start(ffi, lib, loop)
+            self.recorder = rec
+            self.record_path = path
+            self._recording = {"path": path, "started_s": float(loop.stats.sim_time_s),
+                               "log_on": log_on}
+            loop.cfg.record_every = every          # the loop pushes samples from its next tick
+        return path
+
+    def stop_recording(self) -> str:
+        """Stops the recording running and finalizes its file; returns its path."""
+        loop = self._l
+        with self._rec_lock:
+            r = self._recording
+            if r is None or self.recorder is None:
+                raise ServerError("no recording runs")
+            loop.cfg.record_every = 0
+            if r.get("log_on"):
+                loop.cfg.log_frames = 0
+            if self.logger is not None:
+                self.logger.forward = None
+            self._recording = None
             self.recorder.stop()
+            if self.recorder.error:
+                raise ServerError(f"recording {r['path']}: {self.recorder.error}")
+            return r["path"]
 
     def _close_transport(self) -> None:
         errors = []

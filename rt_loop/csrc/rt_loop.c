@@ -174,6 +174,7 @@
 
 #include "rt_loop.h"
 #include "rt_faults.h"
+#include "rt_scope.h"
 
 #include <errno.h>
 #include <math.h>
@@ -286,6 +287,8 @@ RT_DEFINE_POP_MANY(rt_rec_pop_many, rt_rec_ring, rt_sample, samples, RT_REC_SIZE
 RT_DEFINE_POP_MANY(rt_daq_pop_many, rt_daq_ring, rt_dto, dtos, RT_DAQ_RING_SIZE)
 RT_DEFINE_POP_MANY(rt_fault_events_pop_many, rt_fault_event_ring, rt_fault_event, events,
                    RT_FAULT_EVENT_RING_SIZE)
+RT_DEFINE_POP_MANY(rt_scope_pop_many, rt_scope_ring, rt_scope_bucket, buckets,
+                   RT_SCOPE_RING_SIZE)
 
 int rt_ring_push(rt_ring *r, const rt_frame *f)
 {
@@ -731,6 +734,10 @@ typedef struct {
     /* failure simulation */
     rt_fault_run f;
     int faults_dirty;                /* a fault changed since the last publication */
+    /* the scope */
+    rt_scope_run scope;
+    /* maneuver commands */
+    uint32_t maneuver_seq;           /* the last command sequence taken */
 } rt_run;
 
 static inline int64_t now_ns(void)
@@ -852,7 +859,7 @@ static inline void rx_one(rt_run *r, int c, rt_frame *f, int well_formed, uint64
     rt_chan_stats *cs = &r->c.chan[c];
     f->channel = (uint8_t)c;
     cs->rx_frames++;
-    if (l->cfg.log_frames)
+    if (atomic_load_explicit(AINT(&l->cfg.log_frames), RELAXED))
         log_push(&l->log, r->time_s, RT_DIR_RX, f);
 
     uint32_t id = f->id;
@@ -1056,7 +1063,7 @@ static int tx_send(rt_run *r, int c, int nf)
             r->c.msgs[g].dropped++;
         mark(r, g);
     }
-    if (l->cfg.log_frames)
+    if (atomic_load_explicit(AINT(&l->cfg.log_frames), RELAXED))
         for (int i = 0; i < sent; i++)
             log_push(&l->log, r->time_s, RT_DIR_TX, &r->tx_frames[i]);
     return err;
@@ -1445,6 +1452,26 @@ uint32_t rt_daq_acked(rt_loop *l)
     return atomic_load_explicit(A32(&l->daq_ack), ACQUIRE);
 }
 
+void rt_scope_publish(rt_loop *l, uint32_t gen)
+{
+    atomic_store_explicit(A32(&l->scope_gen), gen, RELEASE);
+}
+
+uint32_t rt_scope_acked(rt_loop *l)
+{
+    return atomic_load_explicit(A32(&l->scope_ack), ACQUIRE);
+}
+
+void rt_maneuver_publish(rt_loop *l, uint32_t seq)
+{
+    atomic_store_explicit(A32(&l->maneuver_seq), seq, RELEASE);
+}
+
+uint32_t rt_maneuver_acked(rt_loop *l)
+{
+    return atomic_load_explicit(A32(&l->maneuver_ack), ACQUIRE);
+}
+
 double rt_daq_bench(rt_loop *l, int64_t iterations)
 {
     if (!l || iterations < 1)
@@ -1474,12 +1501,40 @@ double rt_daq_bench(rt_loop *l, int64_t iterations)
     return ns / (double)iterations;
 }
 
+/* a maneuver command published since the last tick (rt_loop.h): a start
+ * plays the new table from this tick, a stop ends the maneuver playing */
+static void maneuver_command(rt_run *r, uint32_t seq)
+{
+    rt_loop *l = r->l;
+    r->maneuver_seq = seq;
+    uint32_t op = l->maneuver_op;
+    if (op == RT_MCMD_START && l->maneuver_next.rows > 0 && check_driver(&l->maneuver_next) == 0) {
+        l->driver = l->maneuver_next;
+        r->maneuver_state = RT_MANEUVER_RUNNING;
+        r->maneuver_t0_s = l->plant.state.time_s;
+        r->maneuver_time_s = 0.0;
+    } else if (op == RT_MCMD_STOP) {
+        if (r->maneuver_state == RT_MANEUVER_RUNNING || r->maneuver_state == RT_MANEUVER_WAITING) {
+            r->maneuver_state = RT_MANEUVER_DONE;
+            l->plant.inputs.accel_pedal_pct = 0.0;
+        }
+    } else {
+        atomic_store_explicit(A32(&l->maneuver_refused),
+                              atomic_load_explicit(A32(&l->maneuver_refused), RELAXED) + 1u,
+                              RELAXED);
+    }
+    atomic_store_explicit(A32(&l->maneuver_ack), seq, RELEASE);
+}
+
 /* the scripted driver: starts the maneuver when due, writes the pedals of
  * the maneuver time of this tick (the plant time before its step) */
 static void drive(rt_run *r)
 {
     rt_loop *l = r->l;
     const rt_driver *d = &l->driver;
+    uint32_t seq = atomic_load_explicit(A32(&l->maneuver_seq), ACQUIRE);
+    if (seq != r->maneuver_seq)
+        maneuver_command(r, seq);
     if (r->maneuver_state == RT_MANEUVER_NONE || r->maneuver_state == RT_MANEUVER_DONE)
         return;
     if (r->maneuver_state == RT_MANEUVER_WAITING) {
@@ -1664,6 +1719,8 @@ int rt_loop_run(rt_loop *l)
     r.step_ns = llround(l->plant.params.solver.step_s * 1e9);
     r.maneuver_state = l->stats.maneuver_state;
     r.maneuver_time_s = -1.0;
+    r.maneuver_seq = atomic_load_explicit(A32(&l->maneuver_ack), ACQUIRE);
+    r.scope.gen = atomic_load_explicit(A32(&l->scope_ack), ACQUIRE);
     r.spin_ns = llround(l->cfg.spin_us * 1e3);
     plan_tx(&r);
     plan_rx(&r);
@@ -1749,7 +1806,8 @@ int rt_loop_run(rt_loop *l)
         }
         if (r.maneuver_state == RT_MANEUVER_RUNNING)
             r.maneuver_time_s = l->plant.state.time_s - r.maneuver_t0_s;
-        if (l->cfg.record_every > 0 && r.c.ticks % (uint64_t)l->cfg.record_every == 0)
+        int record_every = atomic_load_explicit(AINT(&l->cfg.record_every), RELAXED);
+        if (record_every > 0 && r.c.ticks % (uint64_t)record_every == 0)
             rec_push(&l->rec, r.c.ticks, l->plant.state.time_s, r.maneuver_time_s,
                      &l->plant.outputs, r.cmd, l->n_commands, r.f.mask);
         err = tx_tick(&r);
@@ -1765,6 +1823,7 @@ int rt_loop_run(rt_loop *l)
         if (maneuver_done)
             r.maneuver_state = RT_MANEUVER_DONE;
         daq_copy(&r, deadline, r.c.ticks - 1u);
+        rts_tick(&r.scope, l, r.c.ticks - 1u, l->plant.state.time_s);
 
         int64_t end = now_ns();
         double turnaround_us = (double)(end - deadline) / 1e3;
@@ -1789,7 +1848,7 @@ int rt_loop_run(rt_loop *l)
             }
         }
         publish_tick(&r, turnaround_us, exec_us, latency_us);
-        if (maneuver_done)
+        if (maneuver_done && !l->driver.keep_running)
             break;
         if (overrun && l->cfg.overrun_stop) {
             state = RT_STATE_OVERRUN_STOP;

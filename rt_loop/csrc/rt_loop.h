@@ -67,7 +67,7 @@
 #define RT_MANEUVER_NONE 0            /* no pedal table: the pedals stay as Python writes them */
 #define RT_MANEUVER_WAITING 1         /* table loaded, waiting for the first TCU frame */
 #define RT_MANEUVER_RUNNING 2
-#define RT_MANEUVER_DONE 3            /* end_s reached: the loop stopped */
+#define RT_MANEUVER_DONE 3            /* end_s reached (the loop stopped unless keep_running) or stopped */
 
 #define RT_DIR_RX 0
 #define RT_DIR_TX 1
@@ -485,10 +485,13 @@ typedef struct {
     int lock_memory;                  /* 1: mlockall(MCL_CURRENT | MCL_FUTURE) */
     int overrun_stop;                 /* 1: stop at the first overrun; 0: count, skip ahead */
     double duration_s;                /* <= 0: until rt_loop_request_stop() */
-    int log_frames;                   /* 1: copy every received and sent frame to the log ring */
+    int log_frames;                   /* 1: copy every received and sent frame to the log ring
+                                         (read every frame: may change while the loop runs) */
     double spin_us;                   /* wake this long before each deadline and busy-wait to it:
                                          hides the OS wake-up latency up to spin_us (0: sleep only) */
-    int record_every;                 /* push a recorder sample every this many ticks (0: off) */
+    int record_every;                 /* push a recorder sample every this many ticks (0: off;
+                                         read every tick: a recording may start and stop while
+                                         the loop runs) */
 } rt_config;
 
 /* the driver of a scripted maneuver, played by the loop itself: pedals as a
@@ -501,6 +504,8 @@ typedef struct {
                                          accepted TCU frame; 0: the first tick */
     double end_s;                     /* maneuver time at which the loop stops (<= 0: never;
                                          the last row is held) */
+    int keep_running;                 /* 1: at end_s the maneuver is done and the loop goes on
+                                         (the last row's pedals held until set otherwise) */
     double t_s[RT_DRIVER_ROWS];       /* strictly increasing */
     double accel_pedal_pct[RT_DRIVER_ROWS];
     double brake_pedal_pct[RT_DRIVER_ROWS];
@@ -612,6 +617,58 @@ typedef struct {
     rt_fault_stats faults[RT_MAX_FAULTS];
 } rt_stats;
 
+/* ---- the scope: min and max of chosen values over buckets of ticks -------
+ *
+ * For a live view that must not hide a one-tick spike: Python writes a
+ * configuration (up to RT_SCOPE_TRACES byte offsets of doubles in the
+ * rt_loop, and the ticks per bucket) into scope_cfg[(gen + 1) & 1] and
+ * publishes gen + 1 (rt_scope_publish). Each tick loads the generation
+ * (acquire); a new one is checked once (offsets inside the loop and
+ * 8-aligned, 1..RT_SCOPE_MAX_BUCKET ticks; a bad one is refused, counted in
+ * scope_refused, and tracing stops) and acknowledged (scope_ack, release).
+ * At the end of every executed tick the values are read and their min and
+ * max kept (NaN values are left out); every bucket_ticks ticks one
+ * rt_scope_bucket goes into the scope ring (full: dropped and counted).
+ * With no trace configured the tick pays one load. */
+#define RT_SCOPE_TRACES 32
+#define RT_SCOPE_MAX_BUCKET 2000      /* ticks */
+#define RT_SCOPE_RING_SIZE 2048       /* buckets, a power of two */
+
+typedef struct {
+    uint32_t n;                       /* traces, 0..RT_SCOPE_TRACES (0: off) */
+    uint32_t bucket_ticks;            /* executed ticks per bucket */
+    uint32_t offset[RT_SCOPE_TRACES]; /* bytes from the start of the rt_loop of a double */
+} rt_scope_config;
+
+typedef struct {
+    uint64_t tick;                    /* the bucket's last executed tick */
+    double time_s;                    /* plant time after that tick's step */
+    uint32_t gen;                     /* the configuration's generation */
+    uint32_t ticks;                   /* ticks in the bucket */
+    double min[RT_SCOPE_TRACES];      /* +inf / -inf: no finite value in the bucket */
+    double max[RT_SCOPE_TRACES];
+} rt_scope_bucket;
+
+typedef struct {
+    uint32_t head;
+    uint32_t tail;
+    uint64_t dropped;                 /* buckets lost because the reader fell behind */
+    rt_scope_bucket buckets[RT_SCOPE_RING_SIZE];
+} rt_scope_ring;
+
+/* ---- a maneuver started and stopped while the loop runs ------------------
+ *
+ * Python writes maneuver_op (RT_MCMD_*) and, for a start, the table into
+ * maneuver_next, then publishes maneuver_seq + 1 (rt_maneuver_publish); the
+ * next tick takes it (before the driver runs) and stores the sequence in
+ * maneuver_ack (release); Python writes again only once the two are equal.
+ * A start with a bad table is refused (maneuver_refused). A start plays
+ * the table from this tick (maneuver time 0; keep_running as the table
+ * says), replacing any maneuver; a stop ends the one playing (state
+ * RT_MANEUVER_DONE, the accelerator released, the brake held as it was). */
+#define RT_MCMD_START 1
+#define RT_MCMD_STOP 2
+
 typedef struct {
     rt_config cfg;
     dct_plant plant;                  /* params filled by Python before rt_loop_prepare() */
@@ -647,6 +704,18 @@ typedef struct {
     /* failure simulation (see above) */
     rt_fault_cmd_ring fault_cmds;     /* Python -> loop */
     rt_fault_event_ring fault_events; /* loop -> Python */
+    /* the scope (see above) */
+    rt_scope_config scope_cfg[2];
+    uint32_t scope_gen;               /* written by Python: the configuration in scope_cfg[gen & 1] */
+    uint32_t scope_ack;               /* written by the loop: the generation it took */
+    uint64_t scope_refused;           /* configurations refused */
+    rt_scope_ring scope;              /* loop -> Python */
+    /* maneuvers while running (see above) */
+    rt_driver maneuver_next;
+    uint32_t maneuver_op;             /* RT_MCMD_* */
+    uint32_t maneuver_seq;            /* written by Python */
+    uint32_t maneuver_ack;            /* written by the loop */
+    uint32_t maneuver_refused;        /* starts refused (a bad table) */
 } rt_loop;
 
 /* validates cfg, the channels' tables and the commands, initialises the
@@ -682,6 +751,12 @@ int rt_fault_events_pop_many(rt_fault_event_ring *r, rt_fault_event *e, int n);
  * loop last used (acquire) */
 void rt_daq_publish(rt_loop *l, uint32_t gen);
 uint32_t rt_daq_acked(rt_loop *l);
+/* the same hand-over for the scope's configuration and for maneuver commands */
+void rt_scope_publish(rt_loop *l, uint32_t gen);
+uint32_t rt_scope_acked(rt_loop *l);
+int rt_scope_pop_many(rt_scope_ring *r, rt_scope_bucket *b, int n);
+void rt_maneuver_publish(rt_loop *l, uint32_t seq);
+uint32_t rt_maneuver_acked(rt_loop *l);
 /* Benchmark only (reads the clock; the loop must not be running): the DAQ
  * copy of the published configuration (every list, every event firing),
  * `iterations` times into the DAQ ring, which is emptied after each; returns

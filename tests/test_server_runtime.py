@@ -1,0 +1,109 @@
+"""What a running server changes without a restart (rt_loop/server.py): a
+maneuver started and stopped by the loop's command hand-over, and a
+recording started and stopped while the loop ticks. Shown on the embedded
+transport without a TCU (the pedals act on the plant directly)."""
+
+import numpy as np
+import pytest
+
+from dct_hil.bench import Bench
+from rt_loop.control import ControlServer
+from rt_loop.recorder import read_recording
+from rt_loop.server import ServerError
+
+
+@pytest.fixture
+def bench():
+    b = Bench.start(tcu=False)
+    yield b
+    b.stop()
+
+
+def pedal(srv):
+    return float(srv._l.plant.inputs.accel_pedal_pct)
+
+
+def test_a_maneuver_starts_and_stops_while_running(bench):
+    srv = bench.server
+    assert set(srv.loop_maneuvers()) == {"paper-cycle", "0-100"}
+    assert not srv.maneuver_playing and srv.snapshot()["maneuver"] == "none"
+    control = ControlServer(srv, None)
+    srv.start_maneuver("0-100")
+    assert srv.maneuver_playing and srv.maneuver_name == "0-100"
+    bench.wait_until("maneuver_time_s > 0.2", timeout_s=1.0)
+    assert float(srv._l.plant.inputs.brake_pedal_pct) == 30.0, "the table's first row: on the brake"
+    bench.wait_until("maneuver_time_s > 1.05", timeout_s=2.0)
+    assert pedal(srv) == 100.0 and srv.snapshot()["maneuver"] == "running"
+    answer = control.handle({"op": "set", "name": "accel_pedal_pct", "value": 10})
+    assert not answer["ok"] and "maneuver" in answer["error"]
+    srv.stop_maneuver()
+    assert not srv.maneuver_playing
+    snap = srv.snapshot()
+    assert snap["maneuver"] == "done" and pedal(srv) == 0.0
+    assert control.handle({"op": "set", "name": "accel_pedal_pct", "value": 10})["ok"]
+    bench.sleep(0.05)
+    assert pedal(srv) == 10.0, "a set after the stop drives the pedal"
+    assert srv.running
+
+
+def test_a_maneuver_table_ends_and_the_loop_goes_on(bench):
+    srv = bench.server
+    srv.start_maneuver([(0.0, 40.0, 0.0), (0.1, 20.0, 5.0)], end_s=0.2)
+    bench.wait_until("maneuver_time_s > 0.199", timeout_s=1.0)
+    bench.sleep(0.1)
+    assert srv.snapshot()["maneuver"] == "done" and srv.running
+    assert pedal(srv) == 20.0 and float(srv._l.plant.inputs.brake_pedal_pct) == 5.0, \
+        "the last row's pedals stay"
+    srv.start_maneuver("paper-cycle")           # another one replaces it
+    assert srv.maneuver_playing and srv.maneuver_name == "paper-cycle"
+
+
+@pytest.mark.parametrize("maneuver, words", [
+    ("wltc", ["wltc", "paper-cycle"]),
+    ("nope", ["nope"]),
+    ([(0.0, 120.0, 0.0)], ["0..100"]),
+    ([(0.0, 10.0, 0.0), (0.0, 10.0, 0.0)], ["increasing"]),
+])
+def test_bad_maneuvers_are_refused_with_nothing_changed(bench, maneuver, words):
+    srv = bench.server
+    with pytest.raises(ServerError) as e:
+        srv.start_maneuver(maneuver)
+    for w in words:
+        assert w in str(e.value)
+    assert not srv.maneuver_playing and int(srv._l.maneuver_refused) == 0
+
+
+@pytest.mark.parametrize("suffix", ["csv", "mf4"])
+def test_a_recording_starts_and_stops_while_running(bench, tmp_path, suffix):
+    srv = bench.server
+    assert srv.recording is None
+    t_start = bench.time_s
+    path = srv.start_recording(tmp_path / f"live.{suffix}", every_s=0.01)
+    assert srv.recording["path"] == path
+    with pytest.raises(ServerError, match="runs already"):
+        srv.start_recording(tmp_path / "second.csv")
+    bench.sleep(0.5)
+    assert srv.stop_recording() == path and srv.recording is None
+    t_stop = bench.time_s
+    rec = read_recording(path)
+    t = rec["time_s"]
+    assert t[0] >= t_start and t[-1] <= t_stop
+    assert len(t) >= 40
+    assert np.allclose(np.diff(t), 0.01, atol=1e-9), "every sample, none lost"
+    with pytest.raises(ServerError, match="no recording"):
+        srv.stop_recording()
+    again = srv.start_recording(tmp_path / f"again.{suffix}")    # another one after it
+    bench.sleep(0.1)
+    srv.stop_recording()
+    assert len(read_recording(again)["time_s"]) > 0
+    if suffix == "mf4":
+        assert int(srv._l.cfg.log_frames) == 0, "the traffic copy is off again"
+
+
+def test_a_recording_into_a_folder_that_cannot_be_written_is_one_line(bench, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(ServerError) as e:
+        bench.server.start_recording(blocker / "sub" / "r.csv")
+    assert "\n" not in str(e.value) and "r.csv" in str(e.value)
+    assert bench.server.recording is None and int(bench.server._l.cfg.record_every) == 0
