@@ -198,6 +198,7 @@ def build_parser():
     serve.add_argument("--faults", metavar="FILE.toml",
                        help="inject the faults of a [[fault]] file (rt_loop.faults: kind, target, "
                             "parameters, start_s / when / duration_s), checked whole before the run")
+    _add_ui_options(serve, demo=False)
     serve.set_defaults(func=cmd_serve)
 
     from tcu_stub import can_tcu
@@ -255,6 +256,7 @@ def build_parser():
                       help="record plant.mf4 (ASAM MDF4: every plant output with its unit and the "
                            "CAN traffic as bus logging) instead of plant.csv")
     _add_control_option(demo)
+    _add_ui_options(demo, demo=True)
     demo.set_defaults(func=cmd_demo)
 
     doctor = sub.add_parser(
@@ -340,6 +342,64 @@ def _add_control_option(parser):
                         help="serve the control channel on the Unix socket PATH (mode 0600, "
                              "removed on exit): scripted tests read values, set plant inputs, "
                              "inject faults and wait on conditions (dct_hil.bench.Bench.attach)")
+
+
+UI_DEFAULT = "127.0.0.1:5006"
+
+
+def _add_ui_options(parser, demo):
+    what = ("the live bench view in the browser: traces, instruments, timing, bus, controls "
+            "(README: Live bench view in the browser); binds 127.0.0.1 unless HOST is given, "
+            "beyond loopback only with a token")
+    if demo:
+        parser.add_argument("--ui", nargs="?", const=UI_DEFAULT, metavar="[HOST:]PORT",
+                            help=f"serve {what} (default {UI_DEFAULT}); after the maneuver the "
+                                 "page stays until Ctrl-C")
+    else:
+        parser.add_argument("--ui", metavar="[HOST:]PORT", help=f"serve {what}")
+    token = parser.add_mutually_exclusive_group()
+    token.add_argument("--ui-token", metavar="TOKEN",
+                       help="with --ui: the page asks for this token (at least 8 characters; "
+                            "needed to bind beyond loopback)")
+    token.add_argument("--ui-token-file", metavar="FILE",
+                       help="with --ui: the token in the first line of FILE (not on the command "
+                            "line, where ps shows it)")
+
+
+def _ui_settings(args):
+    """(host, port, token) of --ui, --ui-token and --ui-token-file, checked
+    (the address parsed, the host resolved, a token beyond loopback), or None."""
+    from dct_hil.ui.server import UiError, check_token, is_loopback, parse_address, \
+        read_token_file, resolve
+
+    if args.ui is None:
+        if args.ui_token is not None or args.ui_token_file is not None:
+            raise UserError("--ui-token and --ui-token-file need --ui")
+        return None
+    try:
+        host, port = parse_address(args.ui)
+        token = (check_token(args.ui_token) if args.ui_token is not None else
+                 read_token_file(args.ui_token_file) if args.ui_token_file is not None else None)
+        if token is None and not is_loopback(host, resolve(host, port)):
+            raise UiError(f"UI on {host}:{port}: binding beyond loopback needs --ui-token or "
+                          "--ui-token-file")
+    except UiError as e:
+        raise UserError(str(e)) from None
+    return host, port, token
+
+
+def _start_ui(server, ui, recordings_dir, title):
+    """The live view of ``server``, listening (a port in use: UserError, nothing started)."""
+    from dct_hil.ui.server import UiError, UiServer
+
+    host, port, token = ui
+    try:
+        view = UiServer(server, (host, port), token=token, recordings_dir=recordings_dir,
+                        title=title)
+        view.start()
+    except UiError as e:
+        raise UserError(str(e)) from None
+    return view
 
 
 def _add_pm_qos_options(parser):
@@ -852,6 +912,7 @@ def cmd_serve(args):
     from rt_loop.transport import TransportError, check_interface
 
     mapping, bus_channels = _mapping_from_args(args, args.rate)
+    ui = _ui_settings(args)
     try:
         if args.interface is not None:
             check_interface(args.interface)
@@ -878,6 +939,13 @@ def cmd_serve(args):
             stimulus_path=args.stimulus, stimulus_start=args.stimulus_start,
             faults_path=args.faults, control_path=args.control,
         )
+        if ui is not None:
+            recordings = os.path.join(os.path.dirname(os.path.abspath(args.stats)), "recordings")
+            view = _start_ui(server, ui, recordings, "dct-hil bench")
+            view.stop_before(server)        # Ctrl-C, SIGTERM, the end: the page goes first
+            print(f"live view         {view.url}"
+                  + (" (asks for the token)" if view.token else "")
+                  + f"; recordings from the page in {recordings}", flush=True)
         return run_console(server, args.stats, quiet=args.quiet, strict=args.strict)
     except (ServerError, TransportError) as e:
         raise UserError(str(e)) from None
@@ -897,12 +965,14 @@ def cmd_demo(args):
 
     _check_writable(os.path.join(args.out, "summary.json"), "--out")
     mapping, bus_channels = _mapping_from_args(args, 2000.0)
+    ui = _ui_settings(args)
     try:
         return run_demo(args.maneuver, args.out, channel=args.channel, interface=args.interface,
                         time_scale=args.time_scale, priority=args.priority, quiet=args.quiet,
                         duration_s=args.duration, tcu_clock=args.tcu_clock,
                         pm_qos_us=args.pm_qos_us, strict=args.strict, mapping=mapping,
-                        bus_channels=bus_channels, mf4=args.mf4, control_path=args.control)
+                        bus_channels=bus_channels, mf4=args.mf4, control_path=args.control,
+                        ui=ui)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None
 

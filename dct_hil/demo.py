@@ -213,7 +213,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
              duration_s: float | None = None, tcu_clock: str | None = None,
              pm_qos_us: int | str | None = "auto", strict: bool = False, out=None, err=None,
              mapping=None, bus_channels: dict | None = None, mf4: bool = False,
-             control_path: str | os.PathLike | None = None) -> int:
+             control_path: str | os.PathLike | None = None,
+             ui: tuple | None = None) -> int:
     """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C; with
     ``strict``, 3 for a run that would exit 0 but whose timing verdict is INVALID).
 
@@ -227,7 +228,11 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     compared with the offline run over the project's own contract. ``mf4``:
     the recording is ``plant.mf4`` (ASAM MDF4 with the CAN traffic as bus
     logging) instead of ``plant.csv``. ``control_path``: the server's control
-    channel on that Unix socket (``rt_loop.control``)."""
+    channel on that Unix socket (``rt_loop.control``). ``ui``: (host, port,
+    token or None): the live bench view (``dct_hil.ui``) served while the demo
+    runs; when the maneuver is over the page keeps the run's last figures
+    (writes refused) until Ctrl-C or SIGTERM, then the demo exits with its
+    own status."""
     from plant import maneuvers as mv  # noqa: PLC0415
     from plant.plots import write_plots  # noqa: PLC0415
     from rt_loop.recorder import read_recording  # noqa: PLC0415
@@ -257,6 +262,17 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
                     log_path=paths["can_log"], time_scale=time_scale, pm_qos_us=pm_qos_us,
                     mapping=mapping, bus_channels=bus_channels, control_path=control_path)
     tcu_mapping = None if mapping is None else server.mapping
+    view = None
+    if ui is not None:
+        from dct_hil.ui.server import UiError, UiServer  # noqa: PLC0415
+
+        host, port, token = ui
+        try:
+            view = UiServer(server, (host, port), token=token,
+                            recordings_dir=folder / "recordings", title=f"dct-hil demo {maneuver}")
+            view.start()
+        except UiError as e:
+            raise DemoError(str(e)) from None
     print(f"dct-hil demo      {maneuver}: {m.description} ({end_s:g} s"
           + (f", at {time_scale:g}x real time" if time_scale != 1 else ", in real time") + ")",
           file=out)
@@ -268,6 +284,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     print("PM QoS            " + (f"off ({server.pm_qos_off_because})" if server.pm_qos is None
                                 else f"{server.pm_qos.path} at {server.pm_qos.latency_us} us "
                                      "for the run"), file=out)
+    if view is not None:
+        print(f"live view         {view.url}" + (" (asks for the token)" if view.token else ""),
+              file=out)
     if tcu_clock == "bus":
         print("TCU clock         bus: a TCU tick per frame of its fastest plant message (follows "
               "plant time)",
@@ -311,11 +330,15 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         return_code = 0
     finally:
         try:
+            if view is not None:
+                view.freeze()            # its recording finalised, the sessions stop reading
             if tcu is not None:
                 tcu_rc = tcu.stop()
             server.stop()
         finally:
             signals.__exit__()
+            if view is not None and sys.exc_info()[0] is not None:
+                view.stop()              # the demo fails: no page left behind
 
     report = server.report()
     report["verdict"] = vd.serve_verdict(report)
@@ -405,7 +428,25 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     warning = vd.warning_line(verdict, strict and return_code == 0)
     if warning:
         print(warning, file=err)
+    if view is not None:
+        _keep_serving(view, interrupted or bool(received), out)
     return vd.exit_code(verdict, strict, return_code)
+
+
+def _keep_serving(view, stopped: bool, out) -> None:
+    """After the run: the page keeps its last figures until Ctrl-C or SIGTERM
+    (at once when the run itself was stopped that way)."""
+    from rt_loop.server import StopSignals  # noqa: PLC0415
+
+    try:
+        if not stopped:
+            print(f"live view         {view.url} stays up with the run's last figures; Ctrl-C "
+                  "to end", file=out, flush=True)
+            with StopSignals() as signals:
+                while not signals.event.wait(0.5):
+                    pass
+    finally:
+        view.stop()
 
 
 def _us(v) -> str:
