@@ -139,7 +139,7 @@ class Hub:
             "sim_time_s": float(s.sim_time_s),
         }
         self.fast = {
-            "html": fg.instruments_html(fg.instrument_items(values)),
+            "items": fg.instrument_items(values),
             "values": values,
             "state": state,
             "running": bool(self.server.running) and not self.ui.frozen,
@@ -244,14 +244,17 @@ class BenchView:
 
         # ---- instruments
         fast = self.hub.refresh()
-        self.instruments = Div(text=fast["html"], name="instruments", sizing_mode="stretch_width")
+        self.instruments = self._instrument_panel(fast["items"])
 
         # ---- traces
         self.scope = None
         self.traced: list[str] = []
         self.last_tick: int | None = None
         self.merger: fg.MinMaxMerger | None = None
-        self.trace_figs: dict[str, tuple[Any, Any]] = {}
+        self.trace_figs: dict[str, Any] = {}
+        #: every trace's columns in one source (one stream per update)
+        self.trace_src = ColumnDataSource({"t": []}, name="traces")
+        self.streams = 0
         self.x_range = DataRange1d(follow="end", follow_interval=FOLLOW_S, range_padding=0,
                                    name="trace_x")
         self.picker = MultiChoice(title="traces (plant outputs, inputs.*, cmd.*, Message.Signal, "
@@ -261,7 +264,7 @@ class BenchView:
         self.pause = Toggle(label="Pause", name="pause", width=90, button_type="default")
         self.pause.on_change("active", self._on_pause)
         self.picker.on_change("value", self._on_pick)
-        self.traces_box = column(sizing_mode="stretch_width", name="traces")
+        self.traces_box = column(sizing_mode="stretch_width", name="trace_box")
         traces_panel = column(row(self.picker, self.pause, sizing_mode="stretch_width"),
                               self.traces_box, sizing_mode="stretch_width")
 
@@ -367,7 +370,10 @@ class BenchView:
                      TableColumn(field="p99_9", title="p99.9", width=60),
                      TableColumn(field="max", title="max", width=70),
                      TableColumn(field="samples", title="ticks", width=80)])
-        self.timing_lines = Div(text="", name="timing_lines")
+        self.notes_src = ColumnDataSource({"text": []}, name="timing_notes")
+        self.timing_lines = DataTable(source=self.notes_src, name="timing_lines", width=560,
+                                      height=110, index_position=None, header_row=False,
+                                      columns=[TableColumn(field="text", title="", width=560)])
         timing_panel = column(Div(text="<b>Timing</b> (1 us bins; dashed: the period)"),
                               row(*hist_figs), row(self.timing_table, self.timing_lines),
                               name="timing_panel")
@@ -427,6 +433,38 @@ class BenchView:
         self.say(reply.get("error", "refused"), ok=False)
         return False
 
+    def _instrument_panel(self, items: list) -> Any:
+        """The instrument row: one canvas of boxes whose values are a source's
+        column (a Div's new text would lay the whole page out again, 20 times a
+        second; a source's new values redraw only this canvas)."""
+        from bokeh.models import Range1d  # noqa: PLC0415
+
+        weights = {"gear": 0.6, "maneuver": 1.7, "loop": 1.6, "phase": 1.3}
+        x, w = [], []
+        left = 0.0
+        for key, _, _ in items:
+            width = weights.get(key, 1.0)
+            x.append(left)
+            w.append(width)
+            left += width
+        self.inst_src = self._CDS({
+            "key": [k for k, _, _ in items], "label": [lab for _, lab, _ in items],
+            "value": [v for _, _, v in items], "left": x,
+            "right": [a + b - 0.06 for a, b in zip(x, w)],
+            "lx": [a + 0.06 for a in x]}, name="instruments")
+        p = self._figure(height=62, sizing_mode="stretch_width", x_range=Range1d(0, left),
+                         y_range=Range1d(0, 1), toolbar_location=None, tools="",
+                         name="instrument_panel", min_border=0, outline_line_color=None)
+        p.quad(left="left", right="right", bottom=0.04, top=0.96, source=self.inst_src,
+               fill_color="#f7f8fb", line_color="#ccccdd")
+        p.text(x="lx", y=0.86, text="label", source=self.inst_src, text_font_size="11px",
+               text_color="#666677", text_baseline="top")
+        p.text(x="lx", y=0.12, text="value", source=self.inst_src, text_font_size="18px",
+               text_font_style="bold", text_color="#112233", text_baseline="bottom")
+        p.axis.visible = False
+        p.grid.visible = False
+        return p
+
     # ------------------------------------------------------------ traces
     def _setup_scope(self) -> None:
         """Once the loop's scope exists: the picker's names and the default traces."""
@@ -470,7 +508,8 @@ class BenchView:
             self._syncing = False
 
     def _retrace(self, names: list[str]) -> None:
-        """Traces ``names``: the scope's counts, one figure each, the history kept."""
+        """Traces ``names``: the scope's counts, one figure each over one source
+        (one stream per update, whatever the number of traces), the history kept."""
         scope = self.scope
         added = [n for n in names if n not in self.traced]
         removed = [n for n in self.traced if n not in names]
@@ -481,46 +520,57 @@ class BenchView:
         self.traced = list(names)
         for n in removed:
             self.trace_figs.pop(n, None)
-        for n in added:
-            self.trace_figs[n] = self._trace_figure(n)
-        self.traces_box.children = [self.trace_figs[n][0] for n in self.traced]
         # the history of every trace again, then new buckets only
         self.merger = fg.MinMaxMerger(self.group_ticks)
         self.last_tick = None
-        if self.traced:
-            self._stream(replace=True)
+        self._stream(replace=True)
+        for n in added:
+            self.trace_figs[n] = self._trace_figure(n)
+        self.traces_box.children = [self.trace_figs[n] for n in self.traced]
 
-    def _trace_figure(self, name: str) -> tuple[Any, Any]:
-        src = self._CDS({"t": [], "lo": [], "hi": [], "mid": []}, name=f"trace:{name}")
+    def _trace_figure(self, name: str) -> Any:
+        src = self.trace_src
         p = self._figure(height=150, sizing_mode="stretch_width", x_range=self.x_range,
                          title=name, tools="xpan,xwheel_zoom,box_zoom,reset,save",
                          active_scroll=None, toolbar_location="right", name=f"trace_fig:{name}",
                          min_border_left=60)
-        p.varea(x="t", y1="lo", y2="hi", source=src, fill_color="#4a78b5", fill_alpha=0.35)
-        p.line(x="t", y="mid", source=src, line_color="#1b3d6e", line_width=1)
+        p.varea(x="t", y1=f"{name}|lo", y2=f"{name}|hi", source=src, fill_color="#4a78b5",
+                fill_alpha=0.35)
+        p.line(x="t", y=f"{name}|mid", source=src, line_color="#1b3d6e", line_width=1)
         p.toolbar.logo = None
         p.xaxis.axis_label = "plant time (s)"
-        return p, src
+        return p
 
     def _stream(self, replace: bool = False) -> None:
-        if not self.traced or self.scope is None:
+        """The new buckets of every trace (``replace``: the whole history) into
+        the traces' one source: columns t and <name>|lo, <name>|hi, <name>|mid."""
+        if self.scope is None:
+            return
+        if not self.traced:
+            if replace:
+                self.trace_src.data = {"t": []}
             return
         d = self.scope.read(self.traced, since_tick=self.last_tick)
-        if len(d["tick"]) == 0:
+        if len(d["tick"]) == 0 and not replace:
             return
-        self.last_tick = int(d["tick"][-1])
+        if len(d["tick"]):
+            self.last_tick = int(d["tick"][-1])
         out = self.merger.feed(d["tick"], d["time_s"], d["min"], d["max"])
         t = out["t"]
+        data = {"t": t}
         for name in self.traced:
             lo, hi = out["min"][name], out["max"][name]
-            data = {"t": t, "lo": lo, "hi": hi, "mid": (lo + hi) / 2.0}
-            src = self.trace_figs[name][1]
-            if replace:
-                keep = np.isfinite(lo)
-                first = int(np.argmax(keep)) if keep.any() else len(t)
-                src.data = {k: v[first:][-self.rollover:] for k, v in data.items()}
-            elif len(t):
-                src.stream(data, rollover=self.rollover)
+            data[f"{name}|lo"], data[f"{name}|hi"] = lo, hi
+            data[f"{name}|mid"] = (lo + hi) / 2.0
+        if replace:                        # from the first bucket any trace has a value in
+            seen = np.zeros(len(t), dtype=bool)
+            for name in self.traced:
+                seen |= np.isfinite(out["min"][name])
+            first = int(np.argmax(seen)) if seen.any() else len(t)
+            self.trace_src.data = {k: v[first:][-self.rollover:] for k, v in data.items()}
+        elif len(t):
+            self.trace_src.stream(data, rollover=self.rollover)
+        self.streams += 1
 
     def _on_pause(self, _attr: str, _old: bool, new: bool) -> None:
         self.pause.label = "Paused: resume" if new else "Pause"
@@ -534,8 +584,9 @@ class BenchView:
         self._n += 1
         self.updates += 1
         fast = self.hub.refresh()
-        if self.instruments.text != fast["html"]:
-            self.instruments.text = fast["html"]
+        values = [text for _, _, text in fast["items"]]
+        if list(self.inst_src.data["value"]) != values:
+            self.inst_src.data["value"] = values
         if self.scope is None:
             self._setup_scope()
         elif not self.pause.active and not self.ui.frozen:
@@ -555,8 +606,8 @@ class BenchView:
                 if self.hist_x[key].end != end:      # the x axis follows the extent of the data
                     self.hist_x[key].end = end
         self.timing_src.data = slow["timing"]
-        self.timing_lines.text = ('<div class="lines">'
-                                  + html.escape("\n".join(slow["lines"])) + "</div>")
+        if list(self.notes_src.data["text"]) != slow["lines"]:
+            self.notes_src.data = {"text": slow["lines"]}
         self.bus_src.data = slow["bus"]
         if dict(self.fault_src.data) != slow["faults"]:
             self.fault_src.data = slow["faults"]

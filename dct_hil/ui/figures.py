@@ -12,7 +12,7 @@ figures (no Bokeh, no loop), so that each one is tested on its own.
   timeouts, timed out now;
 - ``fault_spec`` / ``fault_rows``: the fault form's text as a spec, the set
   faults as table columns;
-- ``instrument_items`` / ``instruments_html``: the instrument row.
+- ``instrument_items``: the instrument row.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 __all__ = ["MessageInfo", "MinMaxMerger", "bus_rows", "fault_rows", "fault_spec",
-           "histogram_view", "instrument_items", "instruments_html", "message_info",
+           "histogram_view", "instrument_items", "message_info",
            "parse_value", "timing_lines", "timing_table"]
 
 #: a measured rate this far off its cycle's is flagged
@@ -382,12 +382,3 @@ def instrument_items(v: dict) -> list[tuple[str, str, str]]:
         loop += f", t {float(v['sim_time_s']):.2f} s"
     items.append(("loop", "loop", loop))
     return items
-
-
-def instruments_html(items: list[tuple[str, str, str]]) -> str:
-    """The instrument row as HTML boxes (each box's value has the id ``inst-<key>``)."""
-    boxes = "".join(
-        f'<div class="inst"><div class="lab">{html.escape(label)}</div>'
-        f'<div class="val" id="inst-{key}">{html.escape(text)}</div></div>'
-        for key, label, text in items)
-    return f'<div class="insts">{boxes}</div>'

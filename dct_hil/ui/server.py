@@ -35,6 +35,7 @@ import asyncio
 import hmac
 import html
 import ipaddress
+import logging
 import os
 import secrets
 import socket
@@ -264,6 +265,10 @@ class UiServer:
 
         from dct_hil.ui.app import make_document  # noqa: PLC0415
 
+        # a closed tab's last pushes and the login's 403s are the page's business, not
+        # the console's (the live status stays readable; refused logins are logged here)
+        for name in ("bokeh.server.views.ws", "tornado.access"):
+            logging.getLogger(name).setLevel(logging.ERROR)
         asyncio.set_event_loop(asyncio.new_event_loop())
         loop = IOLoop.current()
         self._loop = loop
