@@ -112,6 +112,8 @@ class Hub:
         """The fast figures (instruments, state), read again when older than FAST_S."""
         now = time.monotonic()
         if self.ui.frozen and self.fast:
+            if self.fast["running"]:        # the last figures stay; the controls go off
+                self.fast = {**self.fast, "running": False}
             return self.fast
         if now - self._t_fast < FAST_S and self.fast:
             return self.fast
@@ -227,6 +229,7 @@ class BenchView:
         self.updates = 0
         ui.counts["sessions"] += 1
         ui.counts["sessions_open"] += 1
+        ui.views.add(self)
         doc.title = ui.title
         sheet = InlineStyleSheet(css=_CSS)
 
@@ -469,7 +472,7 @@ class BenchView:
     def _setup_scope(self) -> None:
         """Once the loop's scope exists: the picker's names and the default traces."""
         scope = getattr(self.server, "scope", None)
-        if scope is None or self.scope is not None or self.ui.frozen:
+        if scope is None or self.scope is not None:
             return
         self.scope = scope
         names = scope.traceable()
@@ -485,7 +488,11 @@ class BenchView:
             self.picker.value = wanted
         finally:
             self._syncing = False
-        self._retrace(wanted)
+        try:
+            self._retrace(wanted)
+        except Exception as e:  # noqa: BLE001 (e.g. 32 values traced by other pages)
+            self.say(str(e), ok=False)
+            self._set_picker([])
 
     def _on_pick(self, _attr: str, old: list, new: list) -> None:
         if self._syncing or self.scope is None:
@@ -749,7 +756,11 @@ class BenchView:
 
     # ------------------------------------------------------------ end
     def _destroyed(self, _ctx: Any) -> None:
+        """The session ends (its browser went away, or the UI stops): its traces released."""
+        if self._closed:
+            return
         self._closed = True
+        self.ui.views.discard(self)
         self.ui.counts["sessions_open"] -= 1
         if self.scope is not None and self.traced:
             try:

@@ -221,6 +221,8 @@ class UiServer:
         self._stopped = False
         self._lock = threading.Lock()
         self.hub: Any = None
+        #: the sessions' views (dct_hil.ui.app.BenchView), touched only in the UI's thread
+        self.views: set = set()
 
     # ------------------------------------------------------------ life cycle
     @property
@@ -341,6 +343,8 @@ class UiServer:
 
         async def shutdown() -> None:
             try:
+                for view in list(self.views):     # their traces released in the scope
+                    view._destroyed(None)
                 if self._bokeh is not None:
                     self._bokeh.stop(wait=False)
                     http = self._bokeh._http
