@@ -356,3 +356,29 @@ def test_bad_control_input_from_the_page_is_refused_and_changes_nothing(served_u
     assert ui.hub.control.counts["refused"] == 5 and ui.hub.control.counts["writes"] == 1
     ui.freeze()
     assert ui.hub.request({"op": "clear_all"})["error"].startswith("the loop has stopped")
+
+
+def test_stopping_the_ui_finalises_its_recording(served_ui, tmp_path):
+    """Ctrl-C, SIGTERM or the end of the run stop the page first: a recording
+    started on it is stopped and its file complete."""
+    from bokeh.document import Document
+
+    from dct_hil.ui.app import BenchView
+    from rt_loop.recorder import read_recording
+
+    server, ui = served_ui
+    ui.recordings_dir = str(tmp_path)
+    view = BenchView(Document(), ui)
+    view.rec_format.value = "csv"
+    view._start_recording()
+    assert "recording bench-" in view.message.text
+    path = ui.recording_path
+    assert path is not None and server.recording["path"] == path
+    t0 = server.snapshot()["sim_time_s"]
+    while server.snapshot()["sim_time_s"] < t0 + 0.3:
+        pass
+    ui.stop()
+    assert server.recording is None and ui.recording_path is None
+    assert ui.recorded == {os.path.basename(path): path}
+    rec = read_recording(path)
+    assert len(rec["time_s"]) >= 20 and (np.diff(rec["time_s"]) > 0).all()
