@@ -61,14 +61,10 @@ DEFAULT_TRACES = ("vehicle_speed_kmh", "engine_speed_rpm", "clutch1_pressure_bar
 MAX_SESSION_TRACES = 8
 PLAYING = ("waiting for the TCU", "running")
 
+#: the style sheet of the page's Divs (each Div renders in a shadow root of its own)
 _CSS = """
-.insts{display:flex;flex-wrap:wrap;gap:6px;font-family:sans-serif}
-.inst{border:1px solid #ccd;border-radius:4px;padding:4px 10px;min-width:110px;background:#f7f8fb}
-.inst .lab{font-size:11px;color:#667}
-.inst .val{font-size:20px;font-weight:600;color:#123}
 .msg{font-family:sans-serif;font-size:13px;white-space:nowrap;overflow:hidden}
 .msg .ok{color:#0a6b2d}.msg .err{color:#b00020;font-weight:600}
-.lines{font-family:monospace;font-size:12px;white-space:pre-wrap;max-width:560px}
 .head{font-family:sans-serif}
 a.rec-link{font-family:monospace}
 """
