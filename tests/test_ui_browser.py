@@ -126,10 +126,6 @@ def set_value(driver, name, value):
     js(driver, f"{model(name)}.value = arguments[0];", value)
 
 
-def plant_time(bench):
-    return bench.time_s
-
-
 def speed_gain(bench, plant_s):
     """km/h gained over ``plant_s`` of plant time."""
     v0 = bench.read("vehicle_speed_kmh")
@@ -179,7 +175,8 @@ def test_two_browser_sessions_at_once(page, browser):
 
 
 def test_grade_slider_slows_the_car(page, browser, bench):
-    wait_for(lambda: bench.read("vehicle_speed_kmh") > 15, "the car to drive off")
+    # whatever the TCU does meanwhile (driving at 30 % pedal, or both clutches open after a
+    # diagnosis a loaded host can provoke: the car rolls), 12 % grade costs about 1.2 m/s^2
     flat = speed_gain(bench, 1.5)
     set_value(browser, "grade", 12)                 # the slider's model, as a drag sets it
     wait_for(lambda: bench.read("road_grade_pct") == 12, "the plant to take the grade")
@@ -211,8 +208,7 @@ def test_recording_started_on_the_page_is_a_valid_file(page, browser, bench, tmp
 
     set_value(browser, "rec_format", "csv")
     click(browser, "rec_start")
-    wait_for(lambda: bench.server.recording is not None, "the recording to start")
-    t0 = plant_time(bench)
+    started = wait_for(lambda: bench.server.recording, "the recording to start")["started_s"]
     bench.sleep(0.5)
     click(browser, "rec_stop")
     wait_for(lambda: "rec-link" in js(browser, f"return {model('rec_status')}.text;"),
@@ -225,8 +221,10 @@ def test_recording_started_on_the_page_is_a_valid_file(page, browser, bench, tmp
     path = tmp_path / "downloaded.csv"
     path.write_bytes(body)
     rec = read_recording(path)
-    assert len(rec["time_s"]) >= 20
-    assert rec["time_s"][0] >= t0 - 0.1 and (rec["time_s"][1:] > rec["time_s"][:-1]).all()
+    t = rec["time_s"]
+    assert len(t) >= 20, f"{len(t)} samples"
+    assert started - 0.001 <= t[0] <= started + 0.1, (started, t[:3].tolist())
+    assert (t[1:] > t[:-1]).all(), t[:-1][t[1:] <= t[:-1]].tolist()
     assert page.counts["downloads"] == 1
     # only what the page recorded is served
     with pytest.raises(urllib.error.HTTPError) as e:
