@@ -382,3 +382,29 @@ def test_stopping_the_ui_finalises_its_recording(served_ui, tmp_path):
     assert ui.recorded == {os.path.basename(path): path}
     rec = read_recording(path)
     assert len(rec["time_s"]) >= 20 and (np.diff(rec["time_s"]) > 0).all()
+
+
+def test_pedal_sliders_are_off_while_a_maneuver_plays(served_ui):
+    from bokeh.document import Document
+
+    from dct_hil.ui.app import BenchView
+
+    server, ui = served_ui
+    view = BenchView(Document(), ui)
+    assert view.maneuver.options == server.loop_maneuvers() and "0-100" in view.maneuver.options
+    assert not view.accel.disabled and not view.brake.disabled and view.m_stop.disabled
+    view.maneuver.value = "0-100"
+    view._start_maneuver()
+    assert "maneuver 0-100 started" in view.message.text and server.maneuver_playing
+    ui.hub._t_fast = ui.hub._t_slow = -math.inf
+    view._update_slow()
+    assert view.accel.disabled and view.brake.disabled and not view.grade.disabled
+    assert not view.m_stop.disabled
+    assert ui.hub.request({"op": "set", "name": "accel_pedal_pct", "value": 5})["ok"] is False
+    view._stop_maneuver()
+    assert "maneuver stopped" in view.message.text and not server.maneuver_playing
+    ui.hub._t_fast = ui.hub._t_slow = -math.inf
+    view._update_slow()
+    assert not view.accel.disabled
+    view.accel.value = 12.0                           # the pedal is the page's again
+    assert "accel_pedal_pct = 12" in view.message.text
