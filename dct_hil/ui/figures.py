@@ -17,7 +17,6 @@ figures (no Bokeh, no loop), so that each one is tested on its own.
 
 from __future__ import annotations
 
-import html
 import json
 import math
 import re
