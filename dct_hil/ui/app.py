@@ -218,7 +218,6 @@ class BenchView:
         self.doc, self.ui, self.hub = doc, ui, ui.hub
         self.server = ui.server
         self._figure, self._CDS = figure, ColumnDataSource
-        self._column = column
         self._closed = False
         self._syncing = False
         self._n = 0
