@@ -421,6 +421,7 @@ class Server:
         self._maneuver: str | None = None            # the name of the maneuver started last
         self._recording: dict | None = None          # the recording running, if any
         self._rec_lock = threading.Lock()
+        self._stop_hooks: list[Callable[[], None]] = []
         self._rec_log_on = False                     # log_frames switched on for a recording
         self.transport: Transport | None = None
         self.transports: list[Transport] = []
@@ -698,6 +699,13 @@ class Server:
         """
         if self._stopped:
             return
+        hooks, self._stop_hooks = self._stop_hooks, []
+        hook_errors: list[Exception] = []
+        for hook in reversed(hooks):          # what reads the loop stops while it still runs
+            try:
+                hook()
+            except Exception as e:  # noqa: BLE001 (the server stops anyway; raised below)
+                hook_errors.append(e)
         if self._thread is not None:
             self._lib.rt_loop_request_stop(self._l)
             # a loop still setting itself up (mlockall) stops after that
@@ -718,8 +726,16 @@ class Server:
                 errors.append(e)
         with self._read_lock:
             self.stats.read()
+        errors = hook_errors + errors
         if errors:
             raise ServerError(f"stopping: {_one_line(errors[0])}")
+
+    def add_stop_hook(self, hook: Callable[[], None]) -> None:
+        """``hook()`` runs first in ``stop()``, while the loop still runs (the
+        last added first): for what reads the running loop from outside, such
+        as the live view (``dct_hil.ui``). An error it raises is reported by
+        ``stop()`` after everything stopped."""
+        self._stop_hooks.append(hook)
 
     def _start_xcp(self, a2l: Any) -> None:
         from rt_loop.xcp import XcpServer  # noqa: PLC0415

@@ -6,7 +6,7 @@ transport without a TCU (the pedals act on the plant directly)."""
 import numpy as np
 import pytest
 
-from dct_hil.bench import Bench
+from dct_hil.bench import Bench, BenchError
 from rt_loop.control import ControlServer
 from rt_loop.recorder import read_recording
 from rt_loop.server import ServerError
@@ -107,3 +107,20 @@ def test_a_recording_into_a_folder_that_cannot_be_written_is_one_line(bench, tmp
         bench.server.start_recording(blocker / "sub" / "r.csv")
     assert "\n" not in str(e.value) and "r.csv" in str(e.value)
     assert bench.server.recording is None and int(bench.server._l.cfg.record_every) == 0
+
+
+def test_stop_hooks_run_first_while_the_loop_still_runs():
+    b = Bench.start(tcu=False)
+    srv = b.server
+    seen = []
+    srv.add_stop_hook(lambda: seen.append(("first added", srv.running)))
+    srv.add_stop_hook(lambda: seen.append(("last added", srv.running)))
+
+    def broken():
+        raise OSError("the page's port is gone")
+
+    srv.add_stop_hook(broken)
+    with pytest.raises(BenchError, match="the page's port is gone"):
+        b.stop()
+    assert seen == [("last added", True), ("first added", True)]
+    assert not srv.running

@@ -174,6 +174,38 @@ def test_two_browser_sessions_at_once(page, browser):
     wait_for(lambda: last_time(browser) > t0, "the first session's traces to move on")
 
 
+def test_a_maneuver_started_on_the_page_drives_and_the_screenshot(page, browser, bench):
+    """Start paper-cycle from the page: the loop plays it (the pedals are the
+    table's), the car launches and shifts; with a fault injected on the page
+    the screenshot docs/ui.png shows the bench at work; Stop ends it."""
+    set_value(browser, "maneuver", "paper-cycle")
+    click(browser, "maneuver_start")
+    wait_for(lambda: bench.server.maneuver_playing, "the maneuver to start")
+    assert bench.server.maneuver_name == "paper-cycle"
+    bench.wait_until("maneuver_time_s > 1.5", timeout_s=5.0)
+    assert bench.read("accel_pedal_pct") == 100.0, "the table's wide-open launch"
+    bench.wait_until("gear >= 2 and vehicle_speed_kmh > 30", timeout_s=10.0)
+    set_value(browser, "fault_kind", "can.late")
+    set_value(browser, "fault_params", "message=SIM_Status delay_ms=5")
+    click(browser, "inject")
+    wait_for(lambda: len(js(browser, f"return Array.from({model('fault_rows')}.data.id);")) == 1,
+             "the fault in the table")
+    assert "injected" in message(browser)
+    wait_for(lambda: js(browser, f"return {model('fault_rows')}.data.state[0]") == "active",
+             "the fault active")
+    bench.sleep(1.0)                                    # the traces show the run's shifts
+    os.makedirs(os.path.dirname(SCREENSHOT), exist_ok=True)
+    assert browser.save_screenshot(SCREENSHOT)
+    click(browser, "clear_all")
+    wait_for(lambda: len(js(browser, f"return Array.from({model('fault_rows')}.data.id);")) == 0,
+             "the fault cleared")
+    assert bench.faults() == []
+    click(browser, "maneuver_stop")
+    wait_for(lambda: not bench.server.maneuver_playing, "the maneuver to stop")
+    assert bench.read("accel_pedal_pct") == 0.0, "Stop releases the accelerator"
+    bench.set("accel_pedal_pct", 30)                   # as the module's bench had it
+
+
 def test_grade_slider_slows_the_car(page, browser, bench):
     # whatever the TCU does meanwhile (driving at 30 % pedal, or both clutches open after a
     # diagnosis a loaded host can provoke: the car rolls), 12 % grade costs about 1.2 m/s^2
@@ -230,23 +262,6 @@ def test_recording_started_on_the_page_is_a_valid_file(page, browser, bench, tmp
     with pytest.raises(urllib.error.HTTPError) as e:
         urllib.request.urlopen(page.url + "recordings/..%2Fserve-stats.json", timeout=10)
     assert e.value.code == 404
-
-
-def test_screenshot_of_the_page(page, browser, bench):
-    set_value(browser, "fault_kind", "can.late")
-    set_value(browser, "fault_params", "message=SIM_Status delay_ms=5")
-    click(browser, "inject")
-    wait_for(lambda: len(js(browser, f"return Array.from({model('fault_rows')}.data.id);")) == 1,
-             "the fault in the table")
-    assert "injected" in message(browser)
-    wait_for(lambda: js(browser, f"return {model('fault_rows')}.data.state[0]") == "active",
-             "the fault active")
-    os.makedirs(os.path.dirname(SCREENSHOT), exist_ok=True)
-    assert browser.save_screenshot(SCREENSHOT)
-    click(browser, "clear_all")
-    wait_for(lambda: len(js(browser, f"return Array.from({model('fault_rows')}.data.id);")) == 0,
-             "the fault cleared")
-    assert bench.faults() == []
 
 
 class _NoRedirect(urllib.request.HTTPRedirectHandler):

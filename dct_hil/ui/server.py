@@ -361,15 +361,7 @@ class UiServer:
     def stop_before(self, server: Any) -> None:
         """Makes ``server.stop()`` stop this UI first (for ``run_console``, which
         stops the server in its own ``finally``)."""
-        original = server.stop
-
-        def stop() -> None:
-            try:
-                self.stop()
-            finally:
-                original()
-
-        server.stop = stop
+        server.add_stop_hook(self.stop)
 
     # ------------------------------------------------------------ auth
     def token_ok(self, given: Any) -> bool:
