@@ -124,3 +124,32 @@ def test_stop_hooks_run_first_while_the_loop_still_runs():
         b.stop()
     assert seen == [("last added", True), ("first added", True)]
     assert not srv.running
+
+
+def test_a_loop_with_a_cpu_of_its_own_keeps_the_other_threads_off_it():
+    import os
+    import threading
+
+    from rt_loop.server import Server
+
+    allowed = sorted(os.sched_getaffinity(0))
+    cpu = allowed[-1]
+    srv = Server("cpu-own-test", interface="virtual", priority=0, cpu=cpu)
+    srv.start()
+    try:
+        loop_tid = srv._thread.native_id
+        masks = {int(t): os.sched_getaffinity(int(t)) for t in os.listdir("/proc/self/task")}
+        assert os.sched_getaffinity(loop_tid) == {cpu}
+        if len(allowed) == 1:
+            assert any("no other CPU" in w for w in srv.warnings)
+        else:
+            others = {t: m for t, m in masks.items() if t != loop_tid}
+            assert others and all(cpu not in m for m in others.values()), others
+            seen = []
+            t = threading.Thread(target=lambda: seen.append(os.sched_getaffinity(0)))
+            t.start()
+            t.join()
+            assert cpu not in seen[0], "a thread started later inherits it"
+    finally:
+        srv.stop()
+    assert os.sched_getaffinity(0) == set(allowed), "stop() gives the CPUs back"
