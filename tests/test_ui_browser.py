@@ -190,7 +190,7 @@ def test_a_maneuver_started_on_the_page_drives_and_the_screenshot(page, browser,
     click(browser, "inject")
     wait_for(lambda: len(js(browser, f"return Array.from({model('fault_rows')}.data.id);")) == 1,
              "the fault in the table")
-    assert "injected" in message(browser)
+    wait_for(lambda: "injected" in message(browser), "the page to say the fault was injected")
     wait_for(lambda: js(browser, f"return {model('fault_rows')}.data.state[0]") == "active",
              "the fault active")
     bench.sleep(1.0)                                    # the traces show the run's shifts
@@ -212,7 +212,7 @@ def test_grade_slider_slows_the_car(page, browser, bench):
     flat = speed_gain(bench, 1.5)
     set_value(browser, "grade", 12)                 # the slider's model, as a drag sets it
     wait_for(lambda: bench.read("road_grade_pct") == 12, "the plant to take the grade")
-    assert "road_grade_pct = 12" in message(browser)
+    wait_for(lambda: "road_grade_pct = 12" in message(browser), "the page to say the grade was set")
     uphill = speed_gain(bench, 1.5)
     set_value(browser, "grade", 0)
     wait_for(lambda: bench.read("road_grade_pct") == 0, "the grade back to 0")
