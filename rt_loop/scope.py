@@ -51,7 +51,7 @@ def _suggest(name: str, known: Iterable[str]) -> str:
     return f" (did you mean {', '.join(close)}?)" if close else ""
 
 
-def traceable_offsets(ffi: Any, channels: Any) -> dict[str, int]:
+def traceable_offsets(ffi: Any, lib: Any, channels: Any) -> dict[str, int]:
     """name -> byte offset in the rt_loop of the double it traces."""
     out: dict[str, int] = {}
     for name, _ in ffi.typeof("dct_outputs").fields:
@@ -63,22 +63,11 @@ def traceable_offsets(ffi: Any, channels: Any) -> dict[str, int]:
     out["maneuver_time_s"] = ffi.offsetof("rt_loop", "stats", "maneuver_time_s")
     for name in _LOOP_TIMES:
         out[name] = ffi.offsetof("rt_loop", "stats", name)
-    # every CAN signal by Message.Signal (and bus:Message.Signal), as the faults name them
-    first = 0
-    counts: dict[str, int] = {}
-    for b in channels.buses:
-        for m in channels.mapping.codec_order(b):
-            counts[m.name] = counts.get(m.name, 0) + 1
-    for bi, b in enumerate(channels.buses):
-        table = channels.table(bi)
-        for mi, m in enumerate(channels.mapping.codec_order(b)):
-            sig_names = table.signal_names(mi)
-            for k, sname in enumerate(sig_names):
-                off = ffi.offsetof("rt_loop", "signal_values", first + k)
-                out[f"{b}:{m.name}.{sname}"] = off
-                if counts[m.name] == 1:
-                    out[f"{m.name}.{sname}"] = off
-            first += len(sig_names)
+    # every CAN signal by Message.Signal (and bus:Message.Signal), named as the faults name them
+    from rt_loop.faults import Names  # noqa: PLC0415
+
+    for name, (_g, _k, value_index, _sig) in Names(ffi, lib, channels).signals.items():
+        out[name] = ffi.offsetof("rt_loop", "signal_values", value_index)
     return out
 
 
@@ -99,7 +88,7 @@ class Scope:
         self.bucket_ticks = int(bucket_ticks)
         self.bucket_s = self.bucket_ticks * float(step_s)
         self.poll_s = float(poll_s)
-        self._offsets = traceable_offsets(ffi, channels)
+        self._offsets = traceable_offsets(ffi, lib, channels)
         self._size = max(16, int(round(history_s / self.bucket_s)))
         self._lock = threading.Lock()           # readers and the drain; never the loop
         self._refs: dict[str, int] = {}
