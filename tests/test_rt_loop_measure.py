@@ -237,3 +237,21 @@ def test_the_can_signals_last_values_are_in_the_loop_memory():
         assert v[at[("DCT_ShaftSpeeds", "EngineSpeed")]] == pytest.approx(
             loop.c.plant.outputs.engine_speed_rpm, abs=30)
         assert 0 < v[at[("SIM_Status", "SimTime")]] <= float(loop.c.stats.sim_time_s)
+
+
+def test_a_signal_has_no_value_until_its_first_frame():
+    """NaN (null on the control channel) before a signal was ever on the bus,
+    not a 0 that reads as a value: before the first tick every signal; while
+    no TCU sends, the TCU's signals stay without value as the plant's get theirs."""
+    names = []
+    for bus, msg in _CHANNELS.messages:
+        i = _CHANNELS.messages.index((bus, msg))
+        names += [(msg.name, s) for s in _CHANNELS.table(0).signal_names(i)]
+    at = {n: k for k, n in enumerate(names)}
+    loop = Loop()
+    assert loop.rc == 0
+    assert all(math.isnan(loop.c.signal_values[k]) for k in range(len(names)))
+    with loop:
+        wait_until(lambda: loop.ticks() > 400, "ticks")
+        assert math.isfinite(loop.c.signal_values[at[("DCT_ShaftSpeeds", "EngineSpeed")]])
+        assert math.isnan(loop.c.signal_values[at[("TCU_EngineCmd", "TargetGear")]])

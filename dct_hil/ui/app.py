@@ -124,6 +124,8 @@ class Hub:
         phase = None
         if self.phase_index is not None:
             phase = float(self.server._l.signal_values[self.phase_index])
+            if not math.isfinite(phase):      # no TCU frame yet
+                phase = None
         values = {
             "vehicle_speed_kmh": float(o.vehicle_speed_kmh), "gear": float(o.gear),
             "engine_speed_rpm": float(o.engine_speed_rpm),

@@ -197,7 +197,8 @@
 #define RT_RX_BATCH 64                  /* frames per recvmmsg / ring pop */
 #define RT_RX_MAX_PER_TICK 256          /* drained per tick at most */
 #define RT_STACK_PREFAULT (128 * 1024)
-#define RT_READ_RETRIES 1000
+#define RT_READ_RETRIES 1000            /* a copy is tried at least this often ... */
+#define RT_READ_BUDGET_NS 2000000000LL  /* ... and for at least this long (a starved reader) */
 #define RT_RCVBUF_BYTES (8 * 1024 * 1024)
 #define RT_SNDBUF_BYTES (1024 * 1024)
 #define RT_NS_PER_S 1000000000LL
@@ -361,9 +362,21 @@ static inline void stats_write_end(rt_stats *s)
     atomic_store_explicit(A32(&s->seq), q + 1u, RELEASE);
 }
 
+/* A reader the host starves (its copy of ~130 kB outlasting a tick again and
+ * again) keeps trying for RT_READ_BUDGET_NS, not just RT_READ_RETRIES times:
+ * a few hundred torn copies in a row are seen on a loaded shared host. */
 int rt_stats_read(rt_loop *l, rt_stats *copy)
 {
-    for (int attempt = 0; attempt < RT_READ_RETRIES; attempt++) {
+    struct timespec t0;
+    clock_gettime(CLOCK_MONOTONIC, &t0);
+    for (long attempt = 0;; attempt++) {
+        if (attempt >= RT_READ_RETRIES) {
+            struct timespec t;
+            clock_gettime(CLOCK_MONOTONIC, &t);
+            if ((int64_t)(t.tv_sec - t0.tv_sec) * 1000000000LL + (t.tv_nsec - t0.tv_nsec)
+                > RT_READ_BUDGET_NS)
+                break;
+        }
         uint32_t before = atomic_load_explicit(A32(&l->stats.seq), ACQUIRE);
         if (before & 1u) {
             sched_yield();
@@ -638,7 +651,8 @@ static int prepare_loop(rt_loop *l)
     memset(&l->cal, 0, sizeof l->cal);
     memset(&l->stim, 0, sizeof l->stim);
     memset(l->daq, 0, sizeof l->daq);
-    memset(l->signal_values, 0, sizeof l->signal_values);
+    for (int i = 0; i < RT_MAX_SIGNAL_VALUES; i++)
+        l->signal_values[i] = NAN;    /* no value until the signal's first frame */
     l->daq_gen = l->daq_ack = 0;      /* daq[0]: no lists */
     l->daq_refused = 0;
     l->stats.maneuver_state = l->driver.rows > 0 ? RT_MANEUVER_WAITING : RT_MANEUVER_NONE;

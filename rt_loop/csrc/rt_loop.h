@@ -699,8 +699,9 @@ typedef struct {
     rt_write_ring cal;                /* calibration writes: Python -> loop */
     rt_write_ring stim;               /* stimulus writes: Python -> loop */
     int n_signal_values;              /* set by rt_loop_prepare: signals of all channels */
-    double signal_values[RT_MAX_SIGNAL_VALUES];  /* each CAN signal's last value (physical):
-                                         channel c's signal k at chan[c].first_signal_value + k */
+    double signal_values[RT_MAX_SIGNAL_VALUES];  /* each CAN signal's last value (physical),
+                                         NaN until its first frame: channel c's signal k
+                                         at chan[c].first_signal_value + k */
     /* failure simulation (see above) */
     rt_fault_cmd_ring fault_cmds;     /* Python -> loop */
     rt_fault_event_ring fault_events; /* loop -> Python */
@@ -728,7 +729,7 @@ int rt_loop_prepare(rt_loop *l);
 int rt_loop_run(rt_loop *l);
 void rt_loop_request_stop(rt_loop *l);
 /* a consistent copy of the statistics without stopping the loop; 0 ok,
- * -1 if the loop kept writing through every retry */
+ * -1 if the loop kept writing through every retry (1000 and 2 s at least) */
 int rt_stats_read(rt_loop *l, rt_stats *copy);
 
 int rt_ring_push(rt_ring *r, const rt_frame *f);   /* 0, or -1 full (counted) */
