@@ -94,6 +94,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from . import codec
+from plant.describe import SUFFIX_UNITS
+
 from .protection import Protection, ProtectionError, parse_protection
 
 __all__ = [
@@ -167,11 +169,6 @@ UNITS: dict[str, dict[str, tuple[float, float]]] = {
     "volume flow": {"l/h": _u(1), "L/h": _u(1), "l/min": _u(60), "ml/s": _u(3.6)},
     "power": {"W": _u(1), "kW": _u(1e3)},
 }
-#: the unit an output's, input's or status field's name suffix means
-SUFFIX_UNITS = {"rpm": "rpm", "kmh": "km/h", "mps": "m/s", "mps2": "m/s2", "bar": "bar",
-                "kpa": "kPa", "nm": "Nm", "n": "N", "pct": "%", "a": "A", "ma": "mA", "v": "V",
-                "mm": "mm", "m": "m", "s": "s", "ms": "ms", "us": "us", "deg": "deg",
-                "rad": "rad", "l": "l", "lph": "l/h", "kw": "kW", "degc": "degC"}
 #: DBC unit strings that say "no unit"
 _NO_UNIT = ("", "-", "\u2013", "\u2014", "1", "none", "n/a", "n.a.")
 

@@ -32,7 +32,7 @@ What it describes:
   cycle times at the loop's rate) and the Ethernet transport layer
   (XCP_ON_UDP_IP and/or XCP_ON_TCP_IP, ``xcp``'s address and port).
 
-Units come from the field names' suffixes (``can_dbc.mapping.SUFFIX_UNITS``,
+Units come from the field names' suffixes (``plant.describe.SUFFIX_UNITS``,
 plus compound SI suffixes such as ``_nm_per_rad`` or ``_rad_s``) and, for
 signals, from the DBC; comments from the C headers' field comments and the
 parameter file's trailing comments; the parameters' limits from
@@ -44,16 +44,20 @@ parameter file's trailing comments; the parameters' limits from
 from __future__ import annotations
 
 import argparse
-import functools
 import hashlib
 import math
 import os
 import re
 import sys
-import tomllib
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
+
+from plant.describe import RANGES as _RANGES
+from plant.describe import header_comments as _header_comments
+from plant.describe import online_keys, unit_of
+from plant.describe import range_key as _range_key
+from plant.describe import ranges as _ranges
+from plant.describe import toml_comments as _toml_comments
 
 __all__ = [
     "OVERRIDABLE_INPUTS",
@@ -68,13 +72,6 @@ __all__ = [
     "run",
 ]
 
-_ROOT = Path(__file__).resolve().parents[2]
-_HEADERS = (
-    _ROOT / "plant" / "csrc" / "dct_plant.h",
-    _ROOT / "can_dbc" / "csrc" / "can_table.h",
-    _ROOT / "rt_loop" / "csrc" / "rt_loop.h",
-)
-_RANGES = _ROOT / "plant" / "data" / "ranges.toml"
 
 #: plant inputs a test may set while running (writable CHARACTERISTICs
 #: ``override.<name>``, regions of kind RT_REGION_DATA); the TCU-driven
@@ -231,52 +228,6 @@ def _type_limits(datatype: str) -> tuple[float, float]:
 
 # -- units ------------------------------------------------------------------
 
-@functools.lru_cache(maxsize=1)
-def _unit_tokens() -> dict[str, str]:
-    try:
-        from can_dbc.mapping import SUFFIX_UNITS  # noqa: PLC0415
-    except ImportError:  # pragma: no cover (the project always has it)
-        SUFFIX_UNITS = {}
-    tokens = dict(SUFFIX_UNITS)
-    # compound SI names of the plant's parameters and states
-    tokens.update({"kg": "kg", "g": "g", "kgm2": "kg m2", "nms": "N m s", "ns": "N s",
-                   "pa": "Pa", "m2": "m2", "m3": "m3", "cm3": "cm3", "s2": "s2", "w": "W",
-                   "kwh": "kWh", "hz": "Hz"})
-    return tokens
-
-
-
-def unit_of(name: str) -> str:
-    """The unit a field name's suffix says: ``engine_speed_rpm`` -> ``rpm``,
-    ``speed_rad_s`` -> ``rad/s``, ``stiffness_nm_per_rad`` -> ``Nm/rad``,
-    ``idle_ki_nm_per_rpm_s`` -> ``Nm/(rpm s)``; "" when it says none. Within the
-    first group a second unit divides (``m_s2``: m/s2), after ``per`` units
-    multiply (the project's naming)."""
-    tokens = _unit_tokens()
-    parts = name.split("_")
-    k = len(parts)
-    while k > 1 and (parts[k - 1] in tokens or parts[k - 1] == "per"):
-        k -= 1
-    tail = parts[k:]
-    while tail and tail[0] == "per":           # "..._per_x" needs a unit before per
-        tail = tail[1:]
-    if not tail:
-        return ""
-    groups: list[list[str]] = [[]]
-    for t in tail:
-        if t == "per":
-            groups.append([])
-        else:
-            groups[-1].append(tokens[t])
-    if any(not g for g in groups):
-        return ""
-    first = groups[0][0] if len(groups[0]) == 1 else "/".join(groups[0])
-    rest = []
-    for g in groups[1:]:
-        rest.append(g[0] if len(g) == 1 else "(" + " ".join(g) + ")")
-    return "/".join([first] + rest)
-
-
 def _unit_limits(unit: str, datatype: str) -> tuple[float, float]:
     if datatype not in ("FLOAT64_IEEE", "FLOAT32_IEEE"):
         return _type_limits(datatype)
@@ -287,107 +238,6 @@ def _unit_limits(unit: str, datatype: str) -> tuple[float, float]:
 
 # -- comments ---------------------------------------------------------------
 
-_FIELD = re.compile(r"^\s*(?:const\s+)?[A-Za-z_]\w*(?:\s+[A-Za-z_]\w*)*[\s*]+([A-Za-z_]\w*)\s*"
-                    r"(?:\[[^\]]*\]\s*)*;(.*)$")
-_STRUCT_END = re.compile(r"^\s*}\s*([A-Za-z_]\w*)\s*;")
-
-
-def _header_comments(paths=_HEADERS) -> dict[tuple[str, str], str]:
-    """(struct typedef name, field) -> the field's trailing comment in the headers."""
-    out: dict[tuple[str, str], str] = {}
-    for path in paths:
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError:
-            continue
-        inside = False
-        fields: list[tuple[str, list[str]]] = []
-        pending: list[str] | None = None
-        for line in text.splitlines():
-            if pending is not None:
-                end = line.find("*/")
-                pending.append((line[:end] if end >= 0 else line).strip().lstrip("*").strip())
-                if end >= 0:
-                    pending = None
-                continue
-            stripped = line.strip()
-            if stripped.startswith("typedef struct") and "{" in stripped:
-                inside, fields = True, []
-                continue
-            if not inside:
-                continue
-            end_match = _STRUCT_END.match(line)
-            if end_match:
-                for name, parts in fields:
-                    out[(end_match.group(1), name)] = " ".join(p for p in parts if p)
-                inside = False
-                continue
-            if stripped.startswith(("/*", "*")):
-                continue
-            m = _FIELD.match(line)
-            if not m:
-                continue
-            parts: list[str] = []
-            rest = m.group(2)
-            at = rest.find("/*")
-            if at >= 0:
-                body = rest[at + 2:]
-                end = body.find("*/")
-                parts.append((body[:end] if end >= 0 else body).strip())
-                if end < 0:
-                    pending = parts
-            fields.append((m.group(1), parts))
-    return out
-
-
-_TABLE = re.compile(r"^\[\[?\s*([A-Za-z_][\w.]*)\s*\]\]?\s*(#.*)?$")
-_KEY = re.compile(r"^([A-Za-z_]\w*)\s*=\s*(.*)$")
-
-
-def _toml_comments(path) -> dict[str, str]:
-    """Dotted key with element indices (``clutch[1].mu_kinetic``) -> the trailing
-    comment of its value in a parameter TOML file."""
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except OSError:
-        return {}
-    out: dict[str, str] = {}
-    counts: dict[str, int] = {}
-    table: list[str] = []
-    depth = 0
-    for line in text.splitlines():
-        stripped = line.strip()
-        if depth > 0:                        # inside a multi-line array
-            depth += _brackets(stripped)
-            continue
-        m = _TABLE.match(stripped)
-        if m and stripped.startswith("["):
-            key = m.group(1)
-            if stripped.startswith("[["):
-                counts[key] = counts.get(key, -1) + 1
-            parts = key.split(".")
-            table = []
-            for i, part in enumerate(parts):
-                prefix = ".".join(parts[:i + 1])
-                table.append(f"{part}[{counts[prefix]}]" if prefix in counts else part)
-            continue
-        m = _KEY.match(stripped)
-        if not m:
-            continue
-        value = m.group(2)
-        at = value.find("#")
-        if at >= 0:
-            out[".".join(table + [m.group(1)])] = value[at + 1:].strip()
-            value = value[:at]
-        depth = max(0, _brackets(value))
-    return out
-
-
-def _brackets(text: str) -> int:
-    text = text.split("#", 1)[0]
-    return text.count("[") - text.count("]")
-
-
 def _text(*parts: str) -> str:
     """A long identifier: the parts joined, one line, no double quotes, at most 255 characters."""
     text = "; ".join(p.strip() for p in parts if p and p.strip())
@@ -397,34 +247,6 @@ def _text(*parts: str) -> str:
 
 
 # -- the ranges file and its online marker ----------------------------------
-
-_ONLINE = re.compile(r'^\s*"([^"]+)"\s*=\s*\[[^\]]*\]\s*#\s*online\b')
-
-
-def online_keys(path=None) -> set[str]:
-    """The range keys of ``plant/data/ranges.toml`` (``clutch[].mu_static``,
-    ``engine.full_load.torque_nm``) whose comment begins with ``online``: the
-    parameters that may be changed while the loop runs."""
-    text = Path(path or _RANGES).read_text(encoding="utf-8")
-    return {m.group(1) for line in text.splitlines() if (m := _ONLINE.match(line))}
-
-
-def _ranges(path=None) -> dict[str, tuple[float, float]]:
-    with open(path or _RANGES, "rb") as f:
-        raw = tomllib.load(f)
-    return {k: (float(v[0]), float(v[1])) for k, v in raw.items()}
-
-
-def _range_key(param_path: tuple) -> str:
-    """ranges.toml's key of a parameter path below plant.params."""
-    out = ""
-    for item in param_path:
-        if isinstance(item, int):
-            out += "[]"
-        else:
-            out += ("." if out else "") + item
-    return out
-
 
 # -- walking the cffi types --------------------------------------------------
 
