@@ -8,7 +8,8 @@ never listed by hand, so a field added to the core appears in the FMU:
 - every input (``dct_inputs``): causality input, variability discrete (held
   over a communication step, as the offline scenarios hold their rows);
   start: the default the C core gives;
-- every output (``dct_outputs``): causality output;
+- every output (``dct_outputs``): causality output; one named like an
+  input is ``out.<name>`` (``out.accel_pedal_pct``: the pedal as applied);
 - every parameter of the car (``dct_params``, the used points of curves and
   maps), ``<path>`` as in the parameter TOML with 0-based indices
   (``clutch[1].mu_static``, ``engine.full_load.torque_nm[3]``): tunable when
@@ -114,6 +115,19 @@ def _designator(path: tuple) -> str:
     return out
 
 
+def _name(path: tuple) -> str:
+    """The FMI name of a path: as the C designator, but the indices of a
+    table in one bracket (``engine.bsfc.bsfc_g_per_kwh[2,3]``: FMI's
+    structured naming)."""
+    out = ""
+    for k, p in enumerate(path):
+        if isinstance(p, int):
+            out = out[:-1] + f",{p}]" if k and isinstance(path[k - 1], int) else out + f"[{p}]"
+        else:
+            out += ("." if out else "") + p
+    return out
+
+
 def _walk_values(ctype: Any, values: Any, path: tuple, parent: str, field: str):
     """(path, value, parent struct cname, field name) of every double the
     parameter dict holds (only the used points of lists)."""
@@ -189,30 +203,30 @@ def load(params_path: str | os.PathLike | None = None) -> Model:
         add(fname, INPUT, f"inputs.{fname}", getattr(plant.inputs, fname), -math.inf, math.inf,
             describe.unit_of(fname), _text(comments.get(("dct_inputs", fname), ""),
                                           "limited to its range by the plant"))
+    inputs = {f for f, _ in ffi.typeof("dct_inputs").fields}
     for fname, _ in ffi.typeof("dct_outputs").fields:
-        add(fname, OUTPUT, f"outputs.{fname}",
+        add(f"out.{fname}" if fname in inputs else fname, OUTPUT, f"outputs.{fname}",
             getattr(plant.outputs, fname), -math.inf, math.inf, describe.unit_of(fname),
             _text(comments.get(("dct_outputs", fname), "")))
     for path, value, parent, fname in _walk_values(ffi.typeof("dct_params"), values, (), "", ""):
-        name = _designator(path)
+        name = _name(path)
         if name in EXCLUDED_PARAMS:
             continue
         key = _field_key(path)
         lo, hi = ranges.get(key, (-math.inf, math.inf))
         kind = PARAM_TUNABLE if key in online else PARAM_FIXED
-        add(name, kind, f"params.{name}", value, lo, hi, describe.unit_of(fname),
+        add(name, kind, f"params.{_designator(path)}", value, lo, hi, describe.unit_of(fname),
             _text(toml_text.get(_toml_key(path), ""), comments.get((parent, fname), "")))
     for path, parent, fname in _walk_type(ffi.typeof("dct_faults"), (), "", ""):
-        name = _designator(path)
+        name = _name(path)
         lo, hi = _FAULT_RANGES.get(fname, (0.0, 1.0))
-        add(f"faults.{name}", PARAM_TUNABLE, f"faults.{name}", 0.0, lo, hi,
+        add(f"faults.{name}", PARAM_TUNABLE, f"faults.{_designator(path)}", 0.0, lo, hi,
             describe.unit_of(fname), _text("physical fault, 0 = healthy",
                                            comments.get((parent, fname), "")))
     initial = _initial_defaults()
     for path, _parent, fname in _walk_type(ffi.typeof("dct_initial"), (), "", ""):
-        name = _designator(path)
         lo, hi = _INITIAL_RANGES[fname]
-        add(f"initial.{name}", INITIAL, name, _get(initial, path), lo, hi,
+        add(f"initial.{_name(path)}", INITIAL, _designator(path), _get(initial, path), lo, hi,
             describe.unit_of(fname), _INITIAL_TEXT.get(fname, ""))
 
     state_names = [_designator(p) for p, _, _ in _walk_type(ffi.typeof("dct_state"), (), "", "")]
