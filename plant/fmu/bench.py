@@ -78,7 +78,7 @@ def run(fmi: int = 2, step_s: float = 0.01, duration_s: float = 1800.0, repeat: 
             res = simulate.run(plant, scenario, record_every_s=step_s)
             offline_s.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            fres = fmpy.simulate_fmu(unzipdir, stop_time=scenario.duration_s, step_size=step_s,
+            fres = fmpy.simulate_fmu(unzipdir, stop_time=scenario.duration_s, step_size=step_s, output_interval=step_s,
                                      input=table, start_values=start, model_description=md)
             fmu_s.append(time.perf_counter() - t0)
     k = res.names.index("vehicle_speed_kmh")

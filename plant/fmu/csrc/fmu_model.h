@@ -21,8 +21,9 @@
 #define FMU_VAR_INPUT 1           /* double in dct_plant (inputs.*) */
 #define FMU_VAR_OUTPUT 2          /* double in dct_plant (outputs.*), read only */
 #define FMU_VAR_PARAM_FIXED 3     /* double in dct_plant (params.*): set before initialization ends */
-#define FMU_VAR_PARAM_TUNABLE 4   /* double in dct_plant (params.*): also between steps
-                                     (dct_plant_prepare checks it; refused: the old value back) */
+#define FMU_VAR_PARAM_TUNABLE 4   /* double in dct_plant (params.* or faults.*): also between
+                                     steps (dct_plant_prepare checks it; refused: the old
+                                     value back) */
 #define FMU_VAR_INITIAL 5         /* double in dct_initial: the state the run starts from,
                                      set before initialization ends */
 
