@@ -333,6 +333,16 @@ def build_parser():
         p.add_argument("--rate", type=_serve_rate, default=2000.0, metavar="HZ",
                        help="the loop's rate: cycle times must be whole ticks (default 2000)")
     mapping.set_defaults(func=cmd_mapping)
+
+    from studies import cli as studies_cli
+
+    sweep = sub.add_parser(
+        "sweep", help="run a parameter sweep (grid, random, Latin hypercube) on Dask",
+        description="Runs every point of SPEC.toml (plant parameters, TCU calibration values, "
+                    "maneuvers or scenarios) on a local Dask cluster or --scheduler; results "
+                    "as Parquet and CSV, resumable, plots (README: Sweeps and fits).")
+    studies_cli.sweep_arguments(sweep)
+    sweep.set_defaults(func=cmd_sweep)
     return parser
 
 
@@ -1025,6 +1035,15 @@ def cmd_doctor(args):
             f.write(report.json_text())
         print(f"json: {args.json}")
     return report.exit_code
+
+
+def cmd_sweep(args):
+    from studies import StudyError, cli as studies_cli
+
+    try:
+        return studies_cli.sweep(args)
+    except StudyError as e:
+        raise UserError(str(e)) from None
 
 
 # ---------------------------------------------------------------------- mapping
