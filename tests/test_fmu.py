@@ -4,6 +4,7 @@ simulate`` bit for bit, keeps and restores its state, runs as two
 independent instances, and refuses bad input with the FMI status and a
 message naming the cause."""
 
+import io
 import math
 import subprocess
 import sys
@@ -418,3 +419,13 @@ def test_params_bake_another_car_in(tmp_path):
     offline = simulate.run(Plant(str(car), scenario.param_overrides()), scenario, duration_s=2.0)
     k = offline.names.index("vehicle_speed_kmh")
     assert np.array_equal(_at(res, offline.data[:, 0])["vehicle_speed_kmh"], offline.data[:, k])
+
+
+def test_speed_benchmark_runs_the_same_inputs_three_ways(tmp_path):
+    from plant.fmu import bench
+    out = io.StringIO()
+    report = bench.run(2, 0.01, 20.0, 1, str(tmp_path / "b.json"), out=out)
+    assert report["same_vehicle_speed"] is True
+    assert report["simulated_s"] == 20.0 and report["outputs_recorded"] > 50
+    assert {"offline_best_s", "fmu_best_s", "lean_master_best_s", "ratio"} <= set(report)
+    assert "lean master" in out.getvalue() and (tmp_path / "b.json").exists()

@@ -126,7 +126,7 @@ def fmi2(model: Model, source_files: list[str], version: str = "") -> str:
     out += ["    </SourceFiles>", "  </CoSimulation>"]
     out += _units(model)
     out += _log_categories()
-    out.append(f'  <DefaultExperiment startTime="0.0" stopTime="10.0" stepSize="0.01"/>')
+    out.append('  <DefaultExperiment startTime="0.0" stopTime="10.0" stepSize="0.01"/>')
     out.append("  <ModelVariables>")
     for v in model.variables:
         out.append(f"    <ScalarVariable {_common_attrs(v)}{_initial(v)}>")
@@ -158,7 +158,7 @@ def fmi3(model: Model, version: str = "") -> str:
            f'fixedInternalStepSize="{_num(model.step_s)}" hasEventMode="false"/>']
     out += _units(model)
     out += _log_categories()
-    out.append(f'  <DefaultExperiment startTime="0.0" stopTime="10.0" stepSize="0.01"/>')
+    out.append('  <DefaultExperiment startTime="0.0" stopTime="10.0" stepSize="0.01"/>')
     out.append("  <ModelVariables>")
     for v in model.variables:
         out.append(f"    <Float64 {_common_attrs(v)}{_initial(v)}{_type_attrs(v)}/>")
