@@ -343,6 +343,15 @@ def build_parser():
                     "as Parquet and CSV, resumable, plots (README: Sweeps and fits).")
     studies_cli.sweep_arguments(sweep)
     sweep.set_defaults(func=cmd_sweep)
+
+    fit = sub.add_parser(
+        "fit", help="identify plant parameters from a recorded run (least squares on Dask)",
+        description="Fits the chosen plant parameters to recorded runs (CSV or MF4, a car's "
+                    "signals through --mapping) by least squares, the candidate runs on Dask; "
+                    "prints the values with 95 %% confidence intervals, writes the residual "
+                    "plot (README: Sweeps and fits).")
+    studies_cli.fit_arguments(fit)
+    fit.set_defaults(func=cmd_fit)
     return parser
 
 
@@ -1042,6 +1051,15 @@ def cmd_sweep(args):
 
     try:
         return studies_cli.sweep(args)
+    except StudyError as e:
+        raise UserError(str(e)) from None
+
+
+def cmd_fit(args):
+    from studies import StudyError, cli as studies_cli
+
+    try:
+        return studies_cli.fit(args)
     except StudyError as e:
         raise UserError(str(e)) from None
 

@@ -81,6 +81,8 @@ def sweep(args: argparse.Namespace) -> int:
     from studies.sweep import load_spec, plan, print_summary, read_journal, run_sweep
 
     spec = load_spec(args.spec, duration_cap_s=args.duration)
+    for note in spec.notes:
+        print(f"note: {note}", file=sys.stderr)
     if args.dry_run:
         runs = plan(spec)
         from pathlib import Path
@@ -104,3 +106,93 @@ def sweep(args: argparse.Namespace) -> int:
         return 130
     print_summary(spec, res)
     return 0
+
+
+def fit_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("measurements", nargs="+", metavar="MEASUREMENT[@CASE]",
+                   help="a recorded run (CSV as dct-hil simulate --out writes, or MF4), with "
+                        "@CASE the maneuver or scenario it was recorded under (without: its "
+                        "pedals are replayed with the reference TCU)")
+    p.add_argument("--params", action="append", required=True, metavar="KEY[,KEY...]",
+                   help="plant parameters to identify, as the parameter files name them "
+                        "(vehicle.mass_kg, vehicle.drag_coefficient, tyre.rolling_resistance, "
+                        "clutch[0].mu_kinetic, engine.tau_rise_s, ...); repeatable")
+    p.add_argument("--signal", action="append", metavar="NAME[:SIGMA]",
+                   help="plant output compared with the measurement, with its sigma (the "
+                        "residual's unit; default 1); repeatable (default vehicle_speed_kmh)")
+    p.add_argument("--start", action="append", metavar="KEY=VALUE",
+                   help="start value of a fitted parameter (default: the car's)")
+    p.add_argument("--base-params", metavar="FILE.toml",
+                   help="parameter file the candidates start from (merged over the default car)")
+    p.add_argument("--mapping", metavar="MAP.toml",
+                   help="the measurement's channel names as the plant's (a car's signals)")
+    p.add_argument("--out", default="out/fit", metavar="DIR",
+                   help="fit.json, fitted.toml and fit_residuals.png go here (default out/fit)")
+    p.add_argument("--diff-step", type=float, default=0.01, metavar="H",
+                   help="Jacobian step as a share of each parameter (default 0.01)")
+    p.add_argument("--max-evaluations", type=_positive_int, default=30, metavar="N",
+                   help="at most N evaluations of the residuals (default 30)")
+    _engine_arguments(p)
+
+
+def fit(args: argparse.Namespace) -> int:
+    import tomllib
+    from pathlib import Path
+
+    from studies import fit as fitting
+    from studies.engine import Engine
+    from studies.measurement import load_mapping
+
+    if not (math.isfinite(args.diff_step) and 0 < args.diff_step <= 0.5):
+        raise StudyError(f"--diff-step must be in (0, 0.5], got {args.diff_step}")
+    keys = fitting.parse_params(args.params)
+    signals = fitting.parse_signals(args.signal)
+    start = fitting.parse_start(args.start, keys)
+    base_raw = {}
+    if args.base_params:
+        from plant.params import ParamError, load_params
+
+        try:
+            load_params(args.base_params)
+            base_raw = tomllib.loads(Path(args.base_params).read_text(encoding="utf-8"))
+        except ParamError as e:
+            raise StudyError(str(e)) from None
+        except OSError as e:
+            raise StudyError(f"--base-params {args.base_params}: cannot read: {e.strerror}") \
+                from None
+    mapping = load_mapping(args.mapping)
+    targets = fitting.targets(args.measurements, signals, mapping)
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise StudyError(f"--out {out}: cannot create the folder: {e.strerror}") from None
+    n = sum(len(t.measurement.time) for t in targets) * len(signals)
+    print(f"fit: {', '.join(k.text for k in keys)} from {len(targets)} measurement"
+          f"{'s' if len(targets) != 1 else ''} ({n} residuals: "
+          + "; ".join(f"{t.label} {t.measurement.duration_s:.1f} s as {t.case.label}"
+                      for t in targets) + ")", flush=True)
+    log = (lambda text: None) if args.no_progress else \
+        (lambda text: print(f"  {text}", file=sys.stderr, flush=True))
+    try:
+        with Engine(workers=args.workers, scheduler=args.scheduler, dashboard=args.dashboard,
+                    connect_timeout_s=args.connect_timeout) as engine:
+            print(f"engine: {engine.description}", flush=True)
+            res = fitting.fit(keys, targets, signals, start, base_raw, engine,
+                              diff_step=args.diff_step, max_iterations=args.max_evaluations,
+                              log=log)
+            fitted = fitting.simulate_targets(keys, res.value, targets, signals, base_raw, engine)
+            started = fitting.simulate_targets(keys, res.start, targets, signals, base_raw, engine)
+    except KeyboardInterrupt:
+        print("dct-hil fit: interrupted", file=sys.stderr)
+        return 130
+    files = fitting.write_outputs(out, res, targets, signals, fitted, started)
+    print(f"result: {res.status} ({res.iterations} Jacobians, {res.runs} runs, "
+          f"{res.wall_s:.1f} s)")
+    for line in fitting.report_lines(res):
+        print(line)
+    for (label, sig), rms in res.rms.items():
+        print(f"  residual RMS {label} {sig}: {rms:.4g}")
+    for f in files:
+        print(f"wrote: {f}")
+    return 0 if res.success else 1

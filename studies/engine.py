@@ -4,7 +4,7 @@
 thread each (default: every core; a run is one Python thread stepping the C
 plant, so processes are what run in parallel), scheduler and workers on
 127.0.0.1, the dashboard off unless ``dashboard`` names a port (then on
-127.0.0.1). ``Engine(scheduler="tcp://host:8786")`` uses an existing cluster
+127.0.0.1; the scheduler's own HTTP endpoints take a free loopback port). ``Engine(scheduler="tcp://host:8786")`` uses an existing cluster
 instead; its workers need this package installed (``pip install dct-hil`` in
 the workers' environment), which the engine checks first.
 
@@ -78,9 +78,13 @@ class Engine:
         if self.scheduler is None:
             n = self.workers or default_workers()
             dash = None if self.dashboard is None else f"127.0.0.1:{self.dashboard}"
+            # without a dashboard the scheduler still serves /health and /metrics over
+            # HTTP: on a free loopback port, not on the dashboard's 8787
+            sched = None if dash else {"dashboard": False, "dashboard_address": "127.0.0.1:0"}
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                         host="127.0.0.1", scheduler_port=0,
-                                        dashboard_address=dash, silence_logs=logging.ERROR)
+                                        dashboard_address=dash, scheduler_kwargs=sched,
+                                        silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
             self.description = (f"LocalCluster: {n} worker process{'es' if n != 1 else ''} "
                                 f"x 1 thread on 127.0.0.1")

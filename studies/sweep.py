@@ -71,16 +71,27 @@ MAX_RUNS = 100_000
 
 @dataclass
 class Parameter:
-    key: Key
+    keys: list[Key]                 # one, or several set to the same value (linked)
     relative: bool = False
     values: list | None = None      # explicit values
     range: tuple | None = None      # (lo, hi)
     steps: int | None = None        # grid over the range
     integer: bool = False
+    name: str | None = None         # the column's name (default: the key, ":factor" if relative)
+
+    @property
+    def key(self) -> Key:
+        return self.keys[0]
 
     @property
     def column(self) -> str:
-        return f"{self.key.text}:factor" if self.relative else self.key.text
+        if self.name:
+            return self.name
+        text = " + ".join(k.text for k in self.keys)
+        return f"{text}:factor" if self.relative else text
+
+    def assignments(self, value: float) -> list[Assignment]:
+        return [Assignment(k, value, self.relative) for k in self.keys]
 
     def grid(self) -> list:
         if self.values is not None:
@@ -118,6 +129,7 @@ class Spec:
     out: Path | None = None
     pareto: tuple | None = None     # (x column, y column)
     text: str = ""
+    notes: list = field(default_factory=list)
 
     def points(self) -> list[list[float]]:
         """The parameter values of every point (one list per point, parameter order)."""
@@ -208,6 +220,11 @@ def load_spec(path: str | os.PathLike, duration_cap_s: float | None = None) -> S
     spec = Spec(p, str(name), sampling, cases, parameters, samples, seed, base_file, base_raw,
                 out, pareto, text)
     _check_grid(spec)
+    if any(k.kind == "tcu" for q in parameters for k in q.keys):
+        for c in cases:
+            if c.tcu == "none":
+                spec.notes.append(f"case {c.label} is played open-loop (no TCU): the tcu.* "
+                                  "values do not act on it")
     n_runs = len(spec.points()) * len(cases) if sampling == "grid" else samples * len(cases)
     if n_runs > MAX_RUNS:
         raise StudyError(f"{where}: {n_runs} runs; at most {MAX_RUNS} in one sweep")
@@ -287,18 +304,26 @@ def _parameters(tables: Any, where: str, base_raw: dict) -> list[Parameter]:
     for i, t in enumerate(tables):
         w = f"{where}: [[parameter]] {i + 1}"
         _table(t, w)
-        _only(t, {"key", "values", "range", "steps", "relative"}, w)
-        key = resolve(t.get("key", ""), w)
+        _only(t, {"key", "values", "range", "steps", "relative", "name"}, w)
+        texts = t.get("key", "")
+        texts = texts if isinstance(texts, list) and texts else [texts]
+        keys = [resolve(x, w) for x in texts]
+        key = keys[0]
         w = f"{where}: [[parameter]] {key.text}"
-        if key.text in seen:
-            raise StudyError(f"{w}: appears twice")
-        seen.add(key.text)
+        for k in keys:
+            if k.text in seen:
+                raise StudyError(f"{where}: [[parameter]] {k.text}: appears twice")
+            seen.add(k.text)
+        name = t.get("name")
+        if name is not None and not (isinstance(name, str) and name.strip()):
+            raise StudyError(f"{w}: name must be a non-empty string")
         relative = t.get("relative", False)
         if not isinstance(relative, bool):
             raise StudyError(f"{w}: relative must be true or false")
-        if not relative and not is_scalar(key):
-            raise StudyError(f"{w}: {key.text} is a list or table; give an index "
-                             "(e.g. [0]) or relative = true to scale all of it")
+        for k in keys:
+            if not relative and not is_scalar(k):
+                raise StudyError(f"{where}: [[parameter]] {k.text}: a list or table; give an "
+                                 "index (e.g. [0]) or relative = true to scale all of it")
         values, rng, steps = t.get("values"), t.get("range"), t.get("steps")
         if (values is None) == (rng is None):
             raise StudyError(f"{w}: give either values = [...] or range = [min, max]")
@@ -317,7 +342,7 @@ def _parameters(tables: Any, where: str, base_raw: dict) -> list[Parameter]:
         if key.kind == "plant" and not relative:
             r = plant_range(key.path)
             integer = bool(r and r[2])
-        par = Parameter(key, relative, values, rng, None, integer)
+        par = Parameter(keys, relative, values, rng, None, integer, name)
         if rng is not None:
             if steps is None:
                 par.steps = None
@@ -326,19 +351,21 @@ def _parameters(tables: Any, where: str, base_raw: dict) -> list[Parameter]:
             else:
                 par.steps = steps
         for bound in par.bounds():
-            a = Assignment(key, bound, relative)
-            if key.kind == "plant":
-                check_plant([a], base_raw, f"{where}: [[parameter]] sweep bound")
-            else:
-                check_tcu([a], f"{where}: [[parameter]] sweep bound")
+            check_plant(par.assignments(bound), base_raw, f"{where}: [[parameter]] sweep bound")
+            check_tcu(par.assignments(bound), f"{where}: [[parameter]] sweep bound")
         out.append(par)
+    columns = [q.column for q in out]
+    for c in columns:
+        if columns.count(c) > 1:
+            raise StudyError(f"{where}: two parameters have the column name {c!r}; give one "
+                             "a name")
     return out
 
 
 def _check_grid(spec: Spec) -> None:
     for q in spec.parameters:
         if spec.sampling == "grid" and q.range is not None and q.steps is None:
-            raise StudyError(f"{spec.path}: [[parameter]] {q.key.text}: a grid over a range "
+            raise StudyError(f"{spec.path}: [[parameter]] {q.column}: a grid over a range "
                              "needs steps = N")
 
 
@@ -364,7 +391,7 @@ def plan(spec: Spec) -> list[Run]:
 
     base = base_params(spec.base_raw)
     for i, values in enumerate(spec.points()):
-        assigns = [Assignment(q.key, v, q.relative) for q, v in zip(spec.parameters, values)]
+        assigns = [a for q, v in zip(spec.parameters, values) for a in q.assignments(v)]
         over, cal = build(assigns, base)
         over = merge(spec.base_raw, over) if spec.base_raw else over
         inputs = {q.column: float(v) for q, v in zip(spec.parameters, values)}
