@@ -341,7 +341,7 @@ static int check_state(dct_plant *pl)
     return DCT_OK;
 }
 
-int dct_plant_step(dct_plant *pl, int n)
+static int plant_steps(dct_plant *pl, int n)
 {
     coupling c;
     int sub = (int)pl->effective.solver.substeps;
@@ -367,11 +367,22 @@ int dct_plant_step(dct_plant *pl, int n)
     return DCT_OK;
 }
 
+/* the steps with subnormals flushed (dct_util.h: dct_fp_flush_begin) */
+int dct_plant_step(dct_plant *pl, int n)
+{
+    dct_fp_mode mode = dct_fp_flush_begin();
+    int st = plant_steps(pl, n);
+    dct_fp_flush_end(mode);
+    return st;
+}
+
 void dct_plant_update_outputs(dct_plant *pl)
 {
     coupling c;
+    dct_fp_mode mode = dct_fp_flush_begin();
     evaluate(pl, &pl->applied, &c);
     write_outputs(pl, &c);
+    dct_fp_flush_end(mode);
 }
 
 static int check_params(const dct_params *p)
