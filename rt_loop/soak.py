@@ -1,0 +1,523 @@
+"""Soak: the plant server and the reference TCU for hours, memory watched.
+
+    python -m rt_loop.soak --hours 1            # scripts/soak --hours 1
+    python -m rt_loop.soak --minutes 3 --out out/soak-short
+
+One process: ``rt_loop.server.Server`` on the embedded transport
+(python-can's in-process virtual bus, bridged into the loop's rings) and the
+reference TCU (``tcu_stub.can_tcu.CanTcu``) in a thread on the same bus.
+The loop plays ``paper-cycle`` again each time it ends (65 s of pedals from
+standstill) and records every plant output and both directions of CAN to
+one MF4 file (``rt_loop.mdf_recorder``) for the whole run.
+
+Every ``--sample-s`` (10 s) one row: the process's resident memory (VmRSS),
+its open file descriptors and threads, how many frames wait in the loop's
+rings (rx and tx of the bridge, the log and recorder rings) and what they
+dropped, overruns and skipped ticks, ticks, frames received and rejected and
+lost, frames sent, samples recorded, the MF4 file's size, cycles played.
+Rows go to ``soak.csv`` as they are taken and to ``soak.json`` (with the
+verdict) at the end and every minute; ``soak.png`` plots them.
+
+Verdict (exit 1 when failed, one line per finding):
+
+- **memory**: the slope of a least-squares line through RSS over the second
+  half of the run (the first half holds the warm-up: allocator arenas,
+  Python's caches, asammdf's first blocks) at most ``--rss-slope-mb-h``
+  (4 MB per hour). Why 4: one byte leaked per tick is 2000 B/s = 7.2 MB/h
+  and one byte per received frame about 1.2 MB/h more, so a leak of one
+  byte per tick is caught; what the recorder legitimately keeps per data
+  block it appends (once a second: its block list) is a few hundred kB per
+  hour; and at 4 MB/h a bench that soaks for a week grows by 0.7 GB, which a
+  bench PC holds. A slope needs data: growth of less than
+  ``--rss-noise-mb`` (8 MB) between the second half's first and last
+  samples is never a failure (the slope of a few minutes is noise).
+- **descriptors and threads**: after the first minute their number may not
+  rise above its value then by more than 2 (a transient file or socket);
+  a leak of one per cycle is seen within a few cycles.
+- **the loop**: it ran to the end (no error state, the recording finalized,
+  the TCU stopped cleanly). Frames lost, samples or log entries dropped,
+  TCU timeouts and paper-cycles cut short are notes, not failures: on a
+  loaded machine they follow the load (the TCU is a Python thread). Overruns
+  are reported per hour beside the machine's wake-up floor
+  (``rt_loop.floor``) measured before and after, not judged: they are the
+  machine's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["SoakError", "main", "proc_figures", "run_soak", "slope_per_hour"]
+
+CHANNEL = "dct-hil-soak"
+MANEUVER = "paper-cycle"
+RSS_SLOPE_MB_H = 4.0
+RSS_NOISE_MB = 8.0
+FD_TOLERANCE = 2
+THREAD_TOLERANCE = 2
+_TCU_START_S = 30.0
+
+
+class SoakError(RuntimeError):
+    """The soak cannot run (one line)."""
+
+
+def proc_figures(pid: int | str = "self") -> dict:
+    """VmRSS and VmHWM in kB, threads and open file descriptors of a process."""
+    out: dict[str, Any] = {}
+    with open(f"/proc/{pid}/status", encoding="ascii") as f:
+        for line in f:
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "VmHWM"):
+                out[key.lower() + "_kb"] = int(value.split()[0])
+            elif key == "Threads":
+                out["threads"] = int(value)
+    out["fds"] = len(os.listdir(f"/proc/{pid}/fd"))
+    return out
+
+
+def slope_per_hour(t_s: list[float], y: list[float]) -> float | None:
+    """Least-squares slope of y over t in units of y per hour (None: < 3 points)."""
+    n = len(t_s)
+    if n < 3:
+        return None
+    mt, my = sum(t_s) / n, sum(y) / n
+    sxx = sum((t - mt) ** 2 for t in t_s)
+    if sxx <= 0:
+        return None
+    sxy = sum((t - mt) * (v - my) for t, v in zip(t_s, y))
+    return sxy / sxx * 3600.0
+
+
+def _fill(ring: Any) -> int:
+    return (int(ring.head) - int(ring.tail)) & 0xFFFFFFFF
+
+
+def _sample(server: Any, t0: float, cycles: int, mf4: Path) -> dict:
+    loop = server._l          # noqa: SLF001 (read-only look at the rings' indices)
+    snap = server.snapshot()
+    c = snap["counts"]
+    row: dict[str, Any] = {"t_s": round(time.monotonic() - t0, 3), **proc_figures()}
+    row["rss_mb"] = round(row["vmrss_kb"] / 1024.0, 3)
+    n = len(server.transports)
+    row["ring_rx_fill"] = max((_fill(loop.rx[i]) for i in range(n)), default=0)
+    row["ring_tx_fill"] = max((_fill(loop.tx[i]) for i in range(n)), default=0)
+    row["ring_rx_dropped"] = sum(int(loop.rx[i].dropped) for i in range(n))
+    row["ring_tx_dropped"] = sum(int(loop.tx[i].dropped) for i in range(n))
+    row["ring_log_fill"] = _fill(loop.log)
+    row["ring_log_dropped"] = int(loop.log.dropped)
+    row["ring_rec_fill"] = _fill(loop.rec)
+    row["ring_rec_dropped"] = int(loop.rec.dropped)
+    row["overruns"] = int(c["overruns"])
+    row["skipped_ticks"] = int(c["skipped_ticks"])
+    row["ticks"] = int(c.get("ticks", 0) or int(loop.stats.ticks))
+    rx, tx = c["rx"], c["tx"]
+    row["rx_frames"] = int(rx["frames"])
+    row["rx_accepted"] = int(rx["accepted"])
+    row["rx_rejected"] = int(rx["rejected"])
+    row["rx_lost"] = int(rx["lost"])
+    row["tx_frames"] = int(tx["frames"])
+    row["tx_dropped"] = int(tx["dropped"])
+    row["tcu_timeouts"] = sum(int(m.get("timeouts", 0)) for m in c["tcu_messages"].values())
+    row["record_written"] = int(c["record"]["written"])
+    row["mf4_mb"] = round(mf4.stat().st_size / 1e6, 3) if mf4.exists() else 0.0
+    row["turnaround_max_us"] = round(snap["turnaround_max_us"], 1)
+    row["sim_time_s"] = round(snap["sim_time_s"], 3)
+    row["cycles_started"] = cycles
+    row["vehicle_speed_kmh"] = round(float(snap["plant"].get("vehicle_speed_kmh", float("nan"))), 2)
+    return row
+
+
+def _verdict(rows: list[dict], args: argparse.Namespace, run: dict) -> dict:
+    findings: list[str] = []
+    t = [r["t_s"] for r in rows]
+    half = [r for r in rows if r["t_s"] >= t[-1] / 2.0] if rows else []
+    rss_slope = slope_per_hour([r["t_s"] for r in half], [r["rss_mb"] for r in half])
+    growth = (half[-1]["rss_mb"] - half[0]["rss_mb"]) if len(half) >= 2 else 0.0
+    if rss_slope is not None and rss_slope > args.rss_slope_mb_h and growth > args.rss_noise_mb:
+        findings.append(f"memory grows: RSS slope {rss_slope:.2f} MB/h over the second half "
+                        f"(limit {args.rss_slope_mb_h:g} MB/h), {growth:.1f} MB in it")
+    after = [r for r in rows if r["t_s"] >= min(60.0, t[-1] / 2.0)] if rows else []
+    for key, tol, what in (("fds", FD_TOLERANCE, "open file descriptors"),
+                           ("threads", THREAD_TOLERANCE, "threads")):
+        if len(after) >= 2:
+            base, top = after[0][key], max(r[key] for r in after)
+            if top > base + tol:
+                findings.append(f"{what} grow: {base} after the first minute, up to {top} "
+                                f"(tolerance {tol})")
+    last = rows[-1] if rows else {}
+    notes: list[str] = []
+    for key, what in (("rx_lost", "received frames lost"),
+                      ("ring_log_dropped", "log ring entries dropped"),
+                      ("ring_rec_dropped", "recorder samples dropped"),
+                      ("tx_dropped", "frames not sent"),
+                      ("tcu_timeouts", "TCU message timeouts")):
+        if last.get(key):
+            notes.append(f"{what}: {last[key]}")
+    if run.get("error"):
+        findings.append(f"the loop stopped: {run['error']}")
+    if run.get("record_error"):
+        findings.append(f"recording: {run['record_error']}")
+    if run.get("tcu_error"):
+        findings.append(f"TCU: {run['tcu_error']}")
+    if run.get("cycles_completed", 0) < 1 and run.get("wall_s", 0) > 80:
+        findings.append("no paper-cycle completed")
+    if run.get("cycles_incomplete"):
+        notes.append(f"{run['cycles_incomplete']} paper-cycles did not complete")
+    hours = (t[-1] / 3600.0) if rows else 0.0
+    return {
+        "passed": not findings and not run.get("interrupted"),
+        "findings": findings,
+        "notes": notes,
+        "rss_start_mb": rows[0]["rss_mb"] if rows else None,
+        "rss_end_mb": last.get("rss_mb"),
+        "rss_max_mb": max((r["rss_mb"] for r in rows), default=None),
+        "rss_slope_mb_h_second_half": rss_slope,
+        "rss_slope_mb_h_all": slope_per_hour(t, [r["rss_mb"] for r in rows]),
+        "rss_growth_second_half_mb": growth,
+        "fds_start": rows[0]["fds"] if rows else None, "fds_end": last.get("fds"),
+        "fds_max": max((r["fds"] for r in rows), default=None),
+        "threads_start": rows[0]["threads"] if rows else None,
+        "threads_end": last.get("threads"),
+        "overruns": last.get("overruns"),
+        "overruns_per_hour": (last.get("overruns", 0) / hours) if hours > 0 else None,
+        "limits": {"rss_slope_mb_h": args.rss_slope_mb_h, "rss_noise_mb": args.rss_noise_mb,
+                   "fd_tolerance": FD_TOLERANCE, "thread_tolerance": THREAD_TOLERANCE},
+    }
+
+
+def _floor(seconds: float, priority: int) -> dict | None:
+    if seconds <= 0:
+        return None
+    from rt_loop.floor import FloorError, measure_floor  # noqa: PLC0415
+
+    try:
+        fig = measure_floor(duration_s=seconds, priority=priority,
+                            pm_qos_us=0 if priority > 0 else None)
+    except FloorError as e:
+        return {"error": str(e)}
+    fig.pop("hist", None)
+    fig["late_per_hour"] = fig["late_wakeups"] / seconds * 3600.0
+    return fig
+
+
+def plot(rows: list[dict], path: Path, title: str) -> None:
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    t = [r["t_s"] / 60.0 for r in rows]
+    fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
+    axes[0].plot(t, [r["rss_mb"] for r in rows], label="RSS")
+    axes[0].set_ylabel("RSS (MB)")
+    axes[0].set_title(title)
+    ax = axes[1]
+    ax.plot(t, [r["fds"] for r in rows], label="open file descriptors")
+    ax.plot(t, [r["threads"] for r in rows], label="threads")
+    ax.set_ylabel("count")
+    ax.legend(loc="best")
+    ax = axes[2]
+    for key in ("ring_rx_fill", "ring_tx_fill", "ring_log_fill", "ring_rec_fill"):
+        ax.plot(t, [r[key] for r in rows], label=key.replace("ring_", "").replace("_fill", ""))
+    ax.set_ylabel("entries waiting\n(at the sample)")
+    ax.legend(loc="best")
+    ax = axes[3]
+    ax.plot(t, [r["overruns"] for r in rows], label="overruns")
+    ax.plot(t, [r["rx_lost"] for r in rows], label="rx lost")
+    ax.plot(t, [r["ring_rec_dropped"] + r["ring_log_dropped"] for r in rows],
+            label="rec + log dropped")
+    ax.set_ylabel("count (cumulative)")
+    ax.set_xlabel("time (min)")
+    ax.legend(loc="best")
+    for a in axes:
+        a.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
+    from plant.maneuvers import get_maneuver  # noqa: PLC0415
+    from rt_loop.server import Server, ServerError  # noqa: PLC0415
+    from rt_loop.transport import TransportError  # noqa: PLC0415
+
+    duration = args.seconds
+    folder = Path(args.out)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {k: folder / n for k, n in (("csv", "soak.csv"), ("json", "soak.json"),
+                                          ("png", "soak.png"), ("mf4", "soak.mf4"),
+                                          ("stats", "serve-stats.json"),
+                                          ("tcu_report", "tcu-report.json"))}
+    for p in paths.values():
+        if p.exists():
+            p.unlink()
+    priority = args.priority if args.priority is not None else (80 if os.geteuid() == 0 else 0)
+    cycle_s = get_maneuver(MANEUVER).duration_s
+    stop = threading.Event()
+    received: list[int] = []
+
+    def on_signal(signum, _frame):
+        received.append(signum)
+        stop.set()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    run: dict[str, Any] = {"cycles_completed": 0, "cycles_incomplete": 0}
+    floor_before = floor_after = None
+    rows: list[dict] = []
+    server = tcu = None
+    t0 = time.monotonic()
+    try:
+        floor_s = args.floor_s
+        if floor_s > 0:
+            print(f"soak: the machine's wake-up floor for {floor_s:g} s ...", file=out, flush=True)
+            floor_before = _floor(floor_s, priority)
+        try:
+            server = Server(CHANNEL, interface="virtual", priority=priority,
+                            record_every_s=args.record_every, pm_qos_us="auto")
+            server.start(cancel=stop)
+        except (ServerError, TransportError) as e:
+            raise SoakError(str(e)) from None
+        from tcu_stub.can_tcu import CanTcu  # noqa: PLC0415
+
+        tcu = CanTcu.open("virtual", CHANNEL)
+        server.start_recording(paths["mf4"], args.record_every)
+        print(f"soak: {duration / 3600.0:.3g} h of {MANEUVER} ({cycle_s:g} s each) over the "
+              f"embedded transport, SCHED_FIFO {priority}" if priority else
+              f"soak: {duration / 3600.0:.3g} h of {MANEUVER} over the embedded transport "
+              "(no SCHED_FIFO: not real time)", file=out, flush=True)
+        t0 = time.monotonic()
+        deadline = time.monotonic() + _TCU_START_S
+        while not stop.is_set():
+            if server.snapshot()["counts"]["rx"]["accepted"] > 0:
+                break
+            if time.monotonic() > deadline:
+                raise SoakError(f"the TCU sent no valid frame within {_TCU_START_S:g} s")
+            stop.wait(0.05)
+        cycles = 0
+        cycle_started = None
+        f = open(paths["csv"], "w", newline="", encoding="utf-8")  # noqa: SIM115
+        writer = None
+        next_sample = time.monotonic()
+        next_json = time.monotonic() + 60.0
+        end = t0 + duration
+        try:
+            while not stop.is_set():
+                now = time.monotonic()
+                if not server.running:
+                    break
+                if not server.maneuver_playing:
+                    if cycle_started is not None:
+                        snap = server.snapshot()
+                        mt = snap["maneuver_time_s"] or 0.0
+                        if mt >= cycle_s - 0.01:
+                            run["cycles_completed"] += 1
+                        else:
+                            run["cycles_incomplete"] += 1
+                    if now >= end:
+                        break
+                    server.start_maneuver(MANEUVER)
+                    cycles += 1
+                    cycle_started = now
+                if now >= next_sample:
+                    row = _sample(server, t0, cycles, paths["mf4"])
+                    rows.append(row)
+                    if writer is None:
+                        writer = csv.DictWriter(f, fieldnames=list(row))
+                        writer.writeheader()
+                    writer.writerow(row)
+                    f.flush()
+                    if not args.quiet:
+                        print(f"soak: {row['t_s'] / 60.0:6.1f} min  RSS {row['rss_mb']:.1f} MB  "
+                              f"fds {row['fds']}  threads {row['threads']}  cycle {cycles}  "
+                              f"overruns {row['overruns']}  rx lost {row['rx_lost']}  "
+                              f"MF4 {row['mf4_mb']:.0f} MB", file=out, flush=True)
+                    next_sample += args.sample_s
+                if now >= next_json and rows:
+                    _write_json(paths["json"], args, rows, run, floor_before, None, partial=True)
+                    next_json += 60.0
+                stop.wait(0.05)
+        finally:
+            if rows and (time.monotonic() - t0) - rows[-1]["t_s"] > 1.0 and server.running:
+                row = _sample(server, t0, cycles, paths["mf4"])
+                rows.append(row)
+                if writer is None:
+                    writer = csv.DictWriter(f, fieldnames=list(row))
+                    writer.writeheader()
+                writer.writerow(row)
+            f.close()
+    except SoakError as e:
+        print(f"soak: error: {e}", file=err)
+        run["error"] = str(e)
+    finally:
+        run["wall_s"] = time.monotonic() - t0
+        if tcu is not None:
+            try:
+                tcu.stop()
+                tcu.write_report(paths["tcu_report"])
+                tcu.close()
+            except Exception as e:  # noqa: BLE001 (the run's files stand; said in the JSON)
+                run["tcu_error"] = " ".join(str(e).split())
+        if server is not None:
+            try:
+                if server.recording is not None:
+                    server.stop_recording()
+            except ServerError as e:
+                run["record_error"] = str(e)
+            server.stop()
+            report = server.report()
+            server.write_report(paths["stats"], report)
+            run.setdefault("error", report["run"]["error"])
+            run["ticks"] = report["run"]["ticks"]
+        for s, h in old.items():
+            signal.signal(s, h)
+    run["interrupted"] = bool(received)
+    if rows and not received and args.floor_s > 0:
+        print(f"soak: the machine's wake-up floor again for {args.floor_s:g} s ...", file=out,
+              flush=True)
+        floor_after = _floor(args.floor_s, priority)
+    doc = _write_json(paths["json"], args, rows, run, floor_before, floor_after, partial=False)
+    if rows:
+        try:
+            plot(rows, paths["png"], f"soak: {rows[-1]['t_s'] / 60.0:.0f} min of {MANEUVER}, "
+                 "embedded transport, MF4 recording")
+        except Exception as e:  # noqa: BLE001 (a plot is not worth the verdict)
+            print(f"soak: warning: no plot: {' '.join(str(e).split())}", file=err)
+    _print_summary(doc, paths, out)
+    v = doc["verdict"]
+    if received:
+        print(f"soak: stopped by {signal.Signals(received[0]).name} after "
+              f"{run['wall_s'] / 60.0:.1f} min; files written", file=err)
+        return 130
+    if run.get("error") and not rows:
+        return 1
+    for line in v.get("notes", []):
+        print(f"soak: note: {line} (the machine's load: not judged)", file=err)
+    for line in v["findings"]:
+        print(f"soak: FAIL {line}", file=err)
+    return 0 if v["passed"] else 1
+
+
+def _write_json(path: Path, args, rows, run, floor_before, floor_after, partial) -> dict:
+    v = _verdict(rows, args, run) if rows else {"passed": False, "findings": ["no sample"]}
+    floors = [f for f in (floor_before, floor_after) if f and "late_per_hour" in f]
+    doc = {
+        "partial": partial,
+        "config": {"seconds": args.seconds, "sample_s": args.sample_s,
+                   "record_every_s": args.record_every, "maneuver": MANEUVER,
+                   "transport": "embedded (python-can virtual, bridged)",
+                   "priority": args.priority},
+        "run": run,
+        "verdict": v,
+        "floor_before": floor_before,
+        "floor_after": floor_after,
+        "floor_late_per_hour": (sum(f["late_per_hour"] for f in floors) / len(floors)
+                                if floors else None),
+        "load_average": os.getloadavg(),
+        "samples": rows,
+    }
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    os.replace(tmp, path)
+    return doc
+
+
+def _print_summary(doc: dict, paths: dict, out) -> None:
+    v, r = doc["verdict"], doc["run"]
+    fl = doc["floor_late_per_hour"]
+
+    def num(x, fmt="{:.2f}"):
+        return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else fmt.format(x)
+
+    print("", file=out)
+    print(f"soak              {num(r.get('wall_s', 0) / 60.0, '{:.1f}')} min, "
+          f"{r['cycles_completed']} paper-cycles completed", file=out)
+    print(f"RSS               start {num(v.get('rss_start_mb'), '{:.1f}')} MB, end "
+          f"{num(v.get('rss_end_mb'), '{:.1f}')} MB, max {num(v.get('rss_max_mb'), '{:.1f}')} MB; "
+          f"slope over the second half {num(v.get('rss_slope_mb_h_second_half'))} MB/h "
+          f"(limit {v.get('limits', {}).get('rss_slope_mb_h')})", file=out)
+    print(f"descriptors       {v.get('fds_start')} -> {v.get('fds_end')} (max {v.get('fds_max')}); "
+          f"threads {v.get('threads_start')} -> {v.get('threads_end')}", file=out)
+    print(f"overruns          {v.get('overruns')} ({num(v.get('overruns_per_hour'), '{:.0f}')}/h); "
+          f"the machine's floor: {num(fl, '{:.0f}')} wake-ups later than a period per hour",
+          file=out)
+    last = doc["samples"][-1] if doc["samples"] else {}
+    print(f"counters          rx {last.get('rx_frames')} (accepted {last.get('rx_accepted')}, "
+          f"rejected {last.get('rx_rejected')}, lost {last.get('rx_lost')}); tx "
+          f"{last.get('tx_frames')} (dropped {last.get('tx_dropped')}); recorded "
+          f"{last.get('record_written')} samples, MF4 {last.get('mf4_mb')} MB", file=out)
+    print("written           " + ", ".join(str(p) for k, p in paths.items() if p.exists()),
+          file=out)
+    print("soak: " + ("PASS" if v["passed"] else "FAIL"), file=out, flush=True)
+
+
+def _positive(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be above 0, got {text!r}")
+    return x
+
+
+def _non_negative(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(x) and x >= 0):
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
+    return x
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="scripts/soak", description=__doc__.split("\n\n")[0])
+    length = p.add_mutually_exclusive_group()
+    length.add_argument("--hours", type=_positive, metavar="H", help="run length (default 1 h)")
+    length.add_argument("--minutes", type=_positive, metavar="M", help="run length in minutes")
+    p.add_argument("--out", default="out/soak", metavar="DIR")
+    p.add_argument("--sample-s", type=_positive, default=10.0, metavar="S",
+                   help="one row every S seconds (10)")
+    p.add_argument("--record-every", type=_positive, default=0.002, metavar="S",
+                   help="MF4 sample interval in plant time (0.002)")
+    p.add_argument("--priority", type=int, default=None, metavar="0..99",
+                   help="SCHED_FIFO priority of the loop (80 as root, else 0)")
+    p.add_argument("--floor-s", type=_non_negative, default=None, metavar="S",
+                   help="the machine's wake-up floor measured this long before and after "
+                        "(30 s for an hour or more, else 10; 0: not measured)")
+    p.add_argument("--rss-slope-mb-h", type=_positive, default=RSS_SLOPE_MB_H, metavar="MB",
+                   help=f"memory slope limit ({RSS_SLOPE_MB_H:g} MB/h)")
+    p.add_argument("--rss-noise-mb", type=_non_negative, default=RSS_NOISE_MB, metavar="MB",
+                   help=f"growth never judged a leak ({RSS_NOISE_MB:g} MB)")
+    p.add_argument("--quiet", action="store_true", help="no line per sample")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.priority is not None and not 0 <= args.priority <= 99:
+        print("soak: error: --priority must be 0..99", file=sys.stderr)
+        return 2
+    args.seconds = (args.minutes * 60.0 if args.minutes else (args.hours or 1.0) * 3600.0)
+    if args.floor_s is None:
+        args.floor_s = 30.0 if args.seconds >= 3600 else 10.0
+    try:
+        return run_soak(args)
+    except SoakError as e:
+        print(f"soak: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
