@@ -116,12 +116,29 @@ def plant_range(path: tuple) -> tuple[float, float, bool] | None:
 
 @lru_cache(maxsize=1)
 def tcu_constants() -> dict[str, Any]:
-    """{NAME: default value} of the reference TCU's calibration constants."""
+    """{NAME: default value} of the reference TCU's calibration constants: the numbers,
+    tuples of numbers and (x, y) tables that tcu_stub/logic.py assigns at module level
+    (not its layout and timing; where tcu_stub names its calibration values, those)."""
+    import ast
+
     from tcu_stub import logic
 
+    with open(logic.__file__, encoding="utf-8") as f:
+        tree = ast.parse(f.read())
+    assigned = set()
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else \
+            [node.target] if isinstance(node, ast.AnnAssign) else []
+        assigned.update(t.id for t in targets if isinstance(t, ast.Name))
+    try:
+        from tcu_stub.fast import CALIBRATION_NAMES as named
+    except Exception:  # noqa: BLE001 (no such module, or not built: the heuristics alone)
+        named = None
     out = {}
     for name, value in vars(logic).items():
         if not name.isupper() or name.startswith("_") or name in _TCU_NOT_CALIBRATION:
+            continue
+        if name not in assigned or (named is not None and name not in named):
             continue
         if _is_number(value) or _is_numbers(value) or _is_table(value):
             out[name] = value

@@ -8,7 +8,8 @@ A case is
   ``plant.maneuvers.report``;
 - a scenario (a shipped name or a CSV file): played open-loop by ``plant.simulate.run``
   when it scripts the clutches or forks (``tcu = "none"``), else with the reference TCU
-  in the loop (the scenario gives the pedals and the road grade).
+  in the loop (the scenario gives the pedals and the road grade, applied every 10 ms as
+  the driver's inputs are).
 
 A case may be cut short with ``duration_s``. The scenario itself travels with the task
 (its rows, not its path), so a worker on another machine needs only the package.
@@ -129,7 +130,6 @@ def simulate(case: Case, overrides: dict | None = None, calibration: dict | None
     from plant.model import Plant
     from plant.simulate import run, start
     from studies.keys import merge
-    from studies.tcu import make_tcu
     from tcu_stub.offline import run_offline
 
     overrides = dict(overrides or {})
@@ -142,7 +142,7 @@ def simulate(case: Case, overrides: dict | None = None, calibration: dict | None
             plant.reset(**m.reset_kwargs)
         duration = m.duration_s if case.duration_s is None else case.duration_s
         rec = run_offline(plant, m.driver, duration, record_every_s=record_every_s,
-                          tcu=make_tcu(calibration))
+                          **_tcu_argument(run_offline, calibration))
         return _arrays(rec), list(rec["shifts"])
     sc = case.scenario
     plant = Plant(None, merge(overrides, sc.param_overrides()) or None)
@@ -151,10 +151,23 @@ def simulate(case: Case, overrides: dict | None = None, calibration: dict | None
         res = run(plant, sc, duration_s=duration, record_every_s=record_every_s)
         return {n: res.data[:, k] for k, n in enumerate(res.names)}, None
     start(plant, sc)
-    driver, on_period = _scenario_driver(plant, sc)
-    rec = run_offline(plant, driver, duration, record_every_s=record_every_s,
-                      tcu=make_tcu(calibration), on_period=on_period)
+    rec = run_offline(plant, _scenario_driver(plant, sc), duration, record_every_s=record_every_s,
+                      **_tcu_argument(run_offline, calibration))
     return _arrays(rec), list(rec["shifts"])
+
+
+def _tcu_argument(run_offline, calibration: dict | None) -> dict:
+    """How run_offline gets the calibration: its own ``calibration`` argument where it
+    has one (tcu_stub's documented way), else a TcuLogic of a calibrated module copy."""
+    if not calibration:
+        return {}
+    import inspect
+
+    if "calibration" in inspect.signature(run_offline).parameters:
+        return {"calibration": dict(calibration)}
+    from studies.tcu import make_tcu
+
+    return {"tcu": make_tcu(calibration)}
 
 
 def _arrays(rec: dict) -> dict:
@@ -172,33 +185,23 @@ def _arrays(rec: dict) -> dict:
 
 
 def _scenario_driver(plant, sc):
-    """driver_fn and on_period for run_offline that play a scenario's rows
-    (pedals every 10 ms as the driver, every column at its row time)."""
-    from tcu_stub.logic import PERIOD_S
-
+    """driver_fn for run_offline that plays a scenario's rows: every 10 ms (the driver's
+    period) the row in force sets its columns (pedals returned, the others, e.g. the road
+    grade, written into the plant's inputs)."""
     cols = list(sc.columns)
     ia = cols.index("accel_pedal_pct") if "accel_pedal_pct" in cols else None
     ib = cols.index("brake_pedal_pct") if "brake_pedal_pct" in cols else None
-    row_k = np.ceil(sc.times / PERIOD_S - 1e-9).astype(np.int64)
-    state = {"row": 0}
+    others = [(k, c) for k, c in enumerate(cols) if k not in (ia, ib)]
 
     def driver(t, outputs):
         vals = sc.values_at(t)
+        for k, name in others:
+            plant.inputs[name] = vals[k]
         accel = float(vals[ia]) if ia is not None else float(plant.inputs["accel_pedal_pct"])
         brake = float(vals[ib]) if ib is not None else float(plant.inputs["brake_pedal_pct"])
         return accel, brake
 
-    def on_period(k, p):
-        changed = False
-        while state["row"] < len(row_k) and row_k[state["row"]] <= k:
-            for name, value in zip(cols, sc.values[state["row"]]):
-                p.inputs[name] = value
-            state["row"] += 1
-            changed = True
-        if changed:
-            p.update_outputs()
-
-    return driver, on_period
+    return driver
 
 
 # ------------------------------------------------------------------- figures

@@ -537,8 +537,11 @@ class SweepResult:
 def run_sweep(spec: Spec, out: Path | None = None, workers: int | None = None,
               scheduler: str | None = None, fresh: bool = False, retry_failed: bool = False,
               plots: bool = True, progress: bool = True, dashboard: int | None = None,
-              connect_timeout_s: float | None = None, log=None) -> SweepResult:
-    """Run (or resume) the sweep; returns what was done and where the files are."""
+              connect_timeout_s: float | None = None, log=None, engine=None) -> SweepResult:
+    """Run (or resume) the sweep; returns what was done and where the files are.
+
+    ``engine``: an open ``studies.engine.Engine`` to run on (default: one started
+    for this sweep from ``workers`` / ``scheduler`` and closed after it)."""
     from studies.engine import CONNECT_TIMEOUT_S, Engine, Progress
 
     log = log or (lambda text: print(text, flush=True))
@@ -570,8 +573,11 @@ def run_sweep(spec: Spec, out: Path | None = None, workers: int | None = None,
             journal = Journal(journal_path)
             bar = Progress(len(todo), enabled=progress)
             try:
-                with Engine(workers=workers, scheduler=scheduler, dashboard=dashboard,
-                            connect_timeout_s=connect_timeout_s or CONNECT_TIMEOUT_S) as engine:
+                own = engine is None
+                if own:
+                    engine = Engine(workers=workers, scheduler=scheduler, dashboard=dashboard,
+                                    connect_timeout_s=connect_timeout_s or CONNECT_TIMEOUT_S)
+                with engine if own else contextlib.nullcontext(engine):
                     engine_text = engine.description
                     log(f"engine: {engine_text}")
 
