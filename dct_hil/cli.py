@@ -92,6 +92,11 @@ def build_parser():
     sim.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
                      help="with --mapping: read this DBC instead of the one the mapping names for "
                           "BUS (without BUS=: the first bus); repeatable")
+    sim.add_argument("--tcu-impl", choices=("c", "python"), default=None,
+                     help="the TCU stub's loop: c, the reference TCU, driver and CAN contract "
+                          "compiled (tcu_stub/fast.py; the default, except with --mapping), or "
+                          "python (tcu_stub/logic.py stepped from Python; same results, about 50x "
+                          "slower)")
     sim.set_defaults(func=cmd_simulate)
 
     bench = sub.add_parser("bench", help="measure the cost of one plant step")
@@ -463,7 +468,7 @@ def _tcu_columns():
 
 
 def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
-                   csv_target_gear=True, link=None):
+                   csv_target_gear=True, link=None, tcu_impl="python"):
     """Plant + stub TCU in one process, every message through the CAN contract.
 
     Each 2 ms TCU tick: the scenario rows due (or, every 10 ms, ``pedals_fn``)
@@ -471,7 +476,8 @@ def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
     commands, the plant steps. Records all plant outputs plus ``tcu_target_gear``
     every 10 ms (the CSV has ``tcu_target_gear`` only with ``csv_target_gear``);
     the rows so far are written to ``out_path`` also when a KeyboardInterrupt or
-    a PlantError stops the run (then re-raised).
+    a PlantError stops the run (then re-raised). ``tcu_impl`` "c": the same loop
+    in C (tcu_stub.fast.FastLoop), same rows.
     Returns (names, data, shifts, wall_s)."""
     import time
 
@@ -482,6 +488,8 @@ def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
     from tcu_stub.logic import PERIOD_S, TcuLogic
     from tcu_stub.offline import DRIVER_PERIOD_S, ContractLink
 
+    if tcu_impl == "c":
+        return _run_with_stub_c(plant, duration_s, out_path, pedals_fn, scenario, csv_target_gear)
     tcu = TcuLogic()
     link = ContractLink() if link is None else link
     steps_per_tick = max(1, int(round(PERIOD_S / plant.step_s)))
@@ -532,6 +540,48 @@ def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
     if out_path is not None:
         write_csv(out_path, names[:n_csv], data[:j, :n_csv])
     return names, data[:j], list(tcu.events), wall
+
+
+def _run_with_stub_c(plant, duration_s, out_path, pedals_fn, scenario, csv_target_gear):
+    """_run_with_stub's loop in C: the same rows (every plant output and the TCU's
+    target gear before its step, every 10 ms, and the end state)."""
+    import time
+
+    from plant.model import PlantError
+    from plant.simulate import write_csv
+    from tcu_stub.fast import FastLoop
+    from tcu_stub.logic import PERIOD_S
+
+    steps_per_tick = max(1, int(round(PERIOD_S / plant.step_s)))
+    names = list(plant.output_names) + ["tcu_target_gear"]
+    n_out = len(plant.output_names)
+    n_csv = len(names) if csv_target_gear else n_out
+    loop = FastLoop(plant, pedals_fn, duration_s, RECORD_EVERY_S, record_outputs=names[1:n_out],
+                    record_before_tcu=True, scenario=scenario, period_s=steps_per_tick * plant.step_s)
+    wall0 = time.perf_counter()
+    try:
+        loop.step()
+    except (KeyboardInterrupt, PlantError):
+        if out_path is not None:
+            write_csv(out_path, names[:n_csv], loop.rec[:int(loop.run.rec_n), :n_csv])
+        raise
+    loop.finish()
+    wall = time.perf_counter() - wall0
+    data = loop.rec[:int(loop.run.rec_n), :n_out + 1]   # t, outputs, then the target gear
+    if out_path is not None:
+        write_csv(out_path, names[:n_csv], data[:, :n_csv])
+    return names, data, loop.shifts, wall
+
+
+_IMPL_TEXT = {"c": "compiled loop", "python": "Python loop"}
+
+
+def _tcu_impl(args):
+    """The loop of the TCU stub: "c" unless --tcu-impl python or --mapping."""
+    if args.tcu_impl == "c" and args.mapping:
+        raise UserError("--tcu-impl c: the compiled loop speaks the project's own contract only; "
+                        "drop --mapping or use --tcu-impl python")
+    return args.tcu_impl or ("python" if args.mapping else "c")
 
 
 def _plots(args, names, data, title):
@@ -627,17 +677,19 @@ def _simulate_maneuver(args):
     duration = m.duration_s if args.duration is None else args.duration
     if duration <= 0:
         raise UserError(f"--duration must be > 0 for maneuver {m.name}")
+    impl = _tcu_impl(args)
     link, through = _stub_link(args)
     plant = Plant(args.params)
     if m.reset_kwargs:
         plant.reset(**m.reset_kwargs)
     try:
         names, data, shifts, wall = _guarded_run(plant, args, _run_with_stub, plant, duration,
-                                                 args.out, pedals_fn=m.driver, link=link)
+                                                 args.out, pedals_fn=m.driver, link=link,
+                                                 tcu_impl=impl)
     except _Interrupted as e:
         return e.code
     print(f"maneuver          {m.name}  ({m.description})")
-    print(f"tcu               stub (in-process, through {through})")
+    print(f"tcu               stub (in-process, through {through}; {_IMPL_TEXT[impl]})")
     _print_run(plant, float(data[-1, 0]), wall, len(data), args)
     rec = {n: data[:, k] for k, n in enumerate(names)}
     figures = report(m, rec)
@@ -674,21 +726,25 @@ def cmd_simulate(args):
     if tcu == "none" and args.mapping:
         raise UserError(f"--mapping: scenario {scenario.name} runs without the TCU stub "
                         "(--tcu none), and the mapping is the stub's matrix")
+    if tcu == "none" and args.tcu_impl:
+        raise UserError(f"--tcu-impl: scenario {scenario.name} runs without the TCU stub (--tcu none)")
     link, through = _stub_link(args) if tcu == "stub" else (None, None)
     plant = Plant(args.params, scenario.param_overrides())
     if tcu == "stub":
         from plant.simulate import start
 
+        impl = _tcu_impl(args)
         duration = scenario.duration_s if args.duration is None else args.duration
         start(plant, scenario)
         try:
             names, data, _shifts, wall = _guarded_run(
                 plant, args, _run_with_stub, plant, duration, args.out, scenario=scenario,
-                csv_target_gear=False, link=link)
+                csv_target_gear=False, link=link, tcu_impl=impl)
         except _Interrupted as e:
             return e.code
         print(f"scenario          {scenario.name}  ({scenario.path})")
-        print(f"tcu               stub (in-process, through {through}): clutches and forks")
+        print(f"tcu               stub (in-process, through {through}; {_IMPL_TEXT[impl]}): "
+              "clutches and forks")
         _print_run(plant, float(data[-1, 0]), wall, len(data), args)
         if args.plot:
             _plots(args, names, data, scenario.name)

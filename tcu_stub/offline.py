@@ -11,7 +11,15 @@ period only, and its 10 ms commands (fork forces, engine torque request)
 reach the plant every fifth period (``ContractLink``). The phase of each
 message within its cycle follows the server's staggering, so an offline run
 and a run over CAN see their data equally old.
+
+``run_offline`` runs this loop in C (``tcu_stub.fast``: the same link, driver
+and TCU ported operation for operation, the same results to the bit) unless
+what it is given needs the Python loop: ``stale_fn``, ``sensor_fault``,
+``on_period``, another ``link``, or a ``tcu`` that is not the reference
+TcuLogic. ``tcu_impl="python"`` runs the Python loop anyway.
 """
+
+import warnings
 
 import numpy as np
 
@@ -113,8 +121,20 @@ RECORDED = ("vehicle_speed_kmh", "vehicle_accel_mps2", "engine_speed_rpm", "inpu
             "brake_pedal_pct", "gear_clashes", "fuel_l", "distance_m", "gear")
 
 
+TCU_IMPLS = ("auto", "c", "python")
+
+
+def _python_only(stale_fn, on_period, link, sensor_fault):
+    """Why the C loop cannot run these options (None: it can)."""
+    for name, value in (("stale_fn", stale_fn), ("on_period", on_period), ("link", link),
+                        ("sensor_fault", sensor_fault)):
+        if value is not None:
+            return f"{name} needs the Python loop"
+    return None
+
+
 def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, stale_fn=None,
-                on_period=None, link=None, sensor_fault=None):
+                on_period=None, link=None, sensor_fault=None, calibration=None, tcu_impl="auto"):
     """Run plant + stub TCU for ``duration_s``.
 
     ``driver_fn(t_s, plant_outputs) -> (accel_pedal_pct, brake_pedal_pct)`` is
@@ -134,10 +154,37 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
     dict of arrays (``time_s``, the names in
     ``RECORDED``, ``tcu_target_gear``, ``tcu_gear``, ``tcu_phase``,
     ``tcu_active_faults``, ``tcu_limp_home``) and ``shifts``: a list of
-    (time_s, from_gear, to_gear)."""
+    (time_s, from_gear, to_gear).
+
+    ``calibration``: TCU calibration values for this run
+    (``tcu_stub.fast.TcuCalibration`` or a dict {constant name: value} of
+    tcu_stub/logic.py's constants); not with ``tcu``. ``tcu_impl``: "auto"
+    (the C loop when it can run the options given, else Python), "c" (the C
+    loop or ValueError), "python" (the Python loop). Both give the same
+    result; the TcuLogic (``tcu`` or a fresh one) ends in the same state."""
     if duration_s <= 0:
         raise ValueError(f"duration_s must be positive, got {duration_s}")
+    if tcu_impl not in TCU_IMPLS:
+        raise ValueError(f"tcu_impl must be one of {', '.join(TCU_IMPLS)}, got {tcu_impl!r}")
+    if calibration is not None and tcu is not None:
+        raise ValueError("give a calibration or a tcu, not both (a tcu has its module's calibration)")
+    if calibration is not None:
+        from tcu_stub.fast import python_tcu
+        tcu = python_tcu(calibration)
     tcu = tcu or TcuLogic()
+    if tcu_impl != "python":
+        why = _python_only(stale_fn, on_period, link, sensor_fault)
+        try:
+            from tcu_stub import fast
+        except ImportError as e:          # the extension not built (scripts/setup builds it)
+            fast, why = None, why or f"tcu_stub._tcu_fast is not built ({e})"
+            if tcu_impl == "auto":
+                warnings.warn(f"run_offline: the Python loop: {why}", RuntimeWarning, stacklevel=2)
+        why = why or fast.c_compatible(tcu)
+        if why is None:
+            return fast.run_offline_c(plant, driver_fn, duration_s, record_every_s, tcu=tcu)
+        if tcu_impl == "c":
+            raise ValueError(f"tcu_impl 'c': {why}")
     steps_per_tcu = max(1, int(round(PERIOD_S / plant.step_s)))
     tcu_per_driver = max(1, int(round(DRIVER_PERIOD_S / PERIOD_S)))
     tcu_per_record = max(1, int(round(record_every_s / PERIOD_S)))

@@ -91,7 +91,10 @@ def test_ctrl_c_exits_130_and_keeps_the_partial_csv(capsys, tiny, tmp_path, monk
 
     monkeypatch.setattr(Plant, "step", step)
     out_csv = tmp_path / "partial.csv"
-    code, _, err = run_cli(capsys, "simulate", "--scenario", tiny, "--out", out_csv)
+    # Plant.step is what the Python loop calls (the compiled loop's own test:
+    # tests/test_offline_fast.py)
+    code, _, err = run_cli(capsys, "simulate", "--scenario", tiny, "--out", out_csv,
+                           "--tcu-impl", "python")
     assert code == 130
     assert len(err.splitlines()) == 1 and "interrupted" in err and str(out_csv) in err
     data = np.loadtxt(out_csv, delimiter=",", skiprows=1, ndmin=2)
@@ -216,7 +219,8 @@ def test_plant_error_is_a_user_error(capsys, tiny, tmp_path, monkeypatch):
 
     monkeypatch.setattr(Plant, "step", step)
     out_csv = tmp_path / "x.csv"
-    code, _, err = run_cli(capsys, "simulate", "--scenario", tiny, "--out", out_csv)
+    code, _, err = run_cli(capsys, "simulate", "--scenario", tiny, "--out", out_csv,
+                           "--tcu-impl", "python")
     assert_user_error(code, err, "engine.speed_rad_s became nan", str(out_csv))
 
 
