@@ -303,6 +303,8 @@ class UdpServer(_Server):
                         _bump(self._bad_frames, errno.errorcode.get(e.errno, "recv_error"))
                     continue
                 with self._send_lock:
+                    if not data:               # a datagram of no bytes: no frame in it
+                        _bump(self._bad_frames, "empty_datagram")
                     packets = list(deframe_datagram(data, max_len, self._bad_frames))
                     self._counts["frames_in"] += len(packets)
                 for packet in packets:
