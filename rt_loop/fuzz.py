@@ -474,12 +474,18 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
         total = 0
         next_check = 0
         next_progress = time.monotonic() + 5.0
-        burst_every = max(args.frames // max(args.bursts, 1), 1) if args.bursts else 0
-        next_burst = burst_every // 2 if burst_every else -1
-        silent_every = max(args.frames // max(args.silent_restarts, 1), 1) \
-            if args.silent_restarts else 0
-        next_silent = silent_every // 3 if silent_every else -1
         deadline = (time.monotonic() + args.seconds) if args.seconds else None
+        started = time.monotonic()
+
+        def progress() -> float:
+            """How far the run is, 0..1: by frames or by time, whichever is further."""
+            by_frames = total / args.frames if args.frames else 0.0
+            by_time = (time.monotonic() - started) / args.seconds if args.seconds else 0.0
+            return max(by_frames, by_time)
+
+        # bursts and silent restarts spread over the run
+        bursts_at = [(i + 0.5) / args.bursts for i in range(args.bursts)]
+        silent_at = [(i + 1.0 / 3.0) / args.silent_restarts for i in range(args.silent_restarts)]
 
         def wait_idle(limit_s: float = 30.0) -> None:
             """Until the server has taken in every frame sent."""
@@ -513,7 +519,8 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
                     sender.drain()
                     seen = _seen(server.snapshot()["counts"])
                 next_check = total + 1000
-            if next_burst >= 0 and total >= next_burst:
+            if bursts_at and progress() >= bursts_at[0]:
+                bursts_at.pop(0)
                 wait_idle()
                 before = server.snapshot()["counts"]["timeouts"]
                 frames = gen.burst(args.burst_frames)
@@ -522,8 +529,8 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
                 wait_idle()
                 # no TCU frame while the burst drains: the loop may time messages out
                 deliberate_timeouts += server.snapshot()["counts"]["timeouts"] - before
-                next_burst += burst_every
-            if next_silent >= 0 and total >= next_silent:
+            if silent_at and progress() >= silent_at[0]:
+                silent_at.pop(0)
                 # a TCU restarting after a pause: one message silent past its timeout
                 m = gen.rng.choice(gen.msgs)
                 wait_idle()
@@ -543,7 +550,6 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
                     gen.on_timeout(m)
                     m.last = None
                     send([gen._counter_frame(m, "restart_silent", 0)])
-                next_silent += silent_every
             send(gen.event())
             if time.monotonic() >= next_progress and not args.quiet:
                 el = time.monotonic() - t0
