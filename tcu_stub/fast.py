@@ -741,8 +741,9 @@ class FastLoop:
     (with ``time_s`` from the start and ``TCU_COLUMNS``), after the TCU's step
     (run_offline) or, with ``record_before_tcu``, before it (dct-hil
     simulate's CSV). ``scenario``: a plant.scenario.Scenario whose rows apply
-    at their times (dct-hil simulate with a CSV). ``trace``: keep every
-    period's time, sensors and commands (``traced()``; tests). ``period_s``:
+    at their times (dct-hil simulate with a CSV). ``trace``: keep each
+    period's time, sensors and commands for ``traced()`` (True: the whole run,
+    a number: that many periods between two ``traced()``; tests). ``period_s``:
     the period the counts (periods, driver, record, scenario rows) are
     reckoned in: logic.PERIOD_S (run_offline), or dct-hil simulate's tick (the
     plant steps of one TCU period)."""
@@ -820,9 +821,11 @@ class FastLoop:
         r.rec = ffi.cast("double *", ffi.from_buffer(self.rec))
         r.rec_cap = rows
         if trace:
-            self._trace = np.zeros((self.n_periods, 1 + lib.TCU_N_SENSORS + lib.TCU_N_COMMANDS))
+            cap = self.n_periods if trace is True else int(trace)
+            self._trace = np.zeros((cap, 1 + lib.TCU_N_SENSORS + lib.TCU_N_COMMANDS))
             r.trace = ffi.cast("double *", ffi.from_buffer(self._trace))
-            r.trace_cap = self.n_periods
+            r.trace_cap = cap
+            self._trace_k = 0
 
     @property
     def k(self):
@@ -908,9 +911,14 @@ class FastLoop:
         self.run.rec_n = n + 1
 
     def traced(self):
-        """(time_s, sensors, commands) arrays of every period run (``trace=True``)."""
+        """(time_s, sensors, commands) arrays of the periods run since the last call
+        (copies; the trace buffer is then empty again)."""
         n = int(self.run.trace_n)
-        t = self._trace[:n]
+        if self.k - self._trace_k > len(self._trace):
+            raise RuntimeError("the trace buffer was full: step fewer periods between traced() calls")
+        t = self._trace[:n].copy()
+        self.run.trace_n = 0
+        self._trace_k = self.k
         ns = self._lib.TCU_N_SENSORS
         return t[:, 0], t[:, 1:1 + ns], t[:, 1 + ns:]
 
