@@ -1,0 +1,83 @@
+"""scripts/soak: the verdict on memory and descriptors, and a 3-minute run
+(the CI's share of the soak: server + reference TCU, paper-cycle repeated,
+MF4 recording, a row every 5 s)."""
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+
+from rt_loop import soak
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _rows(minutes, rss_mb_per_h=0.0, fds_per_h=0.0, start_mb=400.0):
+    rows = []
+    for i in range(int(minutes * 6) + 1):
+        t = i * 10.0
+        rows.append({"t_s": t, "rss_mb": start_mb + rss_mb_per_h * t / 3600.0 + (i % 3) * 0.2,
+                     "fds": 9 + int(fds_per_h * t / 3600.0), "threads": 11, "overruns": 0})
+    return rows
+
+
+def _args():
+    return argparse.Namespace(rss_slope_mb_h=soak.RSS_SLOPE_MB_H, rss_noise_mb=soak.RSS_NOISE_MB)
+
+
+def test_flat_memory_passes_and_a_leak_of_a_byte_per_tick_fails():
+    ok = soak._verdict(_rows(60), _args(), {"cycles_completed": 55})
+    assert ok["passed"], ok["findings"]
+    # one byte per 2 kHz tick: 7.2 MB/h
+    leak = soak._verdict(_rows(60, rss_mb_per_h=7.2), _args(), {"cycles_completed": 55})
+    assert not leak["passed"]
+    assert leak["findings"][0].startswith("memory grows: RSS slope 7.")
+    # the same slope over 3 minutes is 0.36 MB: below the noise, not judged
+    short = soak._verdict(_rows(3, rss_mb_per_h=7.2), _args(), {"cycles_completed": 2})
+    assert short["passed"], short["findings"]
+
+
+def test_growing_descriptors_fail():
+    v = soak._verdict(_rows(30, fds_per_h=20), _args(), {"cycles_completed": 27})
+    assert not v["passed"]
+    assert any(f.startswith("open file descriptors grow") for f in v["findings"])
+
+
+def test_slope_per_hour():
+    assert soak.slope_per_hour([0, 1800, 3600], [1.0, 2.0, 3.0]) == 2.0
+    assert soak.slope_per_hour([0, 1], [1.0, 2.0]) is None
+
+
+def test_a_3_minute_soak_passes_and_writes_csv_json_plot_and_mf4(tmp_path):
+    from asammdf import MDF
+
+    out = tmp_path / "soak"
+    p = subprocess.run([os.path.join(REPO, "scripts", "soak"), "--minutes", "3", "--sample-s",
+                        "5", "--floor-s", "2", "--priority", "0", "--quiet", "--out", str(out)],
+                       cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    assert "soak: PASS" in p.stdout
+    doc = json.loads((out / "soak.json").read_text())
+    assert not doc["partial"]
+    v = doc["verdict"]
+    assert v["passed"] and v["findings"] == []
+    assert doc["run"]["cycles_completed"] >= 2
+    assert doc["run"]["error"] is None
+    rows = list(csv.DictReader((out / "soak.csv").open()))
+    assert len(rows) >= 30
+    for key in ("rss_mb", "fds", "threads", "ring_rx_fill", "ring_tx_fill", "ring_log_fill",
+                "ring_rec_fill", "overruns", "rx_accepted", "record_written", "mf4_mb"):
+        assert key in rows[0], key
+    assert (out / "soak.png").stat().st_size > 10_000
+    with MDF(str(out / "soak.mf4")) as mdf:
+        t = mdf.get("vehicle_speed_kmh").timestamps
+    assert t[-1] - t[0] > 150.0
+    assert json.loads((out / "serve-stats.json").read_text())["run"]["error"] is None
+
+
+def test_bad_options_are_refused():
+    p = subprocess.run([os.path.join(REPO, "scripts", "soak"), "--minutes", "0"], cwd=REPO,
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2
+    assert "argument --minutes: must be above 0" in p.stderr
