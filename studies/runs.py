@@ -130,44 +130,58 @@ def simulate(case: Case, overrides: dict | None = None, calibration: dict | None
     from plant.model import Plant
     from plant.simulate import run, start
     from studies.keys import merge
-    from tcu_stub.offline import run_offline
 
     overrides = dict(overrides or {})
     if case.kind == "maneuver":
         from plant.maneuvers import get_maneuver
 
         m = get_maneuver(case.name)
-        plant = Plant(None, overrides or None)
-        if m.reset_kwargs:
-            plant.reset(**m.reset_kwargs)
         duration = m.duration_s if case.duration_s is None else case.duration_s
-        rec = run_offline(plant, m.driver, duration, record_every_s=record_every_s,
-                          **_tcu_argument(run_offline, calibration))
-        return _arrays(rec), list(rec["shifts"])
+
+        def setup():
+            plant = Plant(None, overrides or None)
+            if m.reset_kwargs:
+                plant.reset(**m.reset_kwargs)
+            return plant, m.driver
+
+        return _closed_loop(setup, duration, record_every_s, calibration)
     sc = case.scenario
-    plant = Plant(None, merge(overrides, sc.param_overrides()) or None)
     duration = sc.duration_s if case.duration_s is None else case.duration_s
     if case.tcu == "none":
+        plant = Plant(None, merge(overrides, sc.param_overrides()) or None)
         res = run(plant, sc, duration_s=duration, record_every_s=record_every_s)
         return {n: res.data[:, k] for k, n in enumerate(res.names)}, None
-    start(plant, sc)
-    rec = run_offline(plant, _scenario_driver(plant, sc), duration, record_every_s=record_every_s,
-                      **_tcu_argument(run_offline, calibration))
-    return _arrays(rec), list(rec["shifts"])
+
+    def setup():
+        plant = Plant(None, merge(overrides, sc.param_overrides()) or None)
+        start(plant, sc)
+        return plant, _scenario_driver(plant, sc)
+
+    return _closed_loop(setup, duration, record_every_s, calibration)
 
 
-def _tcu_argument(run_offline, calibration: dict | None) -> dict:
-    """How run_offline gets the calibration: its own ``calibration`` argument where it
-    has one (tcu_stub's documented way), else a TcuLogic of a calibrated module copy."""
-    if not calibration:
-        return {}
+def _closed_loop(setup, duration, record_every_s, calibration):
+    """run_offline on a fresh plant and driver from ``setup()``, with the calibration
+    given through run_offline's own ``calibration`` argument where it has one
+    (tcu_stub's documented way), else (or when tcu_stub cannot make its calibrated
+    TCU: an ImportError before the run starts) as a TcuLogic of a calibrated copy
+    of tcu_stub.logic (``studies.tcu``), passed as ``tcu``."""
     import inspect
 
-    if "calibration" in inspect.signature(run_offline).parameters:
-        return {"calibration": dict(calibration)}
     from studies.tcu import make_tcu
+    from tcu_stub.offline import run_offline
 
-    return {"tcu": make_tcu(calibration)}
+    plant, driver = setup()
+    if calibration and "calibration" in inspect.signature(run_offline).parameters:
+        try:
+            rec = run_offline(plant, driver, duration, record_every_s=record_every_s,
+                              calibration=dict(calibration))
+            return _arrays(rec), list(rec["shifts"])
+        except ImportError:
+            plant, driver = setup()
+    kw = {"tcu": make_tcu(calibration)} if calibration else {}
+    rec = run_offline(plant, driver, duration, record_every_s=record_every_s, **kw)
+    return _arrays(rec), list(rec["shifts"])
 
 
 def _arrays(rec: dict) -> dict:

@@ -110,7 +110,8 @@ def test_a_failed_run_is_recorded_with_its_error(tmp_path, engine):
     out = tmp_path / "out"
     res = run_sweep(spec, out=out, engine=engine, progress=False, log=lambda s: None)
     assert (res.runs, res.failed) == (4, 2)
-    runs = pd.read_csv(out / "runs.csv").fillna("")
+    runs = pd.read_csv(out / "runs.csv")
+    runs["error"] = runs["error"].astype(object).fillna("")
     bad = runs[runs["status"] == "failed"]
     assert set(bad["solver.step_s"]) == {0.005}
     for err in bad["error"]:
