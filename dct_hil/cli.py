@@ -581,6 +581,13 @@ def _tcu_impl(args):
     if args.tcu_impl == "c" and args.mapping:
         raise UserError("--tcu-impl c: the compiled loop speaks the project's own contract only; "
                         "drop --mapping or use --tcu-impl python")
+    if args.tcu_impl is None and not args.mapping:
+        from tcu_stub.fast import unavailable
+
+        missing = unavailable()
+        if missing:
+            print(f"dct-hil: note: the Python loop: {missing}", file=sys.stderr)
+            return "python"
     return args.tcu_impl or ("python" if args.mapping else "c")
 
 

@@ -32,10 +32,16 @@ Field names are the constants' names in lower case (``UPSHIFT_RPM`` ->
 calibration through a private copy of the logic module with those values (the
 shared module is never changed, so runs in threads do not disturb each other).
 
-What the C loop does not do (``run_offline`` then uses the Python TCU, as
-before): plant messages lost or rejected (``stale_fn``), sensor faults
-(``sensor_fault``), another CAN matrix (``link``), a look at every period
-(``on_period``) or a TcuLogic object of the caller's (``tcu``).
+A ``tcu`` given to run_offline (a TcuLogic of logic.py, or of a private copy
+of it such as ``python_tcu`` makes) runs in C with its module's constants and
+its state, and gets the C's state back at the end: every attribute as the
+Python loop would have left it.
+
+What the C loop does not do (``run_offline`` then uses the Python loop, as
+before): plant messages lost or rejected (``stale_fn``, a TCU in phase
+"stale"), sensor faults (``sensor_fault``), another CAN matrix (``link``), a
+look at every period (``on_period``), a ``tcu`` of another class
+(``c_compatible`` says why).
 """
 
 from __future__ import annotations
@@ -52,8 +58,8 @@ import numpy as np
 from tcu_stub import diagnostics as _diag
 from tcu_stub import logic as _logic
 
-# names of logic.py's module constants that are calibration (TcuCalibration's fields,
-# upper case); the others are the gearbox's layout, timing, names and derived values
+# logic.py's module constants that are not calibration: the gearbox's layout, timing,
+# names, values derived from others, and SPEED_INVALID_RPM (the DBC's, from diagnostics.py)
 STRUCTURAL = frozenset(("PERIOD_S", "TOP_GEAR", "GEAR_LAYOUT", "SHAFT_SLEEVES", "SHAFT_GEARS",
                         "GEAR_RATIO", "RPM_PER_KMH", "SYNC_ENGAGED", "PHASES", "PHASE_CODES",
                         "SHIFT_PHASES", "FAULT_COUNT_MAX", "SPEED_INVALID_RPM"))
@@ -244,9 +250,9 @@ def _freeze(values):
 @functools.lru_cache(maxsize=32)
 def _logic_copy(frozen):
     """A private copy of tcu_stub/logic.py with the calibration values ``frozen``."""
-    spec = importlib.util.find_spec("tcu_stub.logic")
     name = f"tcu_stub._logic_calibrated_{len(_COPIES)}"
-    module = importlib.util.module_from_spec(importlib.util.spec_from_file_location(name, spec.origin))
+    spec = importlib.util.spec_from_file_location(name, _logic.__file__)
+    module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     values = {k: (dict(v) if k == "GEAR_OVERALL_RATIO" else v) for k, v in frozen}
     for k, v in values.items():
@@ -276,6 +282,37 @@ def python_tcu(calibration=None):
 def _lib():
     from tcu_stub._tcu_fast import ffi, lib   # built by scripts/setup (setup.py build_ext)
     return ffi, lib
+
+
+def unavailable():
+    """None when the compiled loop is there and fits the plant, else why not (one line)."""
+    try:
+        _lib()
+    except ImportError as e:
+        return f"tcu_stub._tcu_fast is not built ({e}; scripts/setup builds it)"
+    return _layout_mismatch()
+
+
+@functools.lru_cache(maxsize=None)
+def _layout_mismatch():
+    """None when this extension and plant._dct_plant were compiled with the same dct_plant.h
+    (the C loop steps plant._dct_plant's structs), else why not."""
+    from plant._dct_plant import ffi as p
+
+    ffi, lib = _lib()
+    if not hasattr(lib, "tcu_plant_layout"):
+        return "tcu_stub._tcu_fast is older than its sources: rebuild it (scripts/setup)"
+    got = ffi.new("int64_t[]", lib.TCU_N_PLANT_LAYOUT)
+    lib.tcu_plant_layout(got)
+    want = [p.sizeof("dct_plant"), p.offsetof("dct_plant", "state"), p.offsetof("dct_plant", "inputs"),
+            p.offsetof("dct_plant", "outputs"), p.sizeof("dct_inputs"), p.sizeof("dct_outputs"),
+            p.offsetof("dct_state", "time_s"), p.offsetof("dct_inputs", "accel_pedal_pct"),
+            p.offsetof("dct_inputs", "brake_pedal_pct"), p.offsetof("dct_outputs", "vehicle_speed_kmh"),
+            p.offsetof("dct_outputs", "engine_speed_rpm")]
+    if list(got) != want:
+        return ("tcu_stub._tcu_fast was built with another plant/csrc/dct_plant.h than "
+                "plant._dct_plant: rebuild both (scripts/setup, or setup.py build_ext --inplace)")
+    return None
 
 
 def _names(fn, n):
@@ -753,6 +790,7 @@ class FastLoop:
                  period_s=None):
         from plant.model import OUTPUT_NAMES
         from plant._dct_plant import ffi as p_ffi, lib as p_lib
+        from tcu_stub import offline
 
         if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s) and duration_s > 0):
             raise ValueError(f"duration_s must be positive, got {duration_s}")
@@ -761,7 +799,7 @@ class FastLoop:
         if tcu is not None and calibration is not None:
             raise ValueError("give a calibration or a tcu, not both (a tcu has its module's calibration)")
         tcu = python_tcu(calibration) if tcu is None else tcu
-        why = c_compatible(tcu)
+        why = unavailable() or c_compatible(tcu)
         if why:
             raise NotInC(f"the C TCU cannot run this: {why}")
         ffi, lib = _lib()
@@ -773,7 +811,7 @@ class FastLoop:
         self._keep = []
         steps_per_tcu = max(1, int(round(_logic.PERIOD_S / plant.step_s)))
         period = _logic.PERIOD_S if period_s is None else float(period_s)
-        self.tcu_per_driver = max(1, int(round(DRIVER_PERIOD_S / period)))
+        self.tcu_per_driver = max(1, int(round(offline.DRIVER_PERIOD_S / period)))
         tcu_per_record = max(1, int(round(record_every_s / period)))
         self.n_periods = int(round(duration_s / period))
         self.record_outputs = list(OUTPUT_NAMES if record_outputs is None else record_outputs)
@@ -923,9 +961,6 @@ class FastLoop:
         return t[:, 0], t[:, 1:1 + ns], t[:, 1 + ns:]
 
 
-DRIVER_PERIOD_S = 0.01
-
-
 def run_offline_c(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, calibration=None):
     """``offline.run_offline`` in C: the arguments the C loop takes, the same result
     (NotInC, a ValueError, for a ``tcu`` it cannot run)."""
@@ -941,7 +976,7 @@ def run_offline_c(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, c
         result[name] = rec[name]
     for name in TCU_COLUMNS:             # the Python loop's types: ints, phase names
         result[name] = ([phases[int(p)] for p in rec[name]] if name == "tcu_phase"
-                        else rec[name].astype(np.int64))
+                        else rec[name].astype(np.int64) if len(rec[name]) else rec[name])
     result["shifts"] = loop.shifts
     return result
 

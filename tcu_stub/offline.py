@@ -173,14 +173,13 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
         tcu = python_tcu(calibration)
     tcu = tcu or TcuLogic()
     if tcu_impl != "python":
+        from tcu_stub import fast
+
         why = _python_only(stale_fn, on_period, link, sensor_fault)
-        try:
-            from tcu_stub import fast
-        except ImportError as e:          # the extension not built (scripts/setup builds it)
-            fast, why = None, why or f"tcu_stub._tcu_fast is not built ({e})"
-            if tcu_impl == "auto":
-                warnings.warn(f"run_offline: the Python loop: {why}", RuntimeWarning, stacklevel=2)
-        why = why or fast.c_compatible(tcu)
+        missing = None if why else fast.unavailable()
+        if missing and tcu_impl == "auto":
+            warnings.warn(f"run_offline runs the Python loop: {missing}", RuntimeWarning, stacklevel=2)
+        why = why or missing or fast.c_compatible(tcu)
         if why is None:
             return fast.run_offline_c(plant, driver_fn, duration_s, record_every_s, tcu=tcu)
         if tcu_impl == "c":

@@ -405,6 +405,15 @@ double tcu_np_interp(double x, const double *xp, const double *fp, int n);
 void tcu_driver_pedals(tcu_driver *d, double t_s, const dct_outputs *out, double *accel_pct,
                        double *brake_pct);
 
+/* The plant's layout this extension was compiled with, in doubles' bytes:
+   sizeof(dct_plant), offsetof state, inputs, outputs, sizeof dct_inputs,
+   dct_outputs, offsetof state.time_s, inputs.accel_pedal_pct,
+   inputs.brake_pedal_pct, outputs.vehicle_speed_kmh, outputs.engine_speed_rpm.
+   tcu_stub/fast.py compares them with plant._dct_plant's: a dct_plant.h
+   changed since this extension was built must not go unnoticed. */
+#define TCU_N_PLANT_LAYOUT 11
+void tcu_plant_layout(int64_t *out);
+
 /* ------------------------------------------------------------------ */
 /* The closed loop (tcu_run.c): offline.run_offline in one call        */
 /* ------------------------------------------------------------------ */

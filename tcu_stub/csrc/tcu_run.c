@@ -9,6 +9,7 @@
  * recorded every tcu_per_record periods; the plant steps one TCU period.
  */
 #define _POSIX_C_SOURCE 199309L   /* clock_gettime */
+#include <stddef.h>
 #include <string.h>
 #include <time.h>
 
@@ -36,6 +37,21 @@ static int record(tcu_run *r, double t)
     tcu[4] = r->tcu->diag.limp_home ? 1 : 0;
     r->rec_n++;
     return DCT_OK;
+}
+
+void tcu_plant_layout(int64_t *out)
+{
+    out[0] = sizeof(dct_plant);
+    out[1] = offsetof(dct_plant, state);
+    out[2] = offsetof(dct_plant, inputs);
+    out[3] = offsetof(dct_plant, outputs);
+    out[4] = sizeof(dct_inputs);
+    out[5] = sizeof(dct_outputs);
+    out[6] = offsetof(dct_state, time_s);
+    out[7] = offsetof(dct_inputs, accel_pedal_pct);
+    out[8] = offsetof(dct_inputs, brake_pedal_pct);
+    out[9] = offsetof(dct_outputs, vehicle_speed_kmh);
+    out[10] = offsetof(dct_outputs, engine_speed_rpm);
 }
 
 void tcu_run_inputs(tcu_run *r)
