@@ -473,3 +473,14 @@ def test_ctrl_c_in_the_c_loop_exits_130_and_keeps_the_partial_csv(tmp_path, caps
     assert code == 130 and "interrupted" in err and str(out_csv) in err
     data = np.loadtxt(out_csv, delimiter=",", skiprows=1, ndmin=2)
     assert data.shape[0] == 9                      # rows of periods 0, 5, ..., 40
+
+
+def test_an_extension_built_for_another_plant_runs_the_python_loop_or_is_refused(monkeypatch):
+    fast._layout_mismatch.cache_clear()
+    assert fast.unavailable() is None                      # this build fits
+    monkeypatch.setattr(fast, "_layout_mismatch", lambda: "built with another dct_plant.h")
+    with pytest.warns(RuntimeWarning, match="another dct_plant.h"):
+        r = maneuver_run("0-100", 0.5)
+    assert_same_run(r, maneuver_run("0-100", 0.5, tcu_impl="python"))
+    with pytest.raises(ValueError, match="tcu_impl 'c': built with another dct_plant.h"):
+        maneuver_run("0-100", 0.5, tcu_impl="c")
