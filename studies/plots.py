@@ -48,7 +48,7 @@ def sweep_plots(spec, run_df, point_df, out: Path) -> list[Path]:
             if sub.empty or not figs:
                 continue
             fig, axes = plt.subplots(len(figs), len(cols), squeeze=False,
-                                     figsize=(3.6 * len(cols) + 1.0, 2.1 * len(figs) + 0.8),
+                                     figsize=(max(6.0, 3.6 * len(cols) + 1.0), 2.1 * len(figs) + 0.8),
                                      constrained_layout=True)
             line = spec.sampling == "grid" and len(cols) == 1
             for r, f in enumerate(figs):
@@ -59,6 +59,7 @@ def sweep_plots(spec, run_df, point_df, out: Path) -> list[Path]:
                     order = np.argsort(x, kind="stable")
                     ax.plot(x[order], y[order], "o-" if line else "o", ms=4, lw=1.0,
                             color="tab:blue")
+                    ax.ticklabel_format(axis="y", useOffset=False)
                     if r == len(figs) - 1:
                         ax.set_xlabel(col)
                     if c == 0:
