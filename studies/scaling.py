@@ -1,7 +1,7 @@
 """How the sweep scales with Dask workers: the same sweep with 1 worker, then with 2.
 
-    .venv/bin/python -m studies.scaling                      # 16 runs of paper-cycle
-    .venv/bin/python -m studies.scaling --case 0-100 --duration 15 --points 24
+    .venv/bin/python -m studies.scaling                      # 12 runs of the WLTC
+    .venv/bin/python -m studies.scaling --case paper-cycle --points 24
 
 Each round starts a LocalCluster with that many worker processes (one thread each),
 runs every point from scratch (``--fresh``: nothing is taken from a journal) and times
@@ -110,9 +110,9 @@ def one_round(spec, workers: int, folder: Path) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m studies.scaling", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--case", default="paper-cycle", help="maneuver or scenario (default paper-cycle)")
+    ap.add_argument("--case", default="wltc", help="maneuver or scenario (default wltc)")
     ap.add_argument("--duration", type=float, help="cut the case to S simulated seconds")
-    ap.add_argument("--points", type=int, default=16, help="runs in the sweep (default 16)")
+    ap.add_argument("--points", type=int, default=12, help="runs in the sweep (default 12)")
     ap.add_argument("--out", default="out/scaling.json", help="JSON file (default out/scaling.json)")
     args = ap.parse_args(argv)
     if args.points < 2:
