@@ -445,6 +445,9 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
                         time_scale=args.time_scale, xcp=xcp, pm_qos_us=None)
     except (ServerError, TransportError) as e:
         raise FuzzError(str(e)) from None
+    except Exception as e:  # noqa: BLE001 (the plant's parameters, the build: one line)
+        raise FuzzError(f"the server cannot be set up: {type(e).__name__}: "
+                        f"{' '.join(str(e).split())}") from None
     stop = threading.Event()
     received: list[int] = []
 

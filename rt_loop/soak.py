@@ -289,6 +289,9 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             server.start(cancel=stop)
         except (ServerError, TransportError) as e:
             raise SoakError(str(e)) from None
+        except Exception as e:  # noqa: BLE001 (the plant's parameters, the build: one line)
+            raise SoakError(f"the server cannot be set up: {type(e).__name__}: "
+                            f"{' '.join(str(e).split())}") from None
         from tcu_stub.can_tcu import CanTcu  # noqa: PLC0415
 
         tcu = CanTcu.open("virtual", CHANNEL)
