@@ -282,7 +282,8 @@ class SocketCanTransport(Transport):
 
     Hard real time: no Python between the controller and the tick. The
     socket is non-blocking (the loop drains it every tick), receives every
-    identifier (unknown ones are counted by the loop), not its own frames,
+    identifier (unknown ones are counted by the loop) and CAN FD frames also
+    on a classic bus (counted as bad length or unknown id), not its own frames,
     has its receive buffer raised to ``RCVBUF_BYTES`` (SO_RCVBUFFORCE when
     the process may, else SO_RCVBUF up to net.core.rmem_max) and SO_RXQ_OVFL
     enabled, so each received frame carries the kernel's count of frames
@@ -321,10 +322,13 @@ class SocketCanTransport(Transport):
                     hint = e.strerror or str(e)
                 raise TransportError(f"SocketCAN {channel}: cannot bind: {hint}") from None
             sock.setblocking(False)
-            if self.fd:
-                try:
-                    sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FD_FRAMES, 1)
-                except (OSError, AttributeError) as e:
+            try:
+                # CAN FD frames are received on a classic bus too, so that the loop
+                # counts them (bad length, unknown id): without this option the
+                # kernel drops them before the socket, uncounted
+                sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FD_FRAMES, 1)
+            except (OSError, AttributeError) as e:
+                if self.fd:
                     raise TransportError(f"SocketCAN {channel}: CAN FD frames refused: "
                                          f"{getattr(e, 'strerror', None) or e}") from None
             self.rcvbuf_bytes = self._raise_rcvbuf(sock, rcvbuf_bytes)
