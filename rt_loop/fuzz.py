@@ -508,11 +508,9 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
                     total += 1
 
         while not stop.is_set():
-            if args.frames and total >= args.frames:
-                break
-            if deadline is not None and time.monotonic() >= deadline:
-                break
-            if not server.running:
+            done = ((args.frames and total >= args.frames)
+                    or (deadline is not None and time.monotonic() >= deadline))
+            if (done and not bursts_at and not silent_at) or not server.running:
                 break
             if total >= next_check:
                 sender.drain()
@@ -553,7 +551,8 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
                     gen.on_timeout(m)
                     m.last = None
                     send([gen._counter_frame(m, "restart_silent", 0)])
-            send(gen.event())
+            if not done:
+                send(gen.event())
             if time.monotonic() >= next_progress and not args.quiet:
                 el = time.monotonic() - t0
                 print(f"fuzz: {total:,} frames in {el:.0f} s ({total / el:,.0f}/s)", file=out,
