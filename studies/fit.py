@@ -37,7 +37,7 @@ import numpy as np
 
 from studies import StudyError
 from studies.keys import Assignment, build, check_plant, default_of, merge, plant_range, resolve
-from studies.measurement import ChannelMap, Measurement, load, load_mapping
+from studies.measurement import ChannelMap, Measurement, load
 from studies.runs import Case, evaluate_signals, make_case
 
 DEFAULT_SIGNALS = ("vehicle_speed_kmh",)

@@ -234,12 +234,6 @@ def _resolve_tcu(text: str, prefix: str) -> Key:
     return Key(text, "tcu", (name,))
 
 
-def describe(key: Key) -> str:
-    """A short description of the key's default (for error messages and docs)."""
-    default = default_of(key)
-    return f"{key.text} (default {default!r})"
-
-
 def default_of(key: Key, base: dict | None = None) -> Any:
     """The default value: a number, or a list for a list / table key without an index."""
     if key.kind == "tcu":
