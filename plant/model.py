@@ -187,8 +187,13 @@ class Plant:
         if n:
             self._check(lib.dct_plant_step(self._p, n))
 
-    def reset(self, vehicle_speed_kmh=0.0, sleeves=(0, 0, 0, 0), clutch_locked=(0, 0), engine_on=1):
-        """Restart from steady motion: speed, engaged sleeve sides (+1/-1/0), locked clutches."""
+    def reset(self, vehicle_speed_kmh=0.0, sleeves=(0, 0, 0, 0), clutch_locked=(0, 0), engine_on=1,
+              coolant_temp_degc=None, engine_oil_temp_degc=None, trans_oil_temp_degc=None):
+        """Restart from steady motion: speed, engaged sleeve sides (+1/-1/0), locked clutches.
+
+        The temperatures (degC) start at the parameters' ``thermal.initial_*``;
+        each one given replaces its parameter (a cold start:
+        ``coolant_temp_degc=20, engine_oil_temp_degc=20, trans_oil_temp_degc=20``)."""
         sleeves = [float(s) for s in sleeves]
         clutch_locked = [float(c) for c in clutch_locked]
         if len(sleeves) != lib.DCT_N_SLEEVES:
@@ -202,9 +207,24 @@ class Plant:
                 "sleeve_side": sleeves,
                 "clutch_locked": clutch_locked,
                 "engine_on": float(engine_on),
+                **self._initial_temperatures(coolant_temp_degc, engine_oil_temp_degc,
+                                             trans_oil_temp_degc),
             },
         )
         self._check(lib.dct_plant_reset(self._p, init))
+
+    def _initial_temperatures(self, coolant, engine_oil, trans_oil):
+        given = {"coolant_temp_degc": coolant, "engine_oil_temp_degc": engine_oil,
+                 "trans_oil_temp_degc": trans_oil}
+        if all(v is None for v in given.values()):
+            return {"temperatures_given": 0.0}
+        out = {"temperatures_given": 1.0}
+        for name, value in given.items():
+            x = float(self.params["thermal"][f"initial_{name}"] if value is None else value)
+            if not (math.isfinite(x) and -60.0 <= x <= 200.0):
+                raise ValueError(f"{name} must be a temperature in degC (-60..200), got {value!r}")
+            out[name] = x
+        return out
 
     # ----------------------------------------------------------------- faults
     @property
@@ -350,7 +370,7 @@ COMPONENT_NAMES = [ffi.string(lib.dct_bench_component_name(i)).decode()
 _STATE_COMPONENT = {
     "time_s": "time", "engine": "engine", "clutch": "clutches", "hydraulics": "hydraulics",
     "gearbox": "gearbox", "driveline": "driveline", "wheel": "wheels", "tyre": "tyres",
-    "vehicle": "vehicle",
+    "vehicle": "vehicle", "thermal": "thermal",
 }
 # states that are not continuous states of the dynamics
 _DISCRETE = ("engine.running", ".phase", ".side")            # switch the equations

@@ -42,6 +42,12 @@ _ALLOWED = {
     "clutch2_locked": (0.0, 1.0),
     "engine_on": (0.0, 1.0),
 }
+# initial temperatures (degC): the parameters' thermal.initial_* when not given
+TEMPERATURE_KEYS = {
+    "coolant_temp_degc": (-40.0, 130.0),
+    "engine_oil_temp_degc": (-40.0, 150.0),
+    "trans_oil_temp_degc": (-40.0, 150.0),
+}
 _TIME_EPS = 1e-9  # s: row times closer than this to a step start count as on it
 
 
@@ -74,6 +80,7 @@ class Scenario:
             "sleeves": tuple(init[f"sleeve{i}_side"] for i in range(1, 5)),
             "clutch_locked": (init["clutch1_locked"], init["clutch2_locked"]),
             "engine_on": init["engine_on"],
+            **{key: self.initial[key] for key in TEMPERATURE_KEYS if key in self.initial},
         }
 
     @property
@@ -223,14 +230,17 @@ def _parse_initial(text, initial, fail):
         key, value = key.strip(), value.strip()
         if not sep:
             fail(f"initial: {item!r} is not key=value")
-        if key not in INITIAL_KEYS:
-            fail(f"unknown initial key {key!r}; keys are: {', '.join(INITIAL_KEYS)}")
+        if key not in INITIAL_KEYS and key not in TEMPERATURE_KEYS:
+            fail(f"unknown initial key {key!r}; keys are: {', '.join([*INITIAL_KEYS, *TEMPERATURE_KEYS])}")
         try:
             x = float(value)
         except ValueError:
             fail(f"initial {key}: {value!r} is not a number")
         if not math.isfinite(x):
             fail(f"initial {key}: {value!r} is not a finite number")
+        bounds = TEMPERATURE_KEYS.get(key)
+        if bounds is not None and not bounds[0] <= x <= bounds[1]:
+            fail(f"initial {key} = {value} is out of range [{bounds[0]:g}, {bounds[1]:g}] degC")
         allowed = _ALLOWED.get(key)
         if allowed is not None and x not in allowed:
             fail(f"initial {key} must be one of {', '.join(f'{a:g}' for a in allowed)}, not {value}")

@@ -49,6 +49,10 @@ ONLINE = {
     "tyre.pdx1", "tyre.rolling_resistance",
     "vehicle.mass_kg", "vehicle.drag_coefficient", "vehicle.frontal_area_m2",
     "vehicle.air_density_kg_m3",
+    "thermal.ambient_temp_degc", "thermal.wall_heat_fraction", "thermal.radiator_ua_w_per_k",
+    "thermal.trans_cooler_ua_w_per_k", "thermal.idle_cold_rise_rpm", "thermal.cold_enrichment",
+    "thermal.alternator_load_w", "thermal.power_steering_nm", "thermal.ac_on",
+    "thermal.ac_torque_nm",
 }
 
 SIZES = {"UBYTE": 1, "SBYTE": 1, "UWORD": 2, "SWORD": 2, "ULONG": 4, "SLONG": 4,

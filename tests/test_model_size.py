@@ -29,7 +29,7 @@ def driving():
 
 def test_component_names_cover_the_assembly():
     assert COMPONENT_NAMES == ["hydraulics", "clutches", "engine", "driveline", "gearbox",
-                               "tyres", "wheels", "vehicle"]
+                               "tyres", "wheels", "vehicle", "thermal"]
 
 
 def test_every_state_belongs_to_one_component():
@@ -39,9 +39,10 @@ def test_every_state_belongs_to_one_component():
 def test_counts_sum_to_the_state_size():
     counts = state_counts()
     assert list(counts) == ["time", *COMPONENT_NAMES]
-    assert sum(counts.values()) == len(STATE_NAMES) == 67
+    assert sum(counts.values()) == len(STATE_NAMES) == 70
     assert counts["gearbox"] == 3 + 4 * 6        # shafts, carrier, four synchronizers
     assert counts["hydraulics"] == 1 + 2 + 2 * 4  # line, two chambers, two valves
+    assert counts["thermal"] == 3                 # coolant, engine oil, transmission oil
 
 
 def test_kinds_partition_the_state():

@@ -178,7 +178,7 @@ def test_default_values_sit_inside_their_ranges_with_counts(default):
 
 def test_result_is_normalized(default):
     assert list(default) == ["solver", "engine", "clutch", "hydraulics", "gearbox", "driveline",
-                             "front_wheel", "rear_wheels", "tyre", "vehicle"]
+                             "front_wheel", "rear_wheels", "tyre", "vehicle", "thermal"]
     assert isinstance(default["solver"]["substeps"], float)
     assert isinstance(default["engine"]["full_load"]["n"], int)
     assert list(default["engine"]["full_load"]) == ["n", "speed_rpm", "torque_nm"]

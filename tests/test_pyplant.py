@@ -150,7 +150,7 @@ def test_bad_input_is_one_line_error():
 
 def test_state_setter_rejects_wrong_length():
     py = PyPlant(Plant().params)
-    with pytest.raises(ValueError, match="67"):
+    with pytest.raises(ValueError, match="70"):
         py.state = [0.0] * 3
 
 

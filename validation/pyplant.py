@@ -19,6 +19,7 @@ two agree to rounding (tests/test_pyplant.py runs both from the same start):
     wheel.c          wheel_output, wheel_advance
     tyre.c           magic_formula, magic_formula_peak_slip, tyre_output, tyre_advance
     vehicle.c        vehicle_tyre_loads, vehicle_output, vehicle_advance
+    thermal.c        walther_viscosity, thermal_effects, thermal_output, thermal_advance
     plant.c          PyPlant: evaluate, advance, write_outputs, apply_inputs, step
 
 Parameters are the dict of ``plant.params.load_params`` (the layout of
@@ -162,11 +163,13 @@ class EngineState(_Struct):
 
 class EngineInput(_Struct):
     __slots__ = ("accel_pedal_pct", "torque_request_nm", "torque_request_active", "engine_on",
-                 "load_torque_nm")
+                 "load_torque_nm", "drag_excess", "idle_rise_rpm", "fuel_enrichment",
+                 "accessory_torque_nm")
 
 
 class EngineOutput(_Struct):
-    __slots__ = ("torque_nm", "demand_nm", "drag_nm", "fuel_rate_g_s", "speed_deriv_rad_s2")
+    __slots__ = ("torque_nm", "demand_nm", "drag_nm", "fuel_rate_g_s", "burnt_fuel_rate_g_s",
+                 "accessory_torque_nm", "speed_deriv_rad_s2")
 
 
 def curve_eval(c, speed_rpm):
@@ -197,9 +200,9 @@ def bsfc_eval(m, speed_rpm, torque_nm):
     return a + fy * (b - a)
 
 
-def _engine_drag(p, speed_rad_s):
+def _engine_drag(p, speed_rad_s, factor=1.0):
     n = speed_rad_s * RPM_PER_RAD_S
-    return curve_eval(p.drag, abs(n)) * smooth_sign(speed_rad_s, p.drag_smoothing_rad_s)
+    return factor * curve_eval(p.drag, abs(n)) * smooth_sign(speed_rad_s, p.drag_smoothing_rad_s)
 
 
 def engine_init(p, s, speed_rad_s, running):
@@ -216,18 +219,21 @@ def engine_output(p, s, inp):
     out = EngineOutput()
     w = s.speed_rad_s
     n = w * RPM_PER_RAD_S
-    drag = _engine_drag(p, w)
+    factor = 1.0 + inp.drag_excess
+    drag = _engine_drag(p, w, factor)
+    acc = inp.accessory_torque_nm * smooth_sign(w, p.drag_smoothing_rad_s)
     full = curve_eval(p.full_load, n)
-    rng = full - curve_eval(p.drag, abs(n))
+    drag_need = -factor * curve_eval(p.drag, abs(n)) + inp.accessory_torque_nm
+    rng = full + drag_need
     if rng < 0.0:
         rng = 0.0
     demand = 0.0
     fired = s.running > 0.5 and inp.engine_on > 0.5
     if fired:
-        err = p.idle_speed_rpm - n
+        err = p.idle_speed_rpm + inp.idle_rise_rpm - n
         gov = clamp(p.idle_kp_nm_per_rpm * err + s.idle_integral_nm, 0.0, p.idle_torque_max_nm)
         if inp.torque_request_active > 0.5:
-            req = inp.torque_request_nm - curve_eval(p.drag, abs(n))
+            req = inp.torque_request_nm + drag_need
             demand = req if req > gov else gov
         else:
             demand = 0.01 * inp.accel_pedal_pct * rng + gov
@@ -236,14 +242,16 @@ def engine_output(p, s, inp):
             demand = 0.0  # fuel cut
     out.demand_nm = demand
     out.drag_nm = drag
-    out.torque_nm = s.combustion_torque_nm + drag
+    out.torque_nm = s.combustion_torque_nm + drag - acc
+    out.accessory_torque_nm = acc
     fuel = 0.0
     if fired and demand > 0.0 and w > 0.0:
-        t = out.torque_nm
+        t = out.torque_nm + acc
         if t < p.bsfc.torque_nm[0]:
             t = p.bsfc.torque_nm[0]
         fuel = bsfc_eval(p.bsfc, n, t) * t * w / 3.6e6
-    out.fuel_rate_g_s = fuel
+    out.burnt_fuel_rate_g_s = fuel
+    out.fuel_rate_g_s = fuel * (1.0 + inp.fuel_enrichment)
     out.speed_deriv_rad_s2 = (out.torque_nm - inp.load_torque_nm) / p.inertia_kgm2
     return out
 
@@ -263,7 +271,7 @@ def engine_advance(p, s, inp, out, h):
     s.speed_rad_s = w + h * out.speed_deriv_rad_s2
     s.fuel_g += h * out.fuel_rate_g_s
     if s.running > 0.5 and inp.engine_on > 0.5:
-        err = p.idle_speed_rpm - n
+        err = p.idle_speed_rpm + inp.idle_rise_rpm - n
         i_new = s.idle_integral_nm + h * p.idle_ki_nm_per_rpm_s * err
         s.idle_integral_nm = clamp(i_new, 0.0, p.idle_torque_max_nm)
     if s.running > 0.5 and n < p.stall_speed_rpm:
@@ -306,12 +314,12 @@ class ClutchState(_Struct):
 
 
 class ClutchInput(_Struct):
-    __slots__ = ("clamp_force_n", "drive_speed_rad_s", "driven_speed_rad_s")
+    __slots__ = ("clamp_force_n", "drive_speed_rad_s", "driven_speed_rad_s", "drag_excess", "mu_excess")
 
 
 class ClutchOutput(_Struct):
     __slots__ = ("torque_nm", "clamp_force_n", "capacity_nm", "slide_capacity_nm", "slip_rad_s",
-                 "friction")
+                 "heat_w", "friction")
 
 
 def _clutch_mu(p, slip_rad_s):
@@ -323,13 +331,18 @@ def clutch_output(p, s, inp):
     slip = inp.drive_speed_rad_s - inp.driven_speed_rad_s
     force = inp.clamp_force_n if inp.clamp_force_n > 0.0 else 0.0
     lever = p.surfaces * p.radius_m * force
-    cap = lever * _clutch_mu(p, slip)
+    mu_factor = 1.0 + inp.mu_excess
+    cap = lever * (_clutch_mu(p, slip) * mu_factor)
     out.friction = friction_eval(p.friction, s.twist_rad, slip, cap)
     out.clamp_force_n = force
-    out.capacity_nm = lever * p.mu_static
+    out.capacity_nm = lever * (p.mu_static * mu_factor)
     out.slide_capacity_nm = cap
     out.slip_rad_s = slip
-    out.torque_nm = out.friction.torque_nm + p.drag_nms_per_rad * slip
+    drag = p.drag_nms_per_rad * (1.0 + inp.drag_excess) * slip
+    out.torque_nm = out.friction.torque_nm + drag
+    fr = (out.friction.torque_nm * slip if out.friction.sliding > 0.5
+          else p.friction.damping_nms_per_rad * slip * slip)
+    out.heat_w = fr + drag * slip
     return out
 
 
@@ -510,15 +523,19 @@ def hydraulics_output(chambers, clutch, s):
     return out
 
 
-def hydraulics_advance(p, chambers, s, current_a, line_current_a, h):
+def hydraulics_advance(p, chambers, s, current_a, line_current_a, h, oil_viscosity_m2_s=0.0):
     n = int(p.substeps)
     hh = h / n
     line_target = pressure_map_eval(p.supply.line, line_current_a) * PA_PER_BAR
+    oil = p.oil
+    if oil_viscosity_m2_s > 0.0:
+        oil = SimpleNamespace(**vars(p.oil))
+        oil.viscosity_m2_s = oil_viscosity_m2_s
     for _ in range(n):
         vo = [None, None]
         for k in range(2):
             pk = chamber_pressure(chambers[k], s.clutch_oil_m3[k])
-            vo[k] = valve_output(p.valve, p.oil, s.valve[k], current_a[k], s.line_pressure_pa, pk)
+            vo[k] = valve_output(p.valve, oil, s.valve[k], current_a[k], s.line_pressure_pa, pk)
         for k in range(2):
             valve_advance(p.valve, s.valve[k], vo[k], hh)
             s.clutch_oil_m3[k] += hh * vo[k].flow_m3_s
@@ -743,8 +760,9 @@ def _gear_drag(c0, c1, w, smooth):
     return c0 * smooth_sign(w, smooth) + c1 * w
 
 
-def gearbox_output(p, d, s, clutch_torque_nm, fork_force_n, load_torque_nm):
+def gearbox_output(p, d, s, clutch_torque_nm, fork_force_n, load_torque_nm, viscous_drag_excess=0.0):
     out = GearboxOutput()
+    visc = 1.0 + viscous_drag_excess
     w_out = [s.carrier_speed_rad_s * p.final_drive[0], s.carrier_speed_rad_s * p.final_drive[1]]
     w_gear = [s.input_speed_rad_s[GEAR_INPUT[g]] / d.signed_ratio[g] for g in range(N_GEARS)]
     gear_torque = [0.0] * N_GEARS
@@ -769,18 +787,18 @@ def gearbox_output(p, d, s, clutch_torque_nm, fork_force_n, load_torque_nm):
     t_in = [0.0, 0.0]
     for k in range(2):
         w = s.input_speed_rad_s[k]
-        t = _gear_drag(p.input_drag_nm[k], p.input_drag_nms_per_rad[k], w, p.drag_smoothing_rad_s)
+        t = _gear_drag(p.input_drag_nm[k], p.input_drag_nms_per_rad[k] * visc, w, p.drag_smoothing_rad_s)
         loss += t * w
         t_in[k] = clutch_torque_nm[k] - t
     w = s.carrier_speed_rad_s
-    t = _gear_drag(p.output_drag_nm, p.output_drag_nms_per_rad, w, p.drag_smoothing_rad_s)
+    t = _gear_drag(p.output_drag_nm, p.output_drag_nms_per_rad * visc, w, p.drag_smoothing_rad_s)
     loss += t * w
     t_car = -t - load_torque_nm
     for g in range(N_GEARS):
         o = GEAR_OUTPUT[g]
         tg = gear_torque[g]
         rel = w_gear[g] - w_out[o]
-        tig = p.idle_gear_drag_nms_per_rad * rel
+        tig = p.idle_gear_drag_nms_per_rad * visc * rel
         f = (_efficiency_factor(p.mesh_efficiency[g], tg * w_gear[g], p.efficiency_smoothing_w)
              if tg != 0.0 else 1.0)
         loss += tg * w_gear[g] * (f - 1.0) + tig * rel
@@ -932,6 +950,8 @@ def tyre_output(p, s, wheel_speed_rad_s, ground_speed_m_s, normal_force_n, count
     out.slip = kappa
     out.slip_speed_m_s = slip_speed
     out.deflection_rate_m_s = slip_speed - (1.0 - w) * vref * s.deflection_m / p.relaxation_length_m
+    f += n * p.carcass_damping_ns_per_m * out.deflection_rate_m_s
+    out.force_n = f
     out.contact_weight = w
     out.tyre_load_n = fz / n
     out.rolling_moment_nm = (p.rolling_resistance * fz * p.radius_m
@@ -1074,10 +1094,124 @@ OUTPUT_NAMES = (
     "fork3_position_mm", "fork4_position_mm", "gear_clashes", "fuel_l", "fuel_rate_lph",
     "wheel_speed_fl_rpm", "wheel_speed_fr_rpm", "wheel_speed_rear_rpm", "halfshaft_torque_nm",
     "front_tyre_slip", "front_axle_load_n", "rear_axle_load_n", "brake_torque_nm", "road_grade_pct",
-    "accel_pedal_pct", "brake_pedal_pct", "input_clamps", "gear",
+    "accel_pedal_pct", "brake_pedal_pct", "input_clamps", "coolant_temp_degc",
+    "engine_oil_temp_degc", "trans_oil_temp_degc", "thermostat_opening", "engine_heat_in_w",
+    "trans_heat_in_w", "heat_rejected_w", "trans_oil_viscosity_mm2_s", "accessory_torque_nm", "gear",
 )
 
 GEAR_TORQUE_MIN_NM = 2.0
+
+
+# --------------------------------------------------------------------------
+# thermal.c: lumped temperatures and their effects
+# --------------------------------------------------------------------------
+
+KELVIN = 273.15
+
+
+class ThermalState(_Struct):
+    __slots__ = ("coolant_temp_degc", "engine_oil_temp_degc", "trans_oil_temp_degc")
+
+
+class ThermalEffects(_Struct):
+    __slots__ = ("engine_drag_factor", "idle_rise_rpm", "fuel_enrichment", "trans_viscosity_ratio",
+                 "trans_oil_viscosity_m2_s", "engine_oil_viscosity_ratio", "clutch_drag_factor",
+                 "churning_factor", "clutch_mu_factor", "thermostat_opening")
+
+
+class ThermalOutput(_Struct):
+    __slots__ = ("coolant_heat_in_w", "engine_oil_heat_in_w", "trans_heat_in_w", "radiator_w",
+                 "engine_ambient_w", "trans_ambient_w", "oil_to_coolant_w", "trans_to_coolant_w",
+                 "coolant_rate_k_s", "engine_oil_rate_k_s", "trans_oil_rate_k_s")
+
+
+def walther_viscosity(nu40_mm2_s, nu100_mm2_s, temp_degc):
+    w40 = math.log10(math.log10(nu40_mm2_s + 0.7))
+    w100 = math.log10(math.log10(nu100_mm2_s + 0.7))
+    l40 = math.log10(40.0 + KELVIN)
+    l100 = math.log10(100.0 + KELVIN)
+    t = temp_degc + KELVIN
+    if t < 150.0:
+        t = 150.0
+    w = w40 + (w100 - w40) * (math.log10(t) - l40) / (l100 - l40)
+    return math.pow(10.0, math.pow(10.0, w)) - 0.7
+
+
+def thermal_init(s, coolant_degc, engine_oil_degc, trans_oil_degc):
+    s.coolant_temp_degc = coolant_degc
+    s.engine_oil_temp_degc = engine_oil_degc
+    s.trans_oil_temp_degc = trans_oil_degc
+
+
+def thermal_effects(p, trans_oil, s):
+    fx = ThermalEffects()
+    ro = (walther_viscosity(p.engine_oil_viscosity_40c_mm2_s, p.engine_oil_viscosity_100c_mm2_s,
+                            s.engine_oil_temp_degc)
+          / walther_viscosity(p.engine_oil_viscosity_40c_mm2_s, p.engine_oil_viscosity_100c_mm2_s,
+                              p.engine_ref_temp_degc))
+    rt = (walther_viscosity(p.trans_oil_viscosity_40c_mm2_s, p.trans_oil_viscosity_100c_mm2_s,
+                            s.trans_oil_temp_degc)
+          / walther_viscosity(p.trans_oil_viscosity_40c_mm2_s, p.trans_oil_viscosity_100c_mm2_s,
+                              p.trans_ref_temp_degc))
+    lo = math.log(ro)
+    lt = math.log(rt)
+    fx.engine_oil_viscosity_ratio = ro
+    fx.engine_drag_factor = 1.0 + p.engine_rubbing_share * (math.exp(p.engine_friction_viscosity_exponent * lo) - 1.0)
+    span = p.idle_warm_degc - p.idle_cold_degc
+    cold = clamp((p.idle_warm_degc - s.coolant_temp_degc) / span, 0.0, 1.0)
+    fx.idle_rise_rpm = p.idle_cold_rise_rpm * cold
+    fx.fuel_enrichment = p.cold_enrichment * cold
+    fx.trans_viscosity_ratio = rt
+    fx.trans_oil_viscosity_m2_s = trans_oil.viscosity_m2_s * rt
+    fx.clutch_drag_factor = math.exp(p.clutch_drag_viscosity_exponent * lt)
+    fx.churning_factor = math.exp(p.churning_viscosity_exponent * lt)
+    dt = s.trans_oil_temp_degc - p.trans_ref_temp_degc
+    fx.clutch_mu_factor = 1.0 + p.clutch_mu_change_per_k * dt
+    fx.thermostat_opening = clamp((s.coolant_temp_degc - p.thermostat_open_degc)
+                                  / (p.thermostat_full_degc - p.thermostat_open_degc),
+                                  p.thermostat_min_opening, 1.0)
+    return fx
+
+
+def thermal_output(p, s, fx, fuel_heat_w, combustion_power_w, friction_power_w, trans_heat_w,
+                   vehicle_speed_m_s):
+    out = ThermalOutput()
+    ta = p.ambient_temp_degc
+    tc, to, tt = s.coolant_temp_degc, s.engine_oil_temp_degc, s.trans_oil_temp_degc
+    v = abs(vehicle_speed_m_s)
+    unused = fuel_heat_w - combustion_power_w
+    if unused < 0.0:
+        unused = 0.0
+    fric = friction_power_w if friction_power_w > 0.0 else 0.0
+    out.coolant_heat_in_w = p.wall_heat_fraction * unused + (1.0 - p.friction_heat_oil_share) * fric
+    out.engine_oil_heat_in_w = p.friction_heat_oil_share * fric
+    out.trans_heat_in_w = trans_heat_w
+    out.radiator_w = ((p.radiator_ua_w_per_k + p.radiator_ua_per_speed_ws_per_km * v)
+                      * fx.thermostat_opening * (tc - ta))
+    out.engine_ambient_w = p.engine_ambient_ua_w_per_k * (tc - ta)
+    out.trans_ambient_w = (p.trans_ambient_ua_w_per_k + p.trans_ambient_ua_per_speed_ws_per_km * v) * (tt - ta)
+    out.oil_to_coolant_w = p.oil_coolant_ua_w_per_k * (to - tc)
+    out.trans_to_coolant_w = p.trans_cooler_ua_w_per_k * (tt - tc)
+    out.coolant_rate_k_s = ((out.coolant_heat_in_w + out.oil_to_coolant_w + out.trans_to_coolant_w
+                             - out.radiator_w - out.engine_ambient_w) / p.coolant_heat_capacity_j_per_k)
+    out.engine_oil_rate_k_s = (out.engine_oil_heat_in_w - out.oil_to_coolant_w) / p.engine_oil_heat_capacity_j_per_k
+    out.trans_oil_rate_k_s = ((out.trans_heat_in_w - out.trans_to_coolant_w - out.trans_ambient_w)
+                              / p.trans_heat_capacity_j_per_k)
+    return out
+
+
+def thermal_advance(s, out, h):
+    s.coolant_temp_degc += h * out.coolant_rate_k_s
+    s.engine_oil_temp_degc += h * out.engine_oil_rate_k_s
+    s.trans_oil_temp_degc += h * out.trans_oil_rate_k_s
+
+
+def accessory_torque(p, speed_rad_s):
+    w = abs(speed_rad_s)
+    w_min = 500.0 * RAD_S_PER_RPM
+    alt = p.alternator_load_w / p.alternator_efficiency / (w if w > w_min else w_min)
+    t = alt + p.power_steering_nm + (p.ac_torque_nm if p.ac_on > 0.5 else 0.0)
+    return t * smooth_sign(w, p.accessory_smoothing_rad_s)
 
 
 def _namespace(value):
@@ -1093,7 +1227,8 @@ class Coupling:
     """Every coupling variable of one evaluation (plant.c: struct coupling)."""
 
     __slots__ = ("current_a", "line_current_a", "hydraulics", "clutch_in", "clutch", "engine_in", "engine",
-                 "wheel_speeds", "driveline", "gearbox", "tyre", "wheel_in", "wheel", "vehicle")
+                 "wheel_speeds", "driveline", "gearbox", "tyre", "wheel_in", "wheel", "vehicle",
+                 "thermal_fx", "thermal")
 
 
 class PyPlant:
@@ -1123,6 +1258,7 @@ class PyPlant:
         self.wheel = [WheelState() for _ in range(3)]
         self.tyre = [TyreState() for _ in range(3)]
         self.vehicle = VehicleState()
+        self.thermal = ThermalState()
         self.inputs = {name: 0.0 for name in INPUT_NAMES}
         self.inputs["engine_on"] = 1.0
         self.applied = dict(self.inputs)
@@ -1135,7 +1271,7 @@ class PyPlant:
     # ------------------------------------------------------------- the state
     def _parts(self):
         return [self.engine, *self.clutch, self.hydraulics, self.gearbox, self.driveline,
-                *self.wheel, *self.tyre, self.vehicle]
+                *self.wheel, *self.tyre, self.vehicle, self.thermal]
 
     def _state_list(self):
         values = [self.time_s]
@@ -1175,8 +1311,11 @@ class PyPlant:
         self.outputs = {name: float(plant.outputs[name]) for name in OUTPUT_NAMES}
 
     # -------------------------------------------------------------- reset
-    def reset(self, vehicle_speed_kmh=0.0, sleeves=(0, 0, 0, 0), clutch_locked=(0, 0), engine_on=1):
-        """dct_plant_reset: steady motion at a speed with sleeves engaged."""
+    def reset(self, vehicle_speed_kmh=0.0, sleeves=(0, 0, 0, 0), clutch_locked=(0, 0), engine_on=1,
+              temperatures=None):
+        """dct_plant_reset: steady motion at a speed with sleeves engaged;
+        ``temperatures``: (coolant, engine oil, transmission oil) in degC, or
+        None for the parameters' initial ones."""
         p = self.p
         d = self.gearbox_derived
         self.time_s = 0.0
@@ -1185,8 +1324,15 @@ class PyPlant:
         v = vehicle_speed_kmh / 3.6
         w_wheel = v / p.tyre.radius_m
         w_car = w_wheel
+        th = p.thermal
+        if temperatures is not None:
+            thermal_init(self.thermal, *[float(t) for t in temperatures])
+        else:
+            thermal_init(self.thermal, th.initial_coolant_temp_degc, th.initial_engine_oil_temp_degc,
+                         th.initial_trans_oil_temp_degc)
+        fx = thermal_effects(th, p.hydraulics.oil, self.thermal)
         on = engine_on > 0.5
-        w_idle = p.engine.idle_speed_rpm * RAD_S_PER_RPM if on else 0.0
+        w_idle = (p.engine.idle_speed_rpm + fx.idle_rise_rpm) * RAD_S_PER_RPM if on else 0.0
         w_in = [-1.0, -1.0]
         engaged = [False, False]
         for k in range(N_SLEEVES):
@@ -1210,6 +1356,17 @@ class PyPlant:
             self.gearbox.input_speed_rad_s[k] = w_in[k] if engaged[k] else w_eng
         self.gearbox.carrier_speed_rad_s = w_car
         engine_init(p.engine, self.engine, w_eng, on)
+        if on:
+            k = fx.engine_drag_factor - 1.0
+            w_i = (p.engine.idle_speed_rpm + fx.idle_rise_rpm) * RAD_S_PER_RPM
+            n_e = abs(w_eng) * RPM_PER_RAD_S
+            n_i = w_i * RPM_PER_RAD_S
+            self.engine.combustion_torque_nm += (-k * curve_eval(p.engine.drag, n_e)
+                                                 * smooth_sign(w_eng, p.engine.drag_smoothing_rad_s)
+                                                 + accessory_torque(th, w_eng))
+            self.engine.idle_integral_nm = clamp(-(1.0 + k) * curve_eval(p.engine.drag, n_i)
+                                                 + accessory_torque(th, w_i),
+                                                 0.0, p.engine.idle_torque_max_nm)
         hydraulics_init(p.hydraulics, self.hydraulics)
         for i in range(3):
             self.wheel[i].speed_rad_s = w_wheel
@@ -1261,6 +1418,7 @@ class PyPlant:
         p = self.p
         u = self.applied
         c = Coupling()
+        fx = c.thermal_fx = thermal_effects(p.thermal, p.hydraulics.oil, self.thermal)
         c.current_a = (u["solenoid_current1_a"], u["solenoid_current2_a"])
         c.line_current_a = u["line_solenoid_current_a"]
         # hydraulics: clamp forces from the chambers, or from commanded pressures
@@ -1282,7 +1440,8 @@ class PyPlant:
         c.clutch = []
         for k in range(2):
             ci = ClutchInput(clamp_force_n=hy.clamp_force_n[k], drive_speed_rad_s=self.engine.speed_rad_s,
-                             driven_speed_rad_s=self.gearbox.input_speed_rad_s[k])
+                             driven_speed_rad_s=self.gearbox.input_speed_rad_s[k],
+                             drag_excess=fx.clutch_drag_factor - 1.0, mu_excess=fx.clutch_mu_factor - 1.0)
             c.clutch_in.append(ci)
             c.clutch.append(clutch_output(p.clutch[k], self.clutch[k], ci))
 
@@ -1291,7 +1450,10 @@ class PyPlant:
                                   torque_request_nm=u["engine_torque_request_nm"],
                                   torque_request_active=u["torque_request_active"],
                                   engine_on=u["engine_on"],
-                                  load_torque_nm=c.clutch[0].torque_nm + c.clutch[1].torque_nm)
+                                  load_torque_nm=c.clutch[0].torque_nm + c.clutch[1].torque_nm,
+                                  drag_excess=fx.engine_drag_factor - 1.0,
+                                  idle_rise_rpm=fx.idle_rise_rpm, fuel_enrichment=fx.fuel_enrichment,
+                                  accessory_torque_nm=accessory_torque(p.thermal, self.engine.speed_rad_s))
         c.engine = engine_output(p.engine, self.engine, c.engine_in)
 
         # differential and half-shafts
@@ -1303,7 +1465,7 @@ class PyPlant:
         forks = (u["fork_force1_n"], u["fork_force2_n"], u["fork_force3_n"], u["fork_force4_n"])
         c.gearbox = gearbox_output(p.gearbox, self.gearbox_derived, self.gearbox,
                                    (c.clutch[0].torque_nm, c.clutch[1].torque_nm), forks,
-                                   c.driveline.carrier_load_nm)
+                                   c.driveline.carrier_load_nm, fx.churning_factor - 1.0)
 
         # tyres and wheels
         fz_front, fz_rear = vehicle_tyre_loads(p.vehicle, self.vehicle)
@@ -1327,12 +1489,21 @@ class PyPlant:
         c.vehicle = vehicle_output(p.vehicle, self.vehicle, c.tyre[0].force_n + c.tyre[1].force_n,
                                    c.tyre[2].force_n, c.wheel[0].body_torque_nm + c.wheel[1].body_torque_nm,
                                    c.wheel[2].body_torque_nm, u["road_grade_pct"])
+
+        # heat
+        w = self.engine.speed_rad_s
+        c.thermal = thermal_output(p.thermal, self.thermal, fx,
+                                   c.engine.burnt_fuel_rate_g_s * p.thermal.fuel_lhv_j_per_g,
+                                   self.engine.combustion_torque_nm * w, -c.engine.drag_nm * w,
+                                   c.clutch[0].heat_w + c.clutch[1].heat_w + c.gearbox.power_loss_w,
+                                   self.vehicle.speed_m_s)
         return c
 
     def _advance(self, c, h):
         p = self.p
         if not (p.hydraulics.pressure_commanded > 0.5):
-            hydraulics_advance(p.hydraulics, self.chambers, self.hydraulics, c.current_a, c.line_current_a, h)
+            hydraulics_advance(p.hydraulics, self.chambers, self.hydraulics, c.current_a, c.line_current_a, h,
+                               c.thermal_fx.trans_oil_viscosity_m2_s)
         engine_advance(p.engine, self.engine, c.engine_in, c.engine, h)
         for k in range(2):
             clutch_advance(p.clutch[k], self.clutch[k], c.clutch[k], h)
@@ -1343,6 +1514,7 @@ class PyPlant:
             wheel_advance(wp, self.wheel[i], c.wheel_in[i], c.wheel[i], h)
             tyre_advance(p.tyre, self.tyre[i], c.tyre[i], h)
         vehicle_advance(self.vehicle, c.vehicle, h)
+        thermal_advance(self.thermal, c.thermal, h)
         self.time_s += h
 
     # ------------------------------------------------------------ outputs
@@ -1440,6 +1612,16 @@ class PyPlant:
         o["accel_pedal_pct"] = a["accel_pedal_pct"]
         o["brake_pedal_pct"] = a["brake_pedal_pct"]
         o["input_clamps"] = self.input_clamps
+        th = self.thermal
+        o["coolant_temp_degc"] = th.coolant_temp_degc
+        o["engine_oil_temp_degc"] = th.engine_oil_temp_degc
+        o["trans_oil_temp_degc"] = th.trans_oil_temp_degc
+        o["thermostat_opening"] = c.thermal_fx.thermostat_opening
+        o["engine_heat_in_w"] = c.thermal.coolant_heat_in_w + c.thermal.engine_oil_heat_in_w
+        o["trans_heat_in_w"] = c.thermal.trans_heat_in_w
+        o["heat_rejected_w"] = c.thermal.radiator_w + c.thermal.engine_ambient_w + c.thermal.trans_ambient_w
+        o["trans_oil_viscosity_mm2_s"] = c.thermal_fx.trans_oil_viscosity_m2_s * 1e6
+        o["accessory_torque_nm"] = c.engine.accessory_torque_nm
         o["gear"] = self._engaged_gear(c)
 
     # --------------------------------------------------------------- step
@@ -1480,6 +1662,7 @@ def _state_names():
     names += [f"wheel[{i}].{f}" for i in range(3) for f in WheelState.__slots__]
     names += [f"tyre[{i}].deflection_m" for i in range(3)]
     names += [f"vehicle.{f}" for f in VehicleState.__slots__]
+    names += [f"thermal.{f}" for f in ThermalState.__slots__]
     return names
 
 

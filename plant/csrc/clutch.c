@@ -7,6 +7,8 @@
  * Stribeck curve mu(w) = mu_k + (mu_s - mu_k) exp(-(w / w_s)^2); for wet
  * clutches mu_k >= mu_s (a rising curve avoids shudder). Friction by the
  * reset-integrator element; plus the viscous drag of the open wet pack.
+ * Thermal effects (thermal.c): the oil temperature scales both friction
+ * coefficients (mu_excess) and the drag (drag_excess); 0 when warm.
  */
 #include "dct_plant.h"
 #include "dct_util.h"
@@ -29,13 +31,19 @@ void dct_clutch_output_eval(const dct_clutch_params *p, const dct_clutch_state *
     double slip = in->drive_speed_rad_s - in->driven_speed_rad_s;
     double force = in->clamp_force_n > 0.0 ? in->clamp_force_n : 0.0;
     double lever = p->surfaces * p->radius_m * force;
-    double cap = lever * clutch_mu(p, slip);
+    double mu_factor = 1.0 + in->mu_excess;
+    double cap = lever * (clutch_mu(p, slip) * mu_factor);
     dct_friction_eval(&p->friction, s->twist_rad, slip, cap, &out->friction);
     out->clamp_force_n = force;
-    out->capacity_nm = lever * p->mu_static;
+    out->capacity_nm = lever * (p->mu_static * mu_factor);
     out->slide_capacity_nm = cap;
     out->slip_rad_s = slip;
-    out->torque_nm = out->friction.torque_nm + p->drag_nms_per_rad * slip;
+    double drag = p->drag_nms_per_rad * (1.0 + in->drag_excess) * slip;
+    out->torque_nm = out->friction.torque_nm + drag;
+    /* heat: sliding at the capacity, or the stick damper; and the drag */
+    double fr = out->friction.sliding > 0.5 ? out->friction.torque_nm * slip
+                                            : p->friction.damping_nms_per_rad * slip * slip;
+    out->heat_w = fr + drag * slip;
 }
 
 void dct_clutch_advance(const dct_clutch_params *p, dct_clutch_state *s,

@@ -53,11 +53,13 @@ enum {
     COMP_GEARBOX,
     COMP_TYRES,
     COMP_WHEELS,
-    COMP_VEHICLE
+    COMP_VEHICLE,
+    COMP_THERMAL
 };
 
 static const char *const COMPONENT_NAMES[DCT_BENCH_N_COMPONENTS] = {
     "hydraulics", "clutches", "engine", "driveline", "gearbox", "tyres", "wheels", "vehicle",
+    "thermal",
 };
 
 const char *dct_bench_component_name(int i)
@@ -80,6 +82,7 @@ typedef struct {
     dct_tyre_input tyre_in[3];
     dct_wheel_input wheel_in[3];
     dct_vehicle_input vehicle_in;
+    dct_thermal_input thermal_in;
 } bench_inputs;
 
 static void bench_couplings(const dct_plant *pl, bench_inputs *b)
@@ -155,6 +158,19 @@ static void bench_couplings(const dct_plant *pl, bench_inputs *b)
     b->vehicle_in.front_wheel_torque_nm = wo[0].body_torque_nm + wo[1].body_torque_nm;
     b->vehicle_in.rear_wheel_torque_nm = wo[2].body_torque_nm;
     b->vehicle_in.road_grade_pct = u->road_grade_pct;
+    {
+        /* heat flows as plant.c gives them */
+        dct_engine_output eo;
+        dct_gearbox_output go;
+        dct_engine_output_eval(&p->engine, &s->engine, &b->engine_in, &eo);
+        dct_gearbox_output_eval(&p->gearbox, &pl->derived.gearbox, &s->gearbox, &b->gearbox_in, &go);
+        double w = s->engine.speed_rad_s;
+        b->thermal_in.fuel_heat_w = eo.burnt_fuel_rate_g_s * p->thermal.fuel_lhv_j_per_g;
+        b->thermal_in.combustion_power_w = s->engine.combustion_torque_nm * w;
+        b->thermal_in.friction_power_w = -eo.drag_nm * w;
+        b->thermal_in.trans_heat_w = co[0].heat_w + co[1].heat_w + go.power_loss_w;
+        b->thermal_in.vehicle_speed_m_s = s->vehicle.speed_m_s;
+    }
 }
 
 /* one sub-step of component c on the state copy x: its outputs, then its
@@ -217,6 +233,15 @@ static void component_substep(const dct_plant *pl, const bench_inputs *b, int c,
             dct_wheel_advance(wp, &x->wheel[i], &b->wheel_in[i], &wo, h);
         }
         break;
+    case COMP_THERMAL: {
+        /* the effects the others read, then the heat balances */
+        dct_thermal_effects fx;
+        dct_thermal_output th;
+        dct_thermal_effects_eval(&p->thermal, &p->hydraulics.oil, &x->thermal, &fx);
+        dct_thermal_output_eval(&p->thermal, &x->thermal, &fx, &b->thermal_in, &th);
+        dct_thermal_advance(&p->thermal, &x->thermal, &th, h);
+        break;
+    }
     default: {
         /* the tyre loads are the body's: evaluated from its state */
         double fz_front, fz_rear;
@@ -240,6 +265,7 @@ static void restore(int c, dct_state *x, const dct_state *s)
     case COMP_GEARBOX: x->gearbox = s->gearbox; break;
     case COMP_TYRES: memcpy(x->tyre, s->tyre, sizeof x->tyre); break;
     case COMP_WHEELS: memcpy(x->wheel, s->wheel, sizeof x->wheel); break;
+    case COMP_THERMAL: x->thermal = s->thermal; break;
     default: x->vehicle = s->vehicle; break;
     }
 }

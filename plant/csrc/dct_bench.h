@@ -21,8 +21,9 @@ int dct_bench_steps(dct_plant *plant, int n, double *step_ns);
  * their friction elements), 2 engine, 3 driveline (differential and
  * half-shafts), 4 gearbox (shafts, meshes and the four synchronizers),
  * 5 tyres (three positions), 6 wheels (three, with brakes), 7 vehicle (body,
- * suspension, tyre loads). */
-#define DCT_BENCH_N_COMPONENTS 8
+ * suspension, tyre loads), 8 thermal (the temperatures' effects and heat
+ * balances). */
+#define DCT_BENCH_N_COMPONENTS 9
 
 /* Name of component i (0 .. DCT_BENCH_N_COMPONENTS - 1), NULL outside. */
 const char *dct_bench_component_name(int i);

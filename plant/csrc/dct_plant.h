@@ -129,13 +129,19 @@ typedef struct {
     double torque_request_active;     /* 0/1 */
     double engine_on;                 /* 0/1 ignition */
     double load_torque_nm;            /* torque taken by the clutches (sum) */
+    double drag_excess;               /* thermal: drag curve x (1 + this); 0 at the reference */
+    double idle_rise_rpm;             /* thermal: added to the idle target */
+    double fuel_enrichment;           /* thermal: extra fuel share */
+    double accessory_torque_nm;       /* accessories on the crank (>= 0, opposes the rotation) */
 } dct_engine_input;
 
 typedef struct {
     double torque_nm;                 /* brake torque on the crank (combustion + drag) */
     double demand_nm;                 /* combustion torque demanded (before the lag) */
     double drag_nm;                   /* drag torque at this speed (<= 0) */
-    double fuel_rate_g_s;
+    double fuel_rate_g_s;             /* with the enrichment */
+    double burnt_fuel_rate_g_s;       /* without it: what burns */
+    double accessory_torque_nm;       /* on the crank (opposes the rotation) */
     double speed_deriv_rad_s2;
 } dct_engine_output;
 
@@ -174,6 +180,8 @@ typedef struct {
     double clamp_force_n;             /* from the piston */
     double drive_speed_rad_s;         /* engine / drum */
     double driven_speed_rad_s;        /* input shaft */
+    double drag_excess;               /* thermal: open-pack drag x (1 + this) */
+    double mu_excess;                 /* thermal: both friction coefficients x (1 + this) */
 } dct_clutch_input;
 
 typedef struct {
@@ -182,6 +190,7 @@ typedef struct {
     double capacity_nm;               /* static capacity */
     double slide_capacity_nm;         /* capacity at this slip (Stribeck) */
     double slip_rad_s;
+    double heat_w;                    /* dissipated: sliding friction, stick damping, drag */
     dct_friction_output friction;
 } dct_clutch_output;
 
@@ -301,6 +310,7 @@ typedef struct {
     double fork_force_n[DCT_N_SLEEVES];
     double load_torque_nm;                  /* taken from the carrier by the differential */
     double fork_jammed[DCT_N_SLEEVES];      /* 1: that sleeve held where it is (fault) */
+    double viscous_drag_excess;             /* thermal: viscous drags x (1 + this) */
 } dct_gearbox_input;
 
 typedef struct {
@@ -388,6 +398,8 @@ typedef struct {
     double relaxation_length_m;
     double low_speed_damping_ns_per_m; /* contact damping near standstill */
     double low_speed_limit_m_s;       /* the damping fades out up to this speed */
+    double carcass_damping_ns_per_m;  /* longitudinal carcass damping, in parallel with its
+                                         stiffness (the deflection's spring), per tyre */
     double rolling_resistance;        /* coefficient */
     double rolling_smoothing_rad_s;   /* rolling resistance fades to 0 at standstill */
 } dct_tyre_params;
@@ -657,6 +669,7 @@ typedef struct {
     double line_current_a;
     double spool_stuck[2];            /* 1: that valve's spool held where it is (fault); its
                                          edges still meter at the held opening */
+    double oil_viscosity_m2_s;        /* thermal: the oil's viscosity now (<= 0: oil.viscosity_m2_s) */
 } dct_hydraulics_input;
 
 typedef struct {
@@ -681,6 +694,119 @@ void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_hydraulics
                             dct_hydraulics_state *s, const dct_hydraulics_input *in, double h);
 
 /* ------------------------------------------------------------------ */
+/* Thermal: lumped engine coolant, engine oil and transmission oil     */
+/* temperatures, and what depends on them (thermal.c)                  */
+/* ------------------------------------------------------------------ */
+typedef struct {
+    double ambient_temp_degc;             /* air around the car and through the radiator */
+    double initial_coolant_temp_degc;     /* at a reset that does not give temperatures */
+    double initial_engine_oil_temp_degc;
+    double initial_trans_oil_temp_degc;
+    /* engine heat: the fuel's energy not turned into combustion work goes
+     * partly through the walls (the rest leaves with the exhaust); the
+     * engine's friction work stays in the engine */
+    double fuel_lhv_j_per_g;              /* lower heating value of the fuel */
+    double wall_heat_fraction;            /* share of the fuel's unused energy into the walls */
+    double friction_heat_oil_share;       /* share of the friction heat into the engine oil (rest coolant) */
+    double coolant_heat_capacity_j_per_k; /* coolant and the engine metal it wets */
+    double engine_oil_heat_capacity_j_per_k;
+    double oil_coolant_ua_w_per_k;        /* engine oil - coolant heat exchanger */
+    double engine_ambient_ua_w_per_k;     /* engine block and sump to the air */
+    double thermostat_open_degc;          /* starts to open */
+    double thermostat_full_degc;          /* fully open */
+    double thermostat_min_opening;        /* share of the radiator flow while closed (bypass, leak) */
+    double radiator_ua_w_per_k;           /* radiator at standstill (fan), fully open */
+    double radiator_ua_per_speed_ws_per_km; /* ram air: added per m/s of vehicle speed, W/K per m/s */
+    /* transmission: clutch slip and gearbox losses heat its oil; an
+     * oil - coolant cooler and the housing reject it */
+    double trans_heat_capacity_j_per_k;   /* DSG fluid and the housing, clutches and mechatronic it wets */
+    double trans_cooler_ua_w_per_k;       /* transmission oil - engine coolant cooler */
+    double trans_ambient_ua_w_per_k;      /* housing to the air at standstill */
+    double trans_ambient_ua_per_speed_ws_per_km; /* added per m/s of vehicle speed, W/K per m/s */
+    /* oil viscosities: Walther (ASTM D341) through two data points */
+    double engine_oil_viscosity_40c_mm2_s;
+    double engine_oil_viscosity_100c_mm2_s;
+    double trans_oil_viscosity_40c_mm2_s;
+    double trans_oil_viscosity_100c_mm2_s;
+    /* engine: engine.drag holds at engine_ref_temp_degc (engine oil) */
+    double engine_ref_temp_degc;
+    double engine_rubbing_share;          /* share of the drag curve that is rubbing friction (rest: pumping) */
+    double engine_friction_viscosity_exponent; /* rubbing friction ~ (nu / nu_ref)^n */
+    double idle_warm_degc;                /* coolant: no idle rise and no enrichment from here up */
+    double idle_cold_degc;                /* coolant: full idle rise and enrichment from here down */
+    double idle_cold_rise_rpm;            /* idle target raised by this when cold */
+    double cold_enrichment;               /* extra fuel share when cold (warm-up enrichment) */
+    /* transmission: clutch.*, gearbox drags and hydraulics.oil.viscosity_m2_s
+     * hold at trans_ref_temp_degc (transmission oil) */
+    double trans_ref_temp_degc;
+    double clutch_drag_viscosity_exponent;   /* open-pack drag ~ (nu / nu_ref)^n (Couette shear: 1) */
+    double churning_viscosity_exponent;      /* viscous gearbox drags ~ (nu / nu_ref)^n */
+    double clutch_mu_change_per_k;        /* relative change of the friction coefficients per K above the reference */
+    /* accessories on the crank */
+    double alternator_load_w;             /* electrical load */
+    double alternator_efficiency;
+    double power_steering_nm;             /* engine-driven power steering pump */
+    double ac_on;                         /* 0/1: A/C compressor engaged */
+    double ac_torque_nm;                  /* A/C compressor torque while engaged */
+    double accessory_smoothing_rad_s;     /* accessory torques fade to 0 at standstill over this speed */
+} dct_thermal_params;
+
+typedef struct {
+    double coolant_temp_degc;
+    double engine_oil_temp_degc;
+    double trans_oil_temp_degc;
+} dct_thermal_state;
+
+/* what the temperatures do to the other components (from the state alone) */
+typedef struct {
+    double engine_drag_factor;            /* engine.drag x this */
+    double idle_rise_rpm;                 /* added to engine.idle_speed_rpm */
+    double fuel_enrichment;               /* extra fuel share */
+    double trans_viscosity_ratio;         /* nu(T) / nu(T_ref) of the transmission oil */
+    double trans_oil_viscosity_m2_s;      /* hydraulics.oil.viscosity_m2_s x the ratio */
+    double engine_oil_viscosity_ratio;
+    double clutch_drag_factor;
+    double churning_factor;
+    double clutch_mu_factor;              /* mu_static and mu_kinetic x this */
+    double thermostat_opening;            /* 0..1 */
+} dct_thermal_effects;
+
+typedef struct {
+    double fuel_heat_w;                   /* fuel burnt (without enrichment) x LHV */
+    double combustion_power_w;            /* combustion torque x crank speed */
+    double friction_power_w;              /* engine drag power (>= 0) */
+    double trans_heat_w;                  /* clutch slip and gearbox losses */
+    double vehicle_speed_m_s;
+} dct_thermal_input;
+
+typedef struct {
+    double coolant_heat_in_w;             /* from the engine */
+    double engine_oil_heat_in_w;
+    double trans_heat_in_w;
+    double radiator_w;                    /* rejected to the air */
+    double engine_ambient_w;
+    double trans_ambient_w;
+    double oil_to_coolant_w;              /* engine oil -> coolant */
+    double trans_to_coolant_w;            /* transmission oil -> coolant (cooler) */
+    double coolant_rate_k_s;
+    double engine_oil_rate_k_s;
+    double trans_oil_rate_k_s;
+} dct_thermal_output;
+
+/* Walther (ASTM D341): kinematic viscosity in mm2/s at temp_degc through
+ * (40 degC, nu40) and (100 degC, nu100) */
+double dct_walther_viscosity(double nu40_mm2_s, double nu100_mm2_s, double temp_degc);
+void dct_thermal_init(const dct_thermal_params *p, dct_thermal_state *s, double coolant_degc,
+                      double engine_oil_degc, double trans_oil_degc);
+void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_oil_params *trans_oil,
+                              const dct_thermal_state *s, dct_thermal_effects *fx);
+void dct_thermal_output_eval(const dct_thermal_params *p, const dct_thermal_state *s,
+                             const dct_thermal_effects *fx, const dct_thermal_input *in,
+                             dct_thermal_output *out);
+void dct_thermal_advance(const dct_thermal_params *p, dct_thermal_state *s,
+                         const dct_thermal_output *out, double h);
+
+/* ------------------------------------------------------------------ */
 /* Assembly                                                            */
 /* ------------------------------------------------------------------ */
 typedef struct {
@@ -699,6 +825,7 @@ typedef struct {
     dct_wheel_params rear_wheels;     /* both rear wheels lumped */
     dct_tyre_params tyre;
     dct_vehicle_params vehicle;
+    dct_thermal_params thermal;
 } dct_params;
 
 /* The whole state: doubles only, one contiguous array. */
@@ -712,6 +839,7 @@ typedef struct {
     dct_wheel_state wheel[3];         /* front left, front right, rear axle */
     dct_tyre_state tyre[3];
     dct_vehicle_state vehicle;
+    dct_thermal_state thermal;
 } dct_state;
 
 /* Plant inputs (what a TCU, a driver and the road give). */
@@ -793,6 +921,15 @@ typedef struct {
     double accel_pedal_pct;           /* as applied */
     double brake_pedal_pct;
     double input_clamps;              /* inputs limited to their range so far */
+    double coolant_temp_degc;         /* engine coolant */
+    double engine_oil_temp_degc;
+    double trans_oil_temp_degc;       /* transmission (DSG) oil */
+    double thermostat_opening;        /* 0..1 */
+    double engine_heat_in_w;          /* into coolant and engine oil */
+    double trans_heat_in_w;           /* into the transmission oil: clutch slip, gearbox losses */
+    double heat_rejected_w;           /* radiator, engine and gearbox housings to the air */
+    double trans_oil_viscosity_mm2_s; /* kinematic, at trans_oil_temp_degc */
+    double accessory_torque_nm;       /* alternator, power steering, A/C on the crank */
     double gear;                      /* engaged gear: 1..6, -1 R, 0 none. The gear engaged (its
                                          synchronizer engaged) on the active input shaft: the shaft
                                          whose clutch carries the drive torque (of the clamped
@@ -852,6 +989,10 @@ typedef struct {
     double sleeve_side[DCT_N_SLEEVES]; /* +1 / -1 engaged, 0 neutral */
     double clutch_locked[2];          /* 1: engine speed follows that input shaft */
     double engine_on;
+    double temperatures_given;        /* 1: the three temperatures below; 0: thermal.initial_* */
+    double coolant_temp_degc;
+    double engine_oil_temp_degc;
+    double trans_oil_temp_degc;
 } dct_initial;
 
 typedef struct {

@@ -12,6 +12,14 @@
  * torque range [0, full load - drag], so pedal 0 gives drag, pedal 100 full
  * load. A TCU torque request, when active, replaces the pedal demand (the
  * idle governor keeps priority so that an intervention cannot stall it).
+ *
+ * Thermal effects (thermal.c) come in as inputs, all 0 for the warm engine:
+ * the drag curve x (1 + drag_excess), the idle target + idle_rise_rpm, the
+ * fuel x (1 + fuel_enrichment) (the extra fuel does not burn: no torque).
+ * Accessories (alternator, power steering, A/C) take accessory_torque_nm
+ * from the crank; the engine's torque structure covers them, as it covers
+ * the drag: pedal 100 % and a torque request mean brake torque at the
+ * clutch, and the idle governor holds the idle speed against them.
  */
 #include "dct_plant.h"
 #include "dct_util.h"
@@ -57,12 +65,12 @@ double dct_bsfc_eval(const dct_bsfc_map *m, double speed_rpm, double torque_nm)
     return a + fy * (b - a);
 }
 
-static double drag_torque(const dct_engine_params *p, double speed_rad_s)
+static double drag_torque(const dct_engine_params *p, double speed_rad_s, double factor)
 {
     double n = speed_rad_s * DCT_RPM_PER_RAD_S;
     /* the curve is given for forward rotation; the drag always opposes the
      * rotation and fades out at standstill */
-    return dct_curve_eval(&p->drag, fabs(n)) * dct_smooth_sign(speed_rad_s, p->drag_smoothing_rad_s);
+    return factor * dct_curve_eval(&p->drag, fabs(n)) * dct_smooth_sign(speed_rad_s, p->drag_smoothing_rad_s);
 }
 
 void dct_engine_init(const dct_engine_params *p, dct_engine_state *s, double speed_rad_s, int running)
@@ -72,9 +80,9 @@ void dct_engine_init(const dct_engine_params *p, dct_engine_state *s, double spe
     s->running = running ? 1.0 : 0.0;
     /* running: start with the combustion torque that holds this speed
      * unloaded, and the governor integrator holding idle */
-    double hold = running ? -drag_torque(p, speed_rad_s) : 0.0;
+    double hold = running ? -drag_torque(p, speed_rad_s, 1.0) : 0.0;
     s->combustion_torque_nm = hold;
-    double idle_hold = -drag_torque(p, p->idle_speed_rpm * DCT_RAD_S_PER_RPM);
+    double idle_hold = -drag_torque(p, p->idle_speed_rpm * DCT_RAD_S_PER_RPM, 1.0);
     s->idle_integral_nm = running ? dct_clamp(idle_hold, 0.0, p->idle_torque_max_nm) : 0.0;
 }
 
@@ -83,19 +91,22 @@ void dct_engine_output_eval(const dct_engine_params *p, const dct_engine_state *
 {
     double w = s->speed_rad_s;
     double n = w * DCT_RPM_PER_RAD_S;
-    double drag = drag_torque(p, w);
+    double factor = 1.0 + in->drag_excess;
+    double drag = drag_torque(p, w, factor);
+    double acc = in->accessory_torque_nm * dct_smooth_sign(w, p->drag_smoothing_rad_s);
     double full = dct_curve_eval(&p->full_load, n);
-    double range = full - dct_curve_eval(&p->drag, fabs(n));
+    double drag_need = -factor * dct_curve_eval(&p->drag, fabs(n)) + in->accessory_torque_nm;
+    double range = full + drag_need;
     if (range < 0.0)
         range = 0.0;
     double demand = 0.0;
     int fired = s->running > 0.5 && in->engine_on > 0.5;
     if (fired) {
-        double err = p->idle_speed_rpm - n;
+        double err = p->idle_speed_rpm + in->idle_rise_rpm - n;
         double gov = dct_clamp(p->idle_kp_nm_per_rpm * err + s->idle_integral_nm, 0.0,
                                p->idle_torque_max_nm);
         if (in->torque_request_active > 0.5) {
-            double req = in->torque_request_nm - dct_curve_eval(&p->drag, fabs(n));
+            double req = in->torque_request_nm + drag_need;
             demand = req > gov ? req : gov;
         } else {
             demand = 0.01 * in->accel_pedal_pct * range + gov;
@@ -107,17 +118,20 @@ void dct_engine_output_eval(const dct_engine_params *p, const dct_engine_state *
     out->demand_nm = demand;
     out->drag_nm = drag;
     double comb = s->combustion_torque_nm;
-    out->torque_nm = comb + drag;
+    out->torque_nm = comb + drag - acc;
+    out->accessory_torque_nm = acc;
     double fuel = 0.0;
     if (fired && demand > 0.0 && w > 0.0) {
         /* below the map's lowest torque row (idle, light load) the engine
-         * still burns what that row needs: idle consumption */
-        double t = out->torque_nm;
+         * still burns what that row needs: idle consumption. The work of
+         * the accessories is the engine's work too. */
+        double t = out->torque_nm + acc;
         if (t < p->bsfc.torque_nm[0])
             t = p->bsfc.torque_nm[0];
         fuel = dct_bsfc_eval(&p->bsfc, n, t) * t * w / 3.6e6;
     }
-    out->fuel_rate_g_s = fuel;
+    out->burnt_fuel_rate_g_s = fuel;
+    out->fuel_rate_g_s = fuel * (1.0 + in->fuel_enrichment);
     out->speed_deriv_rad_s2 = (out->torque_nm - in->load_torque_nm) / p->inertia_kgm2;
 }
 
@@ -146,7 +160,7 @@ void dct_engine_advance(const dct_engine_params *p, dct_engine_state *s,
     int fired = s->running > 0.5 && in->engine_on > 0.5;
     if (fired) {
         /* governor integrator with clamping anti-windup */
-        double err = p->idle_speed_rpm - n;
+        double err = p->idle_speed_rpm + in->idle_rise_rpm - n;
         double i_new = s->idle_integral_nm + h * p->idle_ki_nm_per_rpm_s * err;
         s->idle_integral_nm = dct_clamp(i_new, 0.0, p->idle_torque_max_nm);
     }

@@ -85,6 +85,7 @@ void dct_gearbox_output_eval(const dct_gearbox_params *p, const dct_gearbox_deri
     double w_gear[DCT_N_GEARS];
     double w_out[2];
     double t_in[2], t_car, loss = 0.0;
+    double visc = 1.0 + in->viscous_drag_excess; /* thermal: oil viscosity */
     for (int o = 0; o < 2; o++)
         w_out[o] = s->carrier_speed_rad_s * p->final_drive[o];
     for (int g = 0; g < DCT_N_GEARS; g++) {
@@ -108,13 +109,13 @@ void dct_gearbox_output_eval(const dct_gearbox_params *p, const dct_gearbox_deri
     }
     for (int k = 0; k < 2; k++) {
         double w = s->input_speed_rad_s[k];
-        double t = drag(p->input_drag_nm[k], p->input_drag_nms_per_rad[k], w, p->drag_smoothing_rad_s);
+        double t = drag(p->input_drag_nm[k], p->input_drag_nms_per_rad[k] * visc, w, p->drag_smoothing_rad_s);
         loss += t * w;
         t_in[k] = in->clutch_torque_nm[k] - t;
     }
     {
         double w = s->carrier_speed_rad_s;
-        double t = drag(p->output_drag_nm, p->output_drag_nms_per_rad, w, p->drag_smoothing_rad_s);
+        double t = drag(p->output_drag_nm, p->output_drag_nms_per_rad * visc, w, p->drag_smoothing_rad_s);
         loss += t * w;
         t_car = -t - in->load_torque_nm;
     }
@@ -122,7 +123,7 @@ void dct_gearbox_output_eval(const dct_gearbox_params *p, const dct_gearbox_deri
         int o = GEAR_OUTPUT[g];
         double tg = out->gear_torque_nm[g];
         double rel = w_gear[g] - w_out[o];
-        double tig = p->idle_gear_drag_nms_per_rad * rel; /* loose gear bearing */
+        double tig = p->idle_gear_drag_nms_per_rad * visc * rel; /* loose gear bearing */
         double f = tg != 0.0 ? efficiency_factor(p->mesh_efficiency[g], tg * w_gear[g],
                                                  p->efficiency_smoothing_w)
                              : 1.0;

@@ -114,12 +114,16 @@ void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_hydraulics
     int n = (int)p->substeps;
     double hh = h / n;
     double line_target = dct_pressure_map_eval(&p->supply.line, in->line_current_a) * DCT_PA_PER_BAR;
+    /* the oil at its temperature now (thermal.c) */
+    dct_oil_params oil = p->oil;
+    if (in->oil_viscosity_m2_s > 0.0)
+        oil.viscosity_m2_s = in->oil_viscosity_m2_s;
     for (int i = 0; i < n; i++) {
         dct_valve_output vo[2];
         for (int k = 0; k < 2; k++) {
             double pk = dct_chamber_pressure(&d->chamber[k], s->clutch_oil_m3[k]);
             dct_valve_input vi = {in->current_a[k], s->line_pressure_pa, pk};
-            dct_valve_output_eval(&p->valve, &p->oil, &s->valve[k], &vi, &vo[k]);
+            dct_valve_output_eval(&p->valve, &oil, &s->valve[k], &vi, &vo[k]);
         }
         for (int k = 0; k < 2; k++) {
             double held_m = s->valve[k].spool_position_m;

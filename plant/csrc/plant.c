@@ -39,12 +39,31 @@ typedef struct {
     dct_wheel_output wheel[3];
     dct_vehicle_input vehicle_in;
     dct_vehicle_output vehicle;
+    dct_thermal_effects thermal_fx;
+    dct_thermal_input thermal_in;
+    dct_thermal_output thermal;
 } coupling;
+
+/* accessories on the crank (a torque that opposes the rotation): the
+ * alternator's electrical load over its efficiency at the crank speed
+ * (limited to what it takes at 500 rpm), the power steering pump and the
+ * A/C compressor while switched on */
+static double accessory_torque(const dct_thermal_params *p, double speed_rad_s)
+{
+    double w = fabs(speed_rad_s);
+    double w_min = 500.0 * DCT_RAD_S_PER_RPM;
+    double alt = p->alternator_load_w / p->alternator_efficiency / (w > w_min ? w : w_min);
+    double t = alt + p->power_steering_nm + (p->ac_on > 0.5 ? p->ac_torque_nm : 0.0);
+    return t * dct_smooth_sign(w, p->accessory_smoothing_rad_s);
+}
 
 static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
 {
     const dct_params *p = &pl->effective;
     const dct_state *s = &pl->state;
+    /* what the temperatures change (from the state) */
+    dct_thermal_effects_eval(&p->thermal, &p->hydraulics.oil, &s->thermal, &c->thermal_fx);
+    c->hydraulics_in.oil_viscosity_m2_s = c->thermal_fx.trans_oil_viscosity_m2_s;
     /* hydraulics: clamp forces from the chamber pressures, or from the
      * commanded pressures through the same pistons */
     c->hydraulics_in.current_a[0] = u->solenoid_current1_a;
@@ -77,6 +96,8 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
         c->clutch_in[k].clamp_force_n = c->hydraulics.clamp_force_n[k];
         c->clutch_in[k].drive_speed_rad_s = s->engine.speed_rad_s;
         c->clutch_in[k].driven_speed_rad_s = s->gearbox.input_speed_rad_s[k];
+        c->clutch_in[k].drag_excess = c->thermal_fx.clutch_drag_factor - 1.0;
+        c->clutch_in[k].mu_excess = c->thermal_fx.clutch_mu_factor - 1.0;
         dct_clutch_output_eval(&p->clutch[k], &s->clutch[k], &c->clutch_in[k], &c->clutch[k]);
     }
 
@@ -86,6 +107,10 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     c->engine_in.torque_request_active = u->torque_request_active;
     c->engine_in.engine_on = u->engine_on;
     c->engine_in.load_torque_nm = c->clutch[0].torque_nm + c->clutch[1].torque_nm;
+    c->engine_in.drag_excess = c->thermal_fx.engine_drag_factor - 1.0;
+    c->engine_in.idle_rise_rpm = c->thermal_fx.idle_rise_rpm;
+    c->engine_in.fuel_enrichment = c->thermal_fx.fuel_enrichment;
+    c->engine_in.accessory_torque_nm = accessory_torque(&p->thermal, s->engine.speed_rad_s);
     dct_engine_output_eval(&p->engine, &s->engine, &c->engine_in, &c->engine);
 
     /* differential and half-shafts */
@@ -102,6 +127,7 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     c->gearbox_in.fork_force_n[2] = u->fork_force3_n;
     c->gearbox_in.fork_force_n[3] = u->fork_force4_n;
     c->gearbox_in.load_torque_nm = c->driveline.carrier_load_nm;
+    c->gearbox_in.viscous_drag_excess = c->thermal_fx.churning_factor - 1.0;
     dct_gearbox_output_eval(&p->gearbox, &pl->derived.gearbox, &s->gearbox, &c->gearbox_in,
                             &c->gearbox);
 
@@ -134,6 +160,16 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     c->vehicle_in.rear_wheel_torque_nm = c->wheel[2].body_torque_nm;
     c->vehicle_in.road_grade_pct = u->road_grade_pct;
     dct_vehicle_output_eval(&p->vehicle, &s->vehicle, &c->vehicle_in, &c->vehicle);
+
+    /* heat: the engine's unused fuel energy and friction, the clutches'
+     * slip and the gearbox's losses */
+    double w = s->engine.speed_rad_s;
+    c->thermal_in.fuel_heat_w = c->engine.burnt_fuel_rate_g_s * p->thermal.fuel_lhv_j_per_g;
+    c->thermal_in.combustion_power_w = s->engine.combustion_torque_nm * w;
+    c->thermal_in.friction_power_w = -c->engine.drag_nm * w;
+    c->thermal_in.trans_heat_w = c->clutch[0].heat_w + c->clutch[1].heat_w + c->gearbox.power_loss_w;
+    c->thermal_in.vehicle_speed_m_s = s->vehicle.speed_m_s;
+    dct_thermal_output_eval(&p->thermal, &s->thermal, &c->thermal_fx, &c->thermal_in, &c->thermal);
 }
 
 static void advance(dct_plant *pl, const coupling *c, double h)
@@ -154,6 +190,7 @@ static void advance(dct_plant *pl, const coupling *c, double h)
         dct_tyre_advance(&p->tyre, &s->tyre[i], &c->tyre[i], h);
     }
     dct_vehicle_advance(&p->vehicle, &s->vehicle, &c->vehicle_in, &c->vehicle, h);
+    dct_thermal_advance(&p->thermal, &s->thermal, &c->thermal, h);
     s->time_s += h;
 }
 
@@ -276,6 +313,15 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     o->accel_pedal_pct = pl->applied.accel_pedal_pct;
     o->brake_pedal_pct = pl->applied.brake_pedal_pct;
     o->input_clamps = pl->input_clamps;
+    o->coolant_temp_degc = s->thermal.coolant_temp_degc;
+    o->engine_oil_temp_degc = s->thermal.engine_oil_temp_degc;
+    o->trans_oil_temp_degc = s->thermal.trans_oil_temp_degc;
+    o->thermostat_opening = c->thermal_fx.thermostat_opening;
+    o->engine_heat_in_w = c->thermal.coolant_heat_in_w + c->thermal.engine_oil_heat_in_w;
+    o->trans_heat_in_w = c->thermal.trans_heat_in_w;
+    o->heat_rejected_w = c->thermal.radiator_w + c->thermal.engine_ambient_w + c->thermal.trans_ambient_w;
+    o->trans_oil_viscosity_mm2_s = c->thermal_fx.trans_oil_viscosity_m2_s * 1e6;
+    o->accessory_torque_nm = c->engine.accessory_torque_nm;
     o->gear = engaged_gear(pl, c);
 }
 
@@ -430,6 +476,15 @@ static int check_params(const dct_params *p)
             return DCT_ERR_PARAM;
     if (!(p->driveline.left_damping_nms_per_rad + p->driveline.right_damping_nms_per_rad > 0.0))
         return DCT_ERR_PARAM;
+    const dct_thermal_params *th = &p->thermal;
+    if (!(th->coolant_heat_capacity_j_per_k > 0.0) || !(th->engine_oil_heat_capacity_j_per_k > 0.0) ||
+        !(th->trans_heat_capacity_j_per_k > 0.0) || !(th->thermostat_full_degc > th->thermostat_open_degc) ||
+        !(th->idle_warm_degc > th->idle_cold_degc) || !(th->alternator_efficiency > 0.0) ||
+        !(th->accessory_smoothing_rad_s > 0.0) || !(th->engine_oil_viscosity_40c_mm2_s > th->engine_oil_viscosity_100c_mm2_s) ||
+        !(th->engine_oil_viscosity_100c_mm2_s > 0.0) ||
+        !(th->trans_oil_viscosity_40c_mm2_s > th->trans_oil_viscosity_100c_mm2_s) ||
+        !(th->trans_oil_viscosity_100c_mm2_s > 0.0))
+        return DCT_ERR_PARAM;
     if (!(p->front_wheel.inertia_kgm2 > 0.0) || !(p->rear_wheels.inertia_kgm2 > 0.0) ||
         !(p->front_wheel.brake.stiffness_nm_per_rad > 0.0) || !(p->rear_wheels.brake.stiffness_nm_per_rad > 0.0))
         return DCT_ERR_PARAM;
@@ -491,8 +546,16 @@ int dct_plant_reset(dct_plant *pl, const dct_initial *init)
     double v = init->vehicle_speed_kmh / 3.6;
     double w_wheel = v / p->tyre.radius_m;
     double w_car = w_wheel;
+    if (init->temperatures_given > 0.5)
+        dct_thermal_init(&p->thermal, &s->thermal, init->coolant_temp_degc, init->engine_oil_temp_degc,
+                         init->trans_oil_temp_degc);
+    else
+        dct_thermal_init(&p->thermal, &s->thermal, p->thermal.initial_coolant_temp_degc,
+                         p->thermal.initial_engine_oil_temp_degc, p->thermal.initial_trans_oil_temp_degc);
+    dct_thermal_effects fx;
+    dct_thermal_effects_eval(&p->thermal, &p->hydraulics.oil, &s->thermal, &fx);
     int engine_on = init->engine_on > 0.5;
-    double w_idle = engine_on ? p->engine.idle_speed_rpm * DCT_RAD_S_PER_RPM : 0.0;
+    double w_idle = engine_on ? (p->engine.idle_speed_rpm + fx.idle_rise_rpm) * DCT_RAD_S_PER_RPM : 0.0;
 
     /* input shafts follow an engaged gear, else the engine */
     double w_in[2] = {-1.0, -1.0};
@@ -521,6 +584,19 @@ int dct_plant_reset(dct_plant *pl, const dct_initial *init)
         s->gearbox.input_speed_rad_s[k] = engaged[k] ? w_in[k] : w_eng;
     s->gearbox.carrier_speed_rad_s = w_car;
     dct_engine_init(&p->engine, &s->engine, w_eng, engine_on);
+    if (engine_on) {
+        /* the engine holds its speed against the drag at this temperature
+         * and the accessories too (dct_engine_init: the warm drag alone) */
+        double k = fx.engine_drag_factor - 1.0;
+        double w_i = (p->engine.idle_speed_rpm + fx.idle_rise_rpm) * DCT_RAD_S_PER_RPM;
+        double n_e = fabs(w_eng) * DCT_RPM_PER_RAD_S, n_i = w_i * DCT_RPM_PER_RAD_S;
+        s->engine.combustion_torque_nm += -k * dct_curve_eval(&p->engine.drag, n_e) *
+                                              dct_smooth_sign(w_eng, p->engine.drag_smoothing_rad_s) +
+                                          accessory_torque(&p->thermal, w_eng);
+        s->engine.idle_integral_nm = dct_clamp(-(1.0 + k) * dct_curve_eval(&p->engine.drag, n_i) +
+                                                   accessory_torque(&p->thermal, w_i),
+                                               0.0, p->engine.idle_torque_max_nm);
+    }
     for (int k = 0; k < 2; k++)
         dct_clutch_init(&p->clutch[k], &s->clutch[k]);
     dct_hydraulics_init(&p->hydraulics, &s->hydraulics);

@@ -16,6 +16,7 @@
  * deflection is limited to the peak-force slip of the magic formula (beyond
  * it the contact patch slides), the limit widening as the speed rises and
  * the relaxation takes over.
+ * The carcass damps its deflection: + n c_c du/dt (Kelvin-Voigt carcass).
  * Rolling resistance is a moment c_rr Fz R opposing the rotation.
  * n tyres lumped in one position (the rear axle) each carry Fz / n.
  */
@@ -86,6 +87,11 @@ void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
     out->slip = kappa;
     out->slip_speed_m_s = slip_speed;
     out->deflection_rate_m_s = slip_speed - (1.0 - w) * vref * s->deflection_m / p->relaxation_length_m;
+    /* the carcass's own damping (rubber hysteresis), in parallel with its
+     * spring: without it the deflection is an undamped spring at low speed,
+     * where the relaxation (V / sigma) no longer damps the driveline's modes */
+    f += n * p->carcass_damping_ns_per_m * out->deflection_rate_m_s;
+    out->force_n = f;
     out->contact_weight = w;
     out->tyre_load_n = fz / n;
     out->rolling_moment_nm = p->rolling_resistance * fz * p->radius_m *

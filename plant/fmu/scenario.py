@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from plant.scenario import INITIAL_KEYS, Scenario, load_scenario
+from plant.scenario import INITIAL_KEYS, TEMPERATURE_KEYS, Scenario, load_scenario
 
 
 def start_values(scenario: Scenario) -> dict:
@@ -27,6 +27,14 @@ def start_values(scenario: Scenario) -> dict:
         out[f"initial.sleeve_side[{i}]"] = float(init[f"sleeve{i + 1}_side"])
     for i in range(2):
         out[f"initial.clutch_locked[{i}]"] = float(init[f"clutch{i + 1}_locked"])
+    temps = scenario.reset_kwargs()
+    if any(key in temps for key in TEMPERATURE_KEYS):
+        # the temperatures the file does not give keep their start values:
+        # the parameters' thermal.initial_*
+        out["initial.temperatures_given"] = 1.0
+        for key in TEMPERATURE_KEYS:
+            if key in temps:
+                out[f"initial.{key}"] = float(temps[key])
     return out
 
 

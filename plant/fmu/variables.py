@@ -48,7 +48,9 @@ EXCLUDED_PARAMS = {"solver.step_s"}
 _FAULT_RANGES = {"pack_gap_offset_mm": (-math.inf, math.inf),
                  "engine_torque_max_nm": (0.0, math.inf)}
 _INITIAL_RANGES = {"vehicle_speed_kmh": (-100.0, 300.0), "sleeve_side": (-1.0, 1.0),
-                   "clutch_locked": (0.0, 1.0), "engine_on": (0.0, 1.0)}
+                   "clutch_locked": (0.0, 1.0), "engine_on": (0.0, 1.0),
+                   "temperatures_given": (0.0, 1.0), "coolant_temp_degc": (-40.0, 130.0),
+                   "engine_oil_temp_degc": (-40.0, 150.0), "trans_oil_temp_degc": (-40.0, 150.0)}
 _INITIAL_TEXT = {
     "vehicle_speed_kmh": "vehicle speed the run starts at (steady motion)",
     "sleeve_side": "sleeve engaged at the start: +1 / -1 the side's gear (sleeve 0: 1/3, "
@@ -56,6 +58,11 @@ _INITIAL_TEXT = {
     "clutch_locked": "1: the clutch (K1, K2) is locked at the start: the engine turns with "
                      "its input shaft (needs a gear engaged on that shaft)",
     "engine_on": "1: the engine runs at the start (at idle speed unless a clutch is locked)",
+    "temperatures_given": "1: the run starts at the three temperatures below; 0: at the "
+                          "parameters' thermal.initial_* (the warm car)",
+    "coolant_temp_degc": "engine coolant temperature at the start (with temperatures_given = 1)",
+    "engine_oil_temp_degc": "engine oil temperature at the start (with temperatures_given = 1)",
+    "trans_oil_temp_degc": "transmission oil temperature at the start (with temperatures_given = 1)",
 }
 
 
@@ -223,7 +230,7 @@ def load(params_path: str | os.PathLike | None = None) -> Model:
         add(f"faults.{name}", PARAM_TUNABLE, f"faults.{_designator(path)}", 0.0, lo, hi,
             describe.unit_of(fname), _text("physical fault, 0 = healthy",
                                            comments.get((parent, fname), "")))
-    initial = _initial_defaults()
+    initial = _initial_defaults(values)
     for path, _parent, fname in _walk_type(ffi.typeof("dct_initial"), (), "", ""):
         lo, hi = _INITIAL_RANGES[fname]
         add(f"initial.{_name(path)}", INITIAL, _designator(path), _get(initial, path), lo, hi,
@@ -243,15 +250,23 @@ def load(params_path: str | os.PathLike | None = None) -> Model:
                  float(values["solver"]["step_s"]), state_names, input_names)
 
 
-def _initial_defaults() -> dict:
-    """dct_initial's defaults: standing, neutral, clutches open, engine on
-    (what ``Plant.reset()`` and the scenarios start from)."""
+def _initial_defaults(values: dict | None = None) -> dict:
+    """dct_initial's defaults: standing, neutral, clutches open, engine on,
+    the parameters' initial temperatures (what ``Plant.reset()`` and the
+    scenarios start from); ``values``: the car's parameters (default car)."""
     from plant.scenario import INITIAL_KEYS  # noqa: PLC0415
+    if values is None:
+        from plant.params import load_params  # noqa: PLC0415
+        values = load_params(None, ffi)
     k = INITIAL_KEYS
+    th = values["thermal"]
     return {"vehicle_speed_kmh": k["vehicle_speed_kmh"],
             "sleeve_side": [k[f"sleeve{i}_side"] for i in range(1, 5)],
             "clutch_locked": [k["clutch1_locked"], k["clutch2_locked"]],
-            "engine_on": k["engine_on"]}
+            "engine_on": k["engine_on"], "temperatures_given": 0.0,
+            "coolant_temp_degc": th["initial_coolant_temp_degc"],
+            "engine_oil_temp_degc": th["initial_engine_oil_temp_degc"],
+            "trans_oil_temp_degc": th["initial_trans_oil_temp_degc"]}
 
 
 def _get(tree: Any, path: tuple) -> float:
@@ -311,7 +326,7 @@ def generate_c(params_path: str | os.PathLike | None = None, model: Model | None
                  + _c_initializer(ffi.typeof("dct_params"), m.params, "") + ";")
     lines.append("")
     lines.append("const dct_initial fmu_initial = "
-                 + _c_initializer(ffi.typeof("dct_initial"), _initial_defaults(), "") + ";")
+                 + _c_initializer(ffi.typeof("dct_initial"), _initial_defaults(m.params), "") + ";")
     lines.append("")
     lines.append("const char *const fmu_state_names[] = {")
     lines += [f"    {_c_string(n)}," for n in m.state_names]
