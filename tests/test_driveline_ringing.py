@@ -26,12 +26,12 @@ import pytest
 from plant.model import Plant
 
 
-def ringing(brake_pct, overrides=None):
+def ringing(brake_pct, overrides=None, sleeves=(1, 0, 0, 0)):
     """(amplitude, first third, last third) of the 6-25 Hz body acceleration, m/s2."""
     ov = {"hydraulics": {"pressure_commanded": 1}}
     ov.update(overrides or {})
     p = Plant(overrides=ov)
-    p.reset(vehicle_speed_kmh=12.0, sleeves=(1, 0, 0, 0), clutch_locked=(1, 0))
+    p.reset(vehicle_speed_kmh=12.0, sleeves=sleeves, clutch_locked=(1, 0))
     p.inputs["clutch1_pressure_bar"] = 14.0
     p.inputs["brake_pedal_pct"] = brake_pct
     accel, speed, opened = [], [], None
@@ -60,3 +60,12 @@ def test_clutch_opening_on_the_brake_does_not_ring(brake_pct):
     assert last <= 0.5 * first, f"{last:.2f} m/s2 after {first:.2f}"
     if brake_pct == 40.0:
         assert amplitude <= 0.55, f"+-{amplitude:.2f} m/s2"
+
+
+@pytest.mark.xfail(strict=True, reason="with 2nd pre-selected (both input shafts on the output, as "
+                   "the reference TCU leaves it when it stops) the 8-9 Hz mode decays too slowly: "
+                   "0.28 m/s2 in the last third after 0.40 at 40 % brake (0.48 after 0.66 without "
+                   "the carcass damping); its damping is still to be found (powertrain mounts)")
+def test_clutch_opening_with_second_preselected_does_not_ring():
+    amplitude, first, last = ringing(40.0, sleeves=(1, 1, 0, 0))
+    assert last <= 0.5 * first, f"{last:.2f} m/s2 after {first:.2f}"
