@@ -9,8 +9,10 @@ the computing part: from the first task submitted to the last result (the cluste
 start-up is timed apart). The speed-up is the 1-worker time over the 2-worker time.
 
 Other processes on the machine take CPU from the workers, so each round also reports
-the machine's load: the load averages and the CPU time the rest of the machine (not
-this process and its workers) used per second of the round, in cores. Prints the
+the machine's load: the load averages, the CPU time the sweep (this process and its
+workers) used, and the CPU time the rest of the machine used per second of the round,
+in cores. A speed-up below 2x on a busy machine shows there as CPU the 2 workers did
+not get. Prints the
 figures and writes them to ``out/scaling.json`` (``--out``).
 """
 
@@ -102,6 +104,7 @@ def one_round(spec, workers: int, folder: Path) -> dict:
     return {"workers": workers, "runs": int(res.runs), "failed": int(res.failed),
             "compute_s": round(wall, 3), "startup_s": round(startup, 3),
             "run_wall_mean_s": round(float(runs["wall_s"].mean()), 4),
+            "cpu_of_sweep_s": round(ours1 - ours0, 2),
             "cpu_of_sweep_cores": round((ours1 - ours0) / wall, 3) if wall > 0 else None,
             "cpu_of_others_cores": round(others, 3),
             "loadavg_before": [round(x, 2) for x in load_before],
@@ -137,7 +140,8 @@ def main(argv=None) -> int:
             rounds.append(r)
             print(f"  {r['compute_s']:.2f} s computing ({r['startup_s']:.1f} s cluster start), "
                   f"{r['run_wall_mean_s']:.3f} s per run on its worker, failed {r['failed']}; "
-                  f"the sweep used {r['cpu_of_sweep_cores']:.2f} cores, other processes "
+                  f"the sweep used {r['cpu_of_sweep_s']:.1f} CPU s, "
+                  f"{r['cpu_of_sweep_cores']:.2f} cores, other processes "
                   f"{r['cpu_of_others_cores']:.2f} cores; load average "
                   f"{r['loadavg_before'][0]:.2f} before, {r['loadavg_after'][0]:.2f} after",
                   flush=True)
@@ -153,9 +157,13 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     busy = max(r["cpu_of_others_cores"] for r in rounds)
+    cores_ratio = rounds[1]["cpu_of_sweep_cores"] / rounds[0]["cpu_of_sweep_cores"]
+    result["cores_got_2_over_1"] = round(cores_ratio, 3)
+    out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     print(f"speed-up 1 -> 2 workers: {speedup:.2f}x (target {TARGET}x: "
           f"{'met' if speedup >= TARGET else 'NOT met'}) on {cores} CPUs; other processes "
-          f"used up to {busy:.2f} cores meanwhile")
+          f"used up to {busy:.2f} cores meanwhile; the 2 workers got {cores_ratio:.2f}x the "
+          "CPU the 1 worker got")
     print(f"json: {out}")
     return 0
 
