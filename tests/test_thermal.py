@@ -54,10 +54,16 @@ def _run(th, oil, temps, inputs, seconds, h=0.1):
     inp = ffi.new("dct_thermal_input *", inputs)
     out = ffi.new("dct_thermal_output *")
     for _ in range(int(round(seconds / h))):
-        lib.dct_thermal_effects_eval(th, oil, s, fx)
+        lib.dct_thermal_effects_eval(th, _derived(th), oil, s, fx)
         lib.dct_thermal_output_eval(th, s, fx, inp, out)
         lib.dct_thermal_advance(th, s, out, h)
     return s, out
+
+
+def _derived(th):
+    d = ffi.new("dct_thermal_derived *")
+    lib.dct_thermal_prepare(th, d)
+    return d
 
 
 def _walther(p, which, t):
@@ -133,7 +139,7 @@ def test_no_heat_from_a_fuel_cut(th, oil):
     s = ffi.new("dct_thermal_state *")
     lib.dct_thermal_init(th, s, 90.0, 90.0, 80.0)
     fx = ffi.new("dct_thermal_effects *")
-    lib.dct_thermal_effects_eval(th, oil, s, fx)
+    lib.dct_thermal_effects_eval(th, _derived(th), oil, s, fx)
     out = ffi.new("dct_thermal_output *")
     inp = ffi.new("dct_thermal_input *", {"fuel_heat_w": 0.0, "combustion_power_w": 5000.0})
     lib.dct_thermal_output_eval(th, s, fx, inp, out)
@@ -226,7 +232,7 @@ def _effects(th, oil, coolant, engine_oil, trans_oil):
     s = ffi.new("dct_thermal_state *")
     lib.dct_thermal_init(th, s, coolant, engine_oil, trans_oil)
     fx = ffi.new("dct_thermal_effects *")
-    lib.dct_thermal_effects_eval(th, oil, s, fx)
+    lib.dct_thermal_effects_eval(th, _derived(th), oil, s, fx)
     return fx
 
 

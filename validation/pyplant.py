@@ -1143,16 +1143,19 @@ def thermal_init(s, coolant_degc, engine_oil_degc, trans_oil_degc):
     s.trans_oil_temp_degc = trans_oil_degc
 
 
-def thermal_effects(p, trans_oil, s):
+def thermal_prepare(p):
+    return (walther_viscosity(p.engine_oil_viscosity_40c_mm2_s, p.engine_oil_viscosity_100c_mm2_s,
+                              p.engine_ref_temp_degc),
+            walther_viscosity(p.trans_oil_viscosity_40c_mm2_s, p.trans_oil_viscosity_100c_mm2_s,
+                              p.trans_ref_temp_degc))
+
+
+def thermal_effects(p, d, trans_oil, s):
     fx = ThermalEffects()
     ro = (walther_viscosity(p.engine_oil_viscosity_40c_mm2_s, p.engine_oil_viscosity_100c_mm2_s,
-                            s.engine_oil_temp_degc)
-          / walther_viscosity(p.engine_oil_viscosity_40c_mm2_s, p.engine_oil_viscosity_100c_mm2_s,
-                              p.engine_ref_temp_degc))
+                            s.engine_oil_temp_degc) / d[0])
     rt = (walther_viscosity(p.trans_oil_viscosity_40c_mm2_s, p.trans_oil_viscosity_100c_mm2_s,
-                            s.trans_oil_temp_degc)
-          / walther_viscosity(p.trans_oil_viscosity_40c_mm2_s, p.trans_oil_viscosity_100c_mm2_s,
-                              p.trans_ref_temp_degc))
+                            s.trans_oil_temp_degc) / d[1])
     lo = math.log(ro)
     lt = math.log(rt)
     fx.engine_oil_viscosity_ratio = ro
@@ -1249,6 +1252,7 @@ class PyPlant:
         self.substeps = int(p.solver.substeps)
         self.chambers = hydraulics_prepare(p.hydraulics, p.clutch)
         self.gearbox_derived = gearbox_prepare(p.gearbox)
+        self.thermal_derived = thermal_prepare(p.thermal)
         self.time_s = 0.0
         self.engine = EngineState()
         self.clutch = [ClutchState(), ClutchState()]
@@ -1330,7 +1334,7 @@ class PyPlant:
         else:
             thermal_init(self.thermal, th.initial_coolant_temp_degc, th.initial_engine_oil_temp_degc,
                          th.initial_trans_oil_temp_degc)
-        fx = thermal_effects(th, p.hydraulics.oil, self.thermal)
+        fx = thermal_effects(th, self.thermal_derived, p.hydraulics.oil, self.thermal)
         on = engine_on > 0.5
         w_idle = (p.engine.idle_speed_rpm + fx.idle_rise_rpm) * RAD_S_PER_RPM if on else 0.0
         w_in = [-1.0, -1.0]
@@ -1418,7 +1422,7 @@ class PyPlant:
         p = self.p
         u = self.applied
         c = Coupling()
-        fx = c.thermal_fx = thermal_effects(p.thermal, p.hydraulics.oil, self.thermal)
+        fx = c.thermal_fx = thermal_effects(p.thermal, self.thermal_derived, p.hydraulics.oil, self.thermal)
         c.current_a = (u["solenoid_current1_a"], u["solenoid_current2_a"])
         c.line_current_a = u["line_solenoid_current_a"]
         # hydraulics: clamp forces from the chambers, or from commanded pressures

@@ -237,7 +237,7 @@ static void component_substep(const dct_plant *pl, const bench_inputs *b, int c,
         /* the effects the others read, then the heat balances */
         dct_thermal_effects fx;
         dct_thermal_output th;
-        dct_thermal_effects_eval(&p->thermal, &p->hydraulics.oil, &x->thermal, &fx);
+        dct_thermal_effects_eval(&p->thermal, &pl->derived.thermal, &p->hydraulics.oil, &x->thermal, &fx);
         dct_thermal_output_eval(&p->thermal, &x->thermal, &fx, &b->thermal_in, &th);
         dct_thermal_advance(&p->thermal, &x->thermal, &th, h);
         break;

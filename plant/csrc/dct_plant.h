@@ -793,13 +793,21 @@ typedef struct {
     double trans_oil_rate_k_s;
 } dct_thermal_output;
 
+/* the oils' viscosities at their reference temperatures, computed once */
+typedef struct {
+    double engine_oil_ref_mm2_s;
+    double trans_oil_ref_mm2_s;
+} dct_thermal_derived;
+
 /* Walther (ASTM D341): kinematic viscosity in mm2/s at temp_degc through
  * (40 degC, nu40) and (100 degC, nu100) */
 double dct_walther_viscosity(double nu40_mm2_s, double nu100_mm2_s, double temp_degc);
 void dct_thermal_init(const dct_thermal_params *p, dct_thermal_state *s, double coolant_degc,
                       double engine_oil_degc, double trans_oil_degc);
-void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_oil_params *trans_oil,
-                              const dct_thermal_state *s, dct_thermal_effects *fx);
+void dct_thermal_prepare(const dct_thermal_params *p, dct_thermal_derived *d);
+void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_thermal_derived *d,
+                              const dct_oil_params *trans_oil, const dct_thermal_state *s,
+                              dct_thermal_effects *fx);
 void dct_thermal_output_eval(const dct_thermal_params *p, const dct_thermal_state *s,
                              const dct_thermal_effects *fx, const dct_thermal_input *in,
                              dct_thermal_output *out);
@@ -998,6 +1006,7 @@ typedef struct {
 typedef struct {
     dct_gearbox_derived gearbox;
     dct_hydraulics_derived hydraulics;
+    dct_thermal_derived thermal;
     double front_static_n;            /* static axle loads on level road */
     double rear_static_n;
     dct_faults faults;                /* the faults dct_plant_prepare accepted: those in effect */

@@ -62,7 +62,7 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     const dct_params *p = &pl->effective;
     const dct_state *s = &pl->state;
     /* what the temperatures change (from the state) */
-    dct_thermal_effects_eval(&p->thermal, &p->hydraulics.oil, &s->thermal, &c->thermal_fx);
+    dct_thermal_effects_eval(&p->thermal, &pl->derived.thermal, &p->hydraulics.oil, &s->thermal, &c->thermal_fx);
     c->hydraulics_in.oil_viscosity_m2_s = c->thermal_fx.trans_oil_viscosity_m2_s;
     /* hydraulics: clamp forces from the chamber pressures, or from the
      * commanded pressures through the same pistons */
@@ -519,6 +519,7 @@ int dct_plant_prepare(dct_plant *pl)
     const dct_params *p = &pl->effective;
     dct_gearbox_prepare(&p->gearbox, &pl->derived.gearbox);
     dct_hydraulics_prepare(&p->hydraulics, p->clutch, &pl->derived.hydraulics);
+    dct_thermal_prepare(&p->thermal, &pl->derived.thermal);
     pl->derived.front_static_n = dct_vehicle_static_front_n(&p->vehicle);
     pl->derived.rear_static_n = dct_vehicle_static_rear_n(&p->vehicle);
     return DCT_OK;
@@ -553,7 +554,7 @@ int dct_plant_reset(dct_plant *pl, const dct_initial *init)
         dct_thermal_init(&p->thermal, &s->thermal, p->thermal.initial_coolant_temp_degc,
                          p->thermal.initial_engine_oil_temp_degc, p->thermal.initial_trans_oil_temp_degc);
     dct_thermal_effects fx;
-    dct_thermal_effects_eval(&p->thermal, &p->hydraulics.oil, &s->thermal, &fx);
+    dct_thermal_effects_eval(&p->thermal, &pl->derived.thermal, &p->hydraulics.oil, &s->thermal, &fx);
     int engine_on = init->engine_on > 0.5;
     double w_idle = engine_on ? (p->engine.idle_speed_rpm + fx.idle_rise_rpm) * DCT_RAD_S_PER_RPM : 0.0;
 

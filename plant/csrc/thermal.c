@@ -61,17 +61,26 @@ static double coldness(const dct_thermal_params *p, double t)
     return dct_clamp((p->idle_warm_degc - t) / span, 0.0, 1.0);
 }
 
-void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_oil_params *trans_oil,
-                              const dct_thermal_state *s, dct_thermal_effects *fx)
+void dct_thermal_prepare(const dct_thermal_params *p, dct_thermal_derived *d)
+{
+    d->engine_oil_ref_mm2_s = dct_walther_viscosity(p->engine_oil_viscosity_40c_mm2_s,
+                                                    p->engine_oil_viscosity_100c_mm2_s,
+                                                    p->engine_ref_temp_degc);
+    d->trans_oil_ref_mm2_s = dct_walther_viscosity(p->trans_oil_viscosity_40c_mm2_s,
+                                                   p->trans_oil_viscosity_100c_mm2_s,
+                                                   p->trans_ref_temp_degc);
+}
+
+void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_thermal_derived *d,
+                              const dct_oil_params *trans_oil, const dct_thermal_state *s,
+                              dct_thermal_effects *fx)
 {
     double ro = dct_walther_viscosity(p->engine_oil_viscosity_40c_mm2_s,
                                       p->engine_oil_viscosity_100c_mm2_s, s->engine_oil_temp_degc) /
-                dct_walther_viscosity(p->engine_oil_viscosity_40c_mm2_s,
-                                      p->engine_oil_viscosity_100c_mm2_s, p->engine_ref_temp_degc);
+                d->engine_oil_ref_mm2_s;
     double rt = dct_walther_viscosity(p->trans_oil_viscosity_40c_mm2_s,
                                       p->trans_oil_viscosity_100c_mm2_s, s->trans_oil_temp_degc) /
-                dct_walther_viscosity(p->trans_oil_viscosity_40c_mm2_s,
-                                      p->trans_oil_viscosity_100c_mm2_s, p->trans_ref_temp_degc);
+                d->trans_oil_ref_mm2_s;
     double lo = log(ro), lt = log(rt);
     fx->engine_oil_viscosity_ratio = ro;
     fx->engine_drag_factor = 1.0 + p->engine_rubbing_share * (exp(p->engine_friction_viscosity_exponent * lo) - 1.0);
