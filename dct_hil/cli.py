@@ -95,7 +95,7 @@ def build_parser():
     sim.add_argument("--tcu-impl", choices=("c", "python"), default=None,
                      help="the TCU stub's loop: c, the reference TCU, driver and CAN contract "
                           "compiled (tcu_stub/fast.py; the default, except with --mapping), or "
-                          "python (tcu_stub/logic.py stepped from Python; same results, about 50x "
+                          "python (tcu_stub/logic.py stepped from Python; same results, about 30x "
                           "slower)")
     sim.set_defaults(func=cmd_simulate)
 
