@@ -60,6 +60,12 @@ def make_builder():
         sources=[_rel(os.path.join(_TCU_CSRC, f)) for f in _SOURCES]
         + [_rel(os.path.join(_CAN_CSRC, "can_table.c"))],
         include_dirs=[_rel(d) for d in (_TCU_CSRC, _CAN_CSRC, _PLANT_CSRC)],
+        # the headers too: a changed dct_plant.h (the plant's layout) must rebuild this
+        # extension, not only plant._dct_plant (tcu_stub/fast.py refuses a mismatch)
+        depends=[_rel(p) for p in (os.path.join(_PLANT_CSRC, "dct_plant.h"),
+                                   os.path.join(_CAN_CSRC, "can_table.h"),
+                                   os.path.join(_TCU_CSRC, "tcu_fast.h"),
+                                   os.path.join(_TCU_CSRC, "tcu_util.h"))],
         extra_compile_args=_COMPILE_ARGS,
         libraries=["m"],
     )
