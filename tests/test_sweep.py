@@ -130,7 +130,10 @@ def test_tcu_calibration_and_maneuver_in_a_sweep(tmp_path, engine):
     finds its Pareto front."""
     from studies import sweep as sw
 
-    spec = load_spec("studies/examples/shift_map.toml", duration_cap_s=40.0)
+    import studies
+
+    example = os.path.join(os.path.dirname(studies.__file__), "examples", "shift_map.toml")
+    spec = load_spec(example, duration_cap_s=40.0)
     assert [c.label for c in spec.cases] == ["wltc", "0-100"]
     assert spec.cases[0].duration_s == 40.0 and spec.cases[1].duration_s == 15.0
     assert len(sw.plan(spec)) == 14
