@@ -435,7 +435,14 @@ class Journal:
 
     def __init__(self, path: Path):
         self.path = path
+        torn = False
+        if path.exists() and path.stat().st_size > 0:
+            with open(path, "rb") as f:
+                f.seek(-1, os.SEEK_END)
+                torn = f.read(1) != b"\n"
         self._f = open(path, "a", encoding="utf-8")  # noqa: SIM115
+        if torn:       # a killed sweep's torn last line: the next record starts a line of its own
+            self._f.write("\n")
 
     def append(self, rec: dict) -> None:
         self._f.write(json.dumps(rec, default=_json_default) + "\n")

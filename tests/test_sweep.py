@@ -85,6 +85,7 @@ def test_sweep_of_32_runs_on_the_local_cluster_then_resumed(tmp_path, engine):
     assert len(kept) == 11
     res3 = run_sweep(spec, out=out, engine=engine, progress=False, log=lambda s: None)
     assert (res3.computed, res3.skipped, res3.failed) == (21, 11, 0)
+    assert len(read_journal(out / JOURNAL)) == 32        # the first record after the torn line kept
     again = pd.read_parquet(out / "runs.parquet").set_index("run_id")
     before = runs.set_index("run_id")
     assert np.allclose(again.loc[before.index, "fuel_l"], before["fuel_l"])
