@@ -187,7 +187,8 @@ def test_every_frame_of_the_flood_is_received_or_counted_lost(flood):
         f"{rx['overflow']} dropped on the socket, {flood['softnet_drops']} in the backlog")
     assert rx["unknown_id"] + rx["overflow"] + flood["softnet_drops"] \
         == flood["others"] - flood["sent_tcu"]
-    assert rx["overflow"] > 0, "the burst was larger than the socket buffer: losses expected"
+    # the burst is larger than the socket buffer, but a loop that drains it as fast as it
+    # comes loses nothing: losses are not required, only counted when they happen
 
 
 def test_the_tcu_is_taken_again_with_its_first_frame_after_the_flood(flood):
