@@ -189,6 +189,16 @@ def _counter(counter):
 # Encoding and decoding
 # ---------------------------------------------------------------------------
 
+def start_value(signal):
+    """The physical value a sender sends for ``signal`` before it knows one: the
+    DBC's GenSigStartValue (raw) scaled, or 0 for a signal without one (limited
+    to the range by ``encode``). SelectorLever starts in D, TransOilTemp warm."""
+    raw = signal.raw_initial
+    if raw is None:
+        return 0.0
+    return float(raw) * signal.scale + signal.offset
+
+
 def limit(signal, value):
     """``value`` limited to the signal's DBC range [minimum, maximum].
 
@@ -221,7 +231,8 @@ def encode(name, signals, counter):
     limited to its signal's DBC range (``limit``: values below the minimum
     become the minimum, above the maximum the maximum), then cantools packs
     it, rounding to the nearest raw step. Payload signals not given are sent
-    as 0 (limited to the range). Then AliveCounter = ``counter`` (0..15) and
+    at their start value (``start_value``: the GenSigStartValue, else 0, limited
+    to the range). Then AliveCounter = ``counter`` (0..15) and
     the CRC are written. Unknown signal names, CRC or AliveCounter among the
     signals, NaN and non-numbers raise ValueError."""
     msg = message(name)
@@ -235,7 +246,7 @@ def encode(name, signals, counter):
         raise ValueError(f"{msg.name} has no signal {unknown[0]} (it has {', '.join(known)})")
     values = {CRC_SIGNAL: 0, COUNTER_SIGNAL: _counter(counter)}
     for sig_name, sig in known.items():
-        values[sig_name] = limit(sig, given.get(sig_name, 0.0))
+        values[sig_name] = limit(sig, given[sig_name] if sig_name in given else start_value(sig))
     data = msg.encode(values, scaling=True, padding=False, strict=True)
     return protect(msg.frame_id, data, counter)
 

@@ -60,7 +60,8 @@ class CanPeer:
             shuts it down in ``close()`` only if it opened it
     side    "tcu": sends TCU_*, receives the plant's messages;
             "plant": sends the plant's messages, receives TCU_*
-    values  initial signal values ({signal: value}); unset signals are 0
+    values  initial signal values ({signal: value}); unset signals send their
+            start value (codec.start_value: GenSigStartValue, else 0)
     start   start the send and receive threads now (else call ``start()``)
     send_thread
             False: no send thread; the caller sends each frame with
@@ -79,7 +80,8 @@ class CanPeer:
         self.tx_messages = codec.messages(self.node)
         self.rx = codec.E2eReceiver(sender=self.peer_node)
         self._signal_msg = {s.name: m for m in self.tx_messages for s in codec.payload_signals(m)}
-        self._values = {m.name: {s.name: 0.0 for s in codec.payload_signals(m)} for m in self.tx_messages}
+        self._values = {m.name: {s.name: codec.start_value(s) for s in codec.payload_signals(m)}
+                        for m in self.tx_messages}
         self._enabled = {m.name: True for m in self.tx_messages}
         self._counter = {m.name: 0 for m in self.tx_messages}
         self.sent = {m.name: 0 for m in self.tx_messages}

@@ -12,7 +12,7 @@ import pytest
 
 from can_dbc import codec
 
-# name -> (id, cycle ms, sender, {payload signal: (start bit, length, signed, scale, unit)})
+# name -> (id, cycle ms, sender, {payload signal: (start bit, length, signed, scale, unit[, offset])})
 EXPECTED = {
     "DCT_ShaftSpeeds": (0x100, 2, "PLANT", {
         "EngineSpeed": (16, 16, True, 0.5, "rpm"),
@@ -27,7 +27,8 @@ EXPECTED = {
         "LinePressure": (48, 16, False, 0.001, "bar")}),
     "DCT_Shift": (0x110, 10, "PLANT", {
         **{f"ForkPosition{i}": (8 + 8 * i, 8, True, 0.1, "mm") for i in range(1, 5)},
-        **{f"SyncState{i}": (46 + 2 * i, 2, False, 1, "-") for i in range(1, 5)}}),
+        **{f"SyncState{i}": (46 + 2 * i, 2, False, 1, "-") for i in range(1, 5)},
+        "TransOilTemp": (56, 8, False, 1, "degC", -40)}),
     "VEH_Motion": (0x120, 10, "PLANT", {
         "VehicleSpeed": (16, 16, True, 0.01, "km/h"),
         "LongAccel": (32, 16, True, 0.001, "m/s2"),
@@ -35,7 +36,8 @@ EXPECTED = {
     "VEH_Driver": (0x121, 10, "PLANT", {
         "AccelPedal": (16, 8, False, 0.5, "%"),
         "BrakePedal": (24, 8, False, 0.5, "%"),
-        "EngineTorque": (32, 16, True, 0.1, "Nm")}),
+        "EngineTorque": (32, 16, True, 0.1, "Nm"),
+        "SelectorLever": (48, 4, False, 1, "-")}),
     "SIM_Status": (0x1F0, 100, "PLANT", {
         "SimTime": (16, 24, False, 0.01, "s"),
         "OverrunCount": (40, 12, False, 1, "-"),
@@ -68,6 +70,7 @@ TCU_NAMES = sorted(codec.TCU_SIGNAL_TARGETS)          # and those it receives
 CHOICES = {
     "SyncState": {0: "disengaged", 1: "synchronizing", 2: "engaged"},
     "SimState": {0: "starting", 1: "running", 2: "stopping", 3: "fault"},
+    "SelectorLever": {0: "P", 1: "R", 2: "N", 3: "D"},
 }
 
 
@@ -101,8 +104,9 @@ def test_dbc_has_exactly_the_contract_messages_and_signals():
         assert m.senders == [sender], m.name
         assert sorted(s.name for s in m.signals) == sorted(["CRC", "AliveCounter", *signals]), m.name
         for s in codec.payload_signals(m):
-            start, length, signed, scale, unit = signals[s.name]
-            assert (s.start, s.length, s.is_signed, s.scale, s.offset) == (start, length, signed, scale, 0), s.name
+            start, length, signed, scale, unit, *offset = signals[s.name]
+            assert (s.start, s.length, s.is_signed, s.scale, s.offset) == \
+                (start, length, signed, scale, offset[0] if offset else 0), s.name
             assert s.unit == unit, s.name
             other = "TCU" if sender == "PLANT" else "PLANT"
             assert s.receivers == [other], s.name
@@ -130,7 +134,8 @@ def test_every_message_is_classic_intel_with_crc_and_counter_in_the_exact_form()
                 # the range is representable in the raw field
                 raw_lo = -(1 << (s.length - 1)) if s.is_signed else 0
                 raw_hi = (1 << (s.length - 1)) - 1 if s.is_signed else (1 << s.length) - 1
-                assert raw_lo * s.scale <= s.minimum + 1e-9 and s.maximum <= raw_hi * s.scale + 1e-9, s.name
+                assert raw_lo * s.scale + s.offset <= s.minimum + 1e-9, s.name
+                assert s.maximum <= raw_hi * s.scale + s.offset + 1e-9, s.name
         for prefix, choices in CHOICES.items():
             for s in m.signals:
                 if s.name.startswith(prefix):
@@ -187,6 +192,20 @@ def test_python_round_trip_min_max_random(name):
         for s in codec.payload_signals(msg):
             assert abs(out[s.name] - vals[s.name]) <= s.scale / 2 + 1e-9, (s.name, vals[s.name], out[s.name])
             assert s.minimum - 1e-9 <= out[s.name] <= s.maximum + 1e-9
+
+
+def test_signals_not_given_are_sent_at_their_start_value():
+    # SelectorLever starts in D (a plant that does not say otherwise drives forward), the
+    # transmission oil warm (90 degC); every other signal starts at 0
+    assert codec.start_value(codec.message("VEH_Driver").get_signal_by_name("SelectorLever")) == 3.0
+    assert codec.start_value(codec.message("DCT_Shift").get_signal_by_name("TransOilTemp")) == 90.0
+    out = codec.decode(0x121, codec.encode("VEH_Driver", {"AccelPedal": 10.0}, 0))[1]
+    assert (out["SelectorLever"], out["BrakePedal"], out["AccelPedal"]) == (3, 0, 10.0)
+    assert codec.decode(0x110, codec.encode("DCT_Shift", {}, 0))[1]["TransOilTemp"] == 90.0
+    out = codec.decode(0x121, codec.encode("VEH_Driver", {"SelectorLever": "R"}, 0))[1]
+    assert out["SelectorLever"] == 1
+    with pytest.raises(ValueError, match="SelectorLever.*'X' is not one of its values"):
+        codec.encode("VEH_Driver", {"SelectorLever": "X"}, 0)
 
 
 def test_encode_limits_to_the_dbc_range_and_rejects_bad_input():
