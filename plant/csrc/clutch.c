@@ -39,6 +39,8 @@ void dct_clutch_output_eval(const dct_clutch_params *p, const dct_clutch_state *
     out->slide_capacity_nm = cap;
     out->slip_rad_s = slip;
     double drag = p->drag_nms_per_rad * (1.0 + in->drag_excess) * slip;
+    out->drag_torque_nm = drag;
+    out->mu_kinetic = p->mu_kinetic * mu_factor;
     out->torque_nm = out->friction.torque_nm + drag;
     /* heat: sliding at the capacity, or the stick damper; and the drag */
     double fr = out->friction.sliding > 0.5 ? out->friction.torque_nm * slip

@@ -150,6 +150,7 @@ static void bench_couplings(const dct_plant *pl, bench_inputs *b)
         b->wheel_in[i].tyre_radius_m = p->tyre.radius_m;
         b->wheel_in[i].rolling_moment_nm = to[i].rolling_moment_nm;
         b->wheel_in[i].brake_pedal_pct = u->brake_pedal_pct;
+        b->wheel_in[i].park_lock = u->selector_lever == DCT_SELECTOR_P ? 1.0 : 0.0;
         dct_wheel_output_eval(i < 2 ? &p->front_wheel : &p->rear_wheels, &s->wheel[i],
                               &b->wheel_in[i], &wo[i]);
     }

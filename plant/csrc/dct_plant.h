@@ -47,6 +47,13 @@
 /* gear index in dct_gearbox_params.ratio[] etc.: 0..5 = gears 1..6, 6 = R */
 #define DCT_GEAR_R 6
 
+/* selector lever positions (input selector_lever; the codes of the CAN
+ * signal VEH_Driver.SelectorLever) */
+#define DCT_SELECTOR_P 0
+#define DCT_SELECTOR_R 1
+#define DCT_SELECTOR_N 2
+#define DCT_SELECTOR_D 3
+
 /* ------------------------------------------------------------------ */
 /* Shared tables                                                       */
 /* ------------------------------------------------------------------ */
@@ -191,6 +198,8 @@ typedef struct {
     double slide_capacity_nm;         /* capacity at this slip (Stribeck) */
     double slip_rad_s;
     double heat_w;                    /* dissipated: sliding friction, stick damping, drag */
+    double drag_torque_nm;            /* viscous drag of the open pack (included in torque_nm) */
+    double mu_kinetic;                /* kinetic friction coefficient with the thermal factor */
     dct_friction_output friction;
 } dct_clutch_output;
 
@@ -442,6 +451,10 @@ typedef struct {
     double inertia_kgm2;              /* wheel, tyre, hub, brake disc (all wheels of the position) */
     double brake_torque_max_nm;       /* at 100 % brake pedal */
     dct_friction_params brake;
+    double park_lock_torque_nm;       /* holding capacity of the parking lock felt at this wheel
+                                         position (0: not driven), added to the brake's */
+    double park_lock_max_speed_kmh;   /* the pawl engages only below this speed (wheel speed x
+                                         radius); above it ratchets over the parking gear */
 } dct_wheel_params;
 
 typedef struct {
@@ -455,12 +468,15 @@ typedef struct {
     double tyre_radius_m;
     double rolling_moment_nm;
     double brake_pedal_pct;
+    double park_lock;                 /* 1: selector lever in P (the pawl is pushed on the gear) */
 } dct_wheel_input;
 
 typedef struct {
     double brake_torque_nm;           /* on the wheel, opposes rotation */
     double body_torque_nm;            /* torques the wheel takes from the body side (shaft + brake) */
     double speed_deriv_rad_s2;
+    double capacity_nm;               /* friction capacity now: brake and, engaged, parking lock */
+    double park_locked;               /* 1: the parking lock is engaged (P, below its speed) */
     dct_friction_output brake;
 } dct_wheel_output;
 
@@ -867,6 +883,8 @@ typedef struct {
     double engine_torque_request_nm;
     double torque_request_active;
     double engine_on;
+    double selector_lever;            /* DCT_SELECTOR_*: 0 P, 1 R, 2 N, 3 D (default D); P engages
+                                         the parking lock on the driven wheels */
 } dct_inputs;
 
 /* Plant outputs, refreshed after every step. */
@@ -948,6 +966,15 @@ typedef struct {
                                          carried it last. 0 before any clutch has carried torque
                                          since the reset (unless it locked a clutch in gear), or
                                          when the active shaft has no gear engaged */
+    double selector_lever;            /* as applied: 0 P, 1 R, 2 N, 3 D */
+    double park_lock_engaged;         /* 1: the parking lock holds the driven wheels */
+    double clutch1_kiss_pressure_bar; /* chamber pressure at which the pack closes now (gap at
+                                         this oil temperature, with the kiss-drift fault) */
+    double clutch2_kiss_pressure_bar;
+    double clutch1_friction_coeff;    /* kinetic friction coefficient now (temperature, fade) */
+    double clutch2_friction_coeff;
+    double clutch1_drag_torque_nm;    /* viscous drag of the open wet pack (in clutch1_torque_nm) */
+    double clutch2_drag_torque_nm;
 } dct_outputs;
 
 /* Physical faults (failure simulation, rt_loop's fault table or a test):

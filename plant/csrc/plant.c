@@ -149,6 +149,7 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
         c->wheel_in[i].tyre_radius_m = p->tyre.radius_m;
         c->wheel_in[i].rolling_moment_nm = c->tyre[i].rolling_moment_nm;
         c->wheel_in[i].brake_pedal_pct = u->brake_pedal_pct;
+        c->wheel_in[i].park_lock = u->selector_lever == DCT_SELECTOR_P ? 1.0 : 0.0;
         const dct_wheel_params *wp = i < 2 ? &p->front_wheel : &p->rear_wheels;
         dct_wheel_output_eval(wp, &s->wheel[i], &c->wheel_in[i], &c->wheel[i]);
     }
@@ -252,6 +253,13 @@ static double engaged_gear(const dct_plant *pl, const coupling *c)
     return shaft < 0 ? 0.0 : shaft_gear(&pl->state, shaft);
 }
 
+/* the chamber pressure at which the piston has closed the pack gap (the
+ * kiss point): return spring preload and its rate over the gap (piston.c) */
+static double pack_closed_pressure_pa(const dct_clutch_params *cp)
+{
+    return (cp->return_spring_n + cp->return_spring_n_per_m * cp->pack_gap_mm * 1e-3) / cp->piston_area_m2;
+}
+
 static void write_outputs(dct_plant *pl, const coupling *c)
 {
     const dct_params *p = &pl->effective;
@@ -323,6 +331,15 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     o->trans_oil_viscosity_mm2_s = c->thermal_fx.trans_oil_viscosity_m2_s * 1e6;
     o->accessory_torque_nm = c->engine.accessory_torque_nm;
     o->gear = engaged_gear(pl, c);
+    o->selector_lever = pl->applied.selector_lever;
+    o->park_lock_engaged = c->wheel[0].park_locked > 0.5 || c->wheel[1].park_locked > 0.5 ? 1.0 : 0.0;
+    double *kiss_out = &o->clutch1_kiss_pressure_bar, *mu_out = &o->clutch1_friction_coeff;
+    double *drag_out = &o->clutch1_drag_torque_nm;
+    for (int k = 0; k < 2; k++) {
+        kiss_out[k] = pack_closed_pressure_pa(&p->clutch[k]) / DCT_PA_PER_BAR;
+        mu_out[k] = c->clutch[k].mu_kinetic;
+        drag_out[k] = c->clutch[k].drag_torque_nm;
+    }
 }
 
 /* limit one input to [lo, hi], counting the values that had to be limited */
@@ -370,6 +387,8 @@ static int apply_inputs(dct_plant *pl)
     a->engine_torque_request_nm = limit(pl, u->engine_torque_request_nm, -200.0, 1000.0);
     a->torque_request_active = u->torque_request_active > 0.5 ? 1.0 : 0.0;
     a->engine_on = u->engine_on > 0.5 ? 1.0 : 0.0;
+    /* the lever is in one of its positions: the nearest, within P..D */
+    a->selector_lever = floor(limit(pl, u->selector_lever, DCT_SELECTOR_P, DCT_SELECTOR_D) + 0.5);
     if (pl->derived.faults_on > 0.5)
         dct_faults_apply_inputs(&pl->derived.faults, a);
     return DCT_OK;
@@ -532,6 +551,7 @@ int dct_plant_init(dct_plant *pl)
         return st;
     memset(&pl->inputs, 0, sizeof pl->inputs);
     pl->inputs.engine_on = 1.0;
+    pl->inputs.selector_lever = DCT_SELECTOR_D;
     dct_initial init;
     memset(&init, 0, sizeof init);
     init.engine_on = 1.0;
@@ -615,6 +635,7 @@ int dct_plant_reset(dct_plant *pl, const dct_initial *init)
     if (st != DCT_OK) {
         memset(&pl->applied, 0, sizeof pl->applied);
         pl->applied.engine_on = pl->inputs.engine_on;
+        pl->applied.selector_lever = DCT_SELECTOR_D;
     }
     pl->input_clamps = 0.0;
     dct_plant_update_outputs(pl);
