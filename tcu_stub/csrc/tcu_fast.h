@@ -60,7 +60,9 @@
 #define TCU_S_ACCEL_PEDAL 19
 #define TCU_S_BRAKE_PEDAL 20
 #define TCU_S_ENGINE_TORQUE 21
-#define TCU_N_SENSORS 22
+#define TCU_S_SELECTOR_LEVER 22       /* VEH_Driver.SelectorLever: 0 P, 1 R, 2 N, 3 D */
+#define TCU_S_TRANS_OIL_TEMP 23       /* DCT_Shift.TransOilTemp, degC */
+#define TCU_N_SENSORS 24
 
 /* the TCU's command signals (a commands array), names: tcu_command_name() */
 #define TCU_C_SOLENOID_CURRENT1 0

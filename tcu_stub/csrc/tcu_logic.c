@@ -18,6 +18,7 @@ static const char *const SENSOR_NAMES[TCU_N_SENSORS] = {
     "ForkPosition1", "ForkPosition2", "ForkPosition3", "ForkPosition4",
     "SyncState1", "SyncState2", "SyncState3", "SyncState4",
     "VehicleSpeed", "LongAccel", "RoadGrade", "AccelPedal", "BrakePedal", "EngineTorque",
+    "SelectorLever", "TransOilTemp",
 };
 
 static const char *const COMMAND_NAMES[TCU_N_COMMANDS] = {
