@@ -79,9 +79,10 @@ def test_spool_stuck_holds_the_spool_while_the_current_changes():
 
 
 def test_friction_loss_scales_the_capacity_at_the_same_clamp_force():
-    # the friction coefficients held at their temperature: the oil warms by
-    # about 1e-5 K a step, which moves them by 1e-8
-    p = Plant(overrides={**CMD, "thermal": {"clutch_mu_change_per_k": 0.0}})
+    # the friction coefficients and the pack gap held at their temperature:
+    # the oil warms by about 1e-5 K a step, which moves them by 1e-8
+    p = Plant(overrides={**CMD, "thermal": {"clutch_mu_change_per_k": 0.0,
+                                            "clutch_gap_expansion_per_k": 0.0}})
     p.inputs["clutch1_pressure_bar"] = 10.0
     p.inputs["clutch2_pressure_bar"] = 10.0
     p.step(1)

@@ -758,6 +758,12 @@ typedef struct {
     double clutch_drag_viscosity_exponent;   /* open-pack drag ~ (nu / nu_ref)^n (Couette shear: 1) */
     double churning_viscosity_exponent;      /* viscous gearbox drags ~ (nu / nu_ref)^n */
     double clutch_mu_change_per_k;        /* relative change of the friction coefficients per K above the reference */
+    /* clutch pack clearance: the aluminium parts that hold the pack (piston
+     * bore, carrier) expand more than its steel plates, so the gap the
+     * piston closes grows with the oil temperature:
+     *   gap(T) = gap + (alpha_housing - alpha_plates) L (T - trans_ref_temp_degc) */
+    double clutch_gap_expansion_per_k;    /* alpha_housing - alpha_plates, 1/K */
+    double clutch_gap_length_mm;          /* L: effective axial length of the pack and its seat */
     /* accessories on the crank */
     double alternator_load_w;             /* electrical load */
     double alternator_efficiency;
@@ -784,6 +790,7 @@ typedef struct {
     double clutch_drag_factor;
     double churning_factor;
     double clutch_mu_factor;              /* mu_static and mu_kinetic x this */
+    double clutch_gap_change_mm;          /* added to both clutches' pack_gap_mm (thermal expansion) */
     double thermostat_opening;            /* 0..1 */
 } dct_thermal_effects;
 

@@ -23,6 +23,9 @@ int dct_plant_input_size(void) { return N_INPUT; }
 
 /* every coupling variable of one evaluation */
 typedef struct {
+    dct_clutch_params clutch_params[2];   /* the clutches with the pack gap at this oil temperature */
+    dct_hydraulics_derived chamber_local; /* their chambers, when the gap is not the parameter's */
+    const dct_hydraulics_derived *chamber;
     dct_hydraulics_input hydraulics_in;
     dct_hydraulics_output hydraulics;
     dct_clutch_input clutch_in[2];
@@ -64,6 +67,20 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     /* what the temperatures change (from the state) */
     dct_thermal_effects_eval(&p->thermal, &pl->derived.thermal, &p->hydraulics.oil, &s->thermal, &c->thermal_fx);
     c->hydraulics_in.oil_viscosity_m2_s = c->thermal_fx.trans_oil_viscosity_m2_s;
+    /* the pack gaps at this oil temperature (thermal expansion), and the
+     * chamber law that goes with them; at the reference temperature the
+     * prepared one */
+    for (int k = 0; k < 2; k++) {
+        c->clutch_params[k] = p->clutch[k];
+        double gap = p->clutch[k].pack_gap_mm + c->thermal_fx.clutch_gap_change_mm;
+        c->clutch_params[k].pack_gap_mm = gap > 0.0 ? gap : 0.0;
+    }
+    if (c->thermal_fx.clutch_gap_change_mm != 0.0) {
+        dct_hydraulics_prepare(&p->hydraulics, c->clutch_params, &c->chamber_local);
+        c->chamber = &c->chamber_local;
+    } else {
+        c->chamber = &pl->derived.hydraulics;
+    }
     /* hydraulics: clamp forces from the chamber pressures, or from the
      * commanded pressures through the same pistons */
     c->hydraulics_in.current_a[0] = u->solenoid_current1_a;
@@ -81,13 +98,13 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
         double pressure[2] = {u->clutch1_pressure_bar, u->clutch2_pressure_bar};
         for (int k = 0; k < 2; k++) {
             dct_piston_output po;
-            dct_piston_eval(&p->clutch[k], pressure[k] * DCT_PA_PER_BAR, &po);
+            dct_piston_eval(&c->clutch_params[k], pressure[k] * DCT_PA_PER_BAR, &po);
             c->hydraulics.clamp_force_n[k] = po.clamp_force_n;
             c->hydraulics.piston_position_m[k] = po.position_m;
             c->hydraulics.clutch_pressure_pa[k] = pressure[k] * DCT_PA_PER_BAR;
         }
     } else {
-        dct_hydraulics_output_eval(&p->hydraulics, &pl->derived.hydraulics, p->clutch, &s->hydraulics,
+        dct_hydraulics_output_eval(&p->hydraulics, c->chamber, c->clutch_params, &s->hydraulics,
                                    &c->hydraulics);
     }
 
@@ -178,7 +195,7 @@ static void advance(dct_plant *pl, const coupling *c, double h)
     const dct_params *p = &pl->effective;
     dct_state *s = &pl->state;
     if (!(p->hydraulics.pressure_commanded > 0.5))
-        dct_hydraulics_advance(&p->hydraulics, &pl->derived.hydraulics, &s->hydraulics, &c->hydraulics_in, h);
+        dct_hydraulics_advance(&p->hydraulics, c->chamber, &s->hydraulics, &c->hydraulics_in, h);
     dct_engine_advance(&p->engine, &s->engine, &c->engine_in, &c->engine, h);
     for (int k = 0; k < 2; k++)
         dct_clutch_advance(&p->clutch[k], &s->clutch[k], &c->clutch[k], h);
@@ -336,7 +353,7 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     double *kiss_out = &o->clutch1_kiss_pressure_bar, *mu_out = &o->clutch1_friction_coeff;
     double *drag_out = &o->clutch1_drag_torque_nm;
     for (int k = 0; k < 2; k++) {
-        kiss_out[k] = pack_closed_pressure_pa(&p->clutch[k]) / DCT_PA_PER_BAR;
+        kiss_out[k] = pack_closed_pressure_pa(&c->clutch_params[k]) / DCT_PA_PER_BAR;
         mu_out[k] = c->clutch[k].mu_kinetic;
         drag_out[k] = c->clutch[k].drag_torque_nm;
     }

@@ -25,7 +25,9 @@
  *   from 0 at idle_warm_degc to full at idle_cold_degc (coolant);
  *   transmission: valve viscosity nu_t(T) = nu_ref (nu_t(T) / nu_t(T_ref)),
  *   open-pack drag x r^n_c, viscous gearbox drags x r^n_g, friction
- *   coefficients x (1 + c_mu (T - T_ref)).
+ *   coefficients x (1 + c_mu (T - T_ref)); the clutch pack gap
+ *   + (alpha_housing - alpha_plates) L (T - T_ref) (thermal expansion: the
+ *   kiss point moves with the oil temperature).
  */
 #include "dct_plant.h"
 #include "dct_util.h"
@@ -93,6 +95,7 @@ void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_thermal_der
     fx->churning_factor = exp(p->churning_viscosity_exponent * lt);
     double dt = s->trans_oil_temp_degc - p->trans_ref_temp_degc;
     fx->clutch_mu_factor = 1.0 + p->clutch_mu_change_per_k * dt;
+    fx->clutch_gap_change_mm = p->clutch_gap_expansion_per_k * p->clutch_gap_length_mm * dt;
     fx->thermostat_opening = dct_clamp((s->coolant_temp_degc - p->thermostat_open_degc) /
                                            (p->thermostat_full_degc - p->thermostat_open_degc),
                                        p->thermostat_min_opening, 1.0);
