@@ -73,7 +73,7 @@ def build_parser():
 
     sim = sub.add_parser("simulate", help="run a scenario offline, as fast as possible")
     sim.add_argument("--scenario", required=True, metavar="NAME_OR_FILE",
-                     help="a maneuver (paper-cycle, wltc, nedc, 0-100), a shipped scenario name "
+                     help="a maneuver (" + ", ".join(MANEUVER_NAMES) + "), a shipped scenario name "
                           "(plant/scenarios) or a CSV file")
     sim.add_argument("--duration", type=_duration, metavar="S",
                      help="simulated seconds (default: the scenario's length; the last row holds)")
@@ -232,7 +232,7 @@ def build_parser():
                     "run failed or the maneuver did not complete, 2 bad options, 3 timing "
                     "INVALID with --strict, 130 Ctrl-C.")
     demo.add_argument("--maneuver", choices=SCRIPTED_MANEUVERS, default="paper-cycle",
-                      metavar="NAME", help="paper-cycle (default) or 0-100")
+                      metavar="NAME", help="paper-cycle (default), " + ", ".join(SCRIPTED_MANEUVERS[1:]))
     demo.add_argument("--out", default="out/demo", metavar="DIR",
                       help="where to write everything (default out/demo)")
     demo.add_argument("--channel", metavar="NAME",
@@ -451,8 +451,9 @@ def _add_pm_qos_options(parser):
 
 
 # --------------------------------------------------------------------- simulate
-MANEUVER_NAMES = ("paper-cycle", "wltc", "nedc", "0-100")
-SCRIPTED_MANEUVERS = ("paper-cycle", "0-100")      # pedal tables the loop plays itself
+MANEUVER_NAMES = ("paper-cycle", "wltc", "nedc", "0-100", "creep", "reverse-park", "hill-start")
+SCRIPTED_MANEUVERS = ("paper-cycle", "0-100", "creep", "reverse-park",
+                      "hill-start")                 # tables the loop plays itself
 RECORD_EVERY_S = 0.01
 
 
@@ -483,6 +484,7 @@ def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
 
     import numpy as np
 
+    from plant.driver import driver_inputs
     from plant.model import PlantError
     from plant.simulate import write_csv
     from tcu_stub.logic import PERIOD_S, TcuLogic
@@ -516,9 +518,8 @@ def _run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
                 row += 1
                 changed = True
             if pedals_fn is not None and k % ticks_per_driver == 0:
-                accel, brake = pedals_fn(plant.time_s - t0, plant.outputs)
-                plant.inputs["accel_pedal_pct"] = accel
-                plant.inputs["brake_pedal_pct"] = brake
+                for name, value in driver_inputs(pedals_fn, plant.time_s - t0, plant.outputs).items():
+                    plant.inputs[name] = value          # the pedals, a table's selector lever
                 changed = True
             if changed:
                 plant.update_outputs()
@@ -687,8 +688,7 @@ def _simulate_maneuver(args):
     impl = _tcu_impl(args)
     link, through = _stub_link(args)
     plant = Plant(args.params)
-    if m.reset_kwargs:
-        plant.reset(**m.reset_kwargs)
+    m.start(plant)                      # its reset and fixed inputs (the road grade)
     try:
         names, data, shifts, wall = _guarded_run(plant, args, _run_with_stub, plant, duration,
                                                  args.out, pedals_fn=m.driver, link=link,
@@ -1017,12 +1017,12 @@ def cmd_serve(args):
             _check_writable(args.log, "--log")
         if args.record:
             _check_writable(args.record, "--record")
-        driver = end = None
+        driver = end = fixed = None
         if args.maneuver:
             from plant.maneuvers import get_maneuver
 
             m = get_maneuver(args.maneuver)
-            driver, end = m.driver, m.duration_s
+            driver, end, fixed = m.driver, m.duration_s, m.inputs
         server = Server(
             args.channel, interface=args.interface, rate_hz=args.rate, priority=args.priority,
             cpu=args.cpu, duration_s=args.duration, params_path=args.params, log_path=args.log,
@@ -1033,7 +1033,7 @@ def cmd_serve(args):
             pm_qos_us=args.pm_qos_us, mapping=mapping, bus_channels=bus_channels,
             xcp=args.xcp, xcp_protocol="tcp" if args.xcp_tcp else "udp", xcp_key=args.xcp_key,
             stimulus_path=args.stimulus, stimulus_start=args.stimulus_start,
-            faults_path=args.faults, control_path=args.control,
+            faults_path=args.faults, control_path=args.control, maneuver_inputs=fixed,
         )
         if ui is not None:
             recordings = os.path.join(os.path.dirname(os.path.abspath(args.stats)), "recordings")

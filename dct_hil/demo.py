@@ -43,7 +43,7 @@ import numpy as np
 
 DEFAULT_CHANNEL = "vcan0"
 EMBEDDED_CHANNEL = "dct-hil-demo"
-SCRIPTED_MANEUVERS = ("paper-cycle", "0-100")
+SCRIPTED_MANEUVERS = ("paper-cycle", "0-100", "creep", "reverse-park", "hill-start")
 RECORD_EVERY_S = 0.002
 _TCU_START_TIMEOUT_S = 60.0
 #: offline shifts by (maneuver, duration), for this process only (never on disk)
@@ -113,7 +113,7 @@ def offline_shifts(maneuver: str, duration_s: float) -> list[tuple[float, int, i
     if key not in _OFFLINE_SHIFTS:
         m = get_maneuver(maneuver)
         plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
-        plant.reset(**m.reset_kwargs)
+        m.start(plant)                      # its reset and fixed inputs (the road grade)
         rec = run_offline(plant, m.driver, float(duration_s), record_every_s=RECORD_EVERY_S)
         _OFFLINE_SHIFTS[key] = gear_shifts(rec["time_s"], rec["gear"])
     return list(_OFFLINE_SHIFTS[key])
@@ -257,7 +257,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     if priority is None:
         priority = 80 if os.geteuid() == 0 else 0
     server = Server(chan, interface=iface, priority=priority, driver=m.driver,
-                    maneuver_start="tcu", maneuver_end_s=end_s,
+                    maneuver_inputs=m.inputs, maneuver_start="tcu", maneuver_end_s=end_s,
                     record_path=paths["recording"], record_every_s=RECORD_EVERY_S,
                     log_path=paths["can_log"], time_scale=time_scale, pm_qos_us=pm_qos_us,
                     mapping=mapping, bus_channels=bus_channels, control_path=control_path)

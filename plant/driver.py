@@ -4,7 +4,9 @@ Both drivers are callables ``driver(t_s, outputs) -> (accel_pedal_pct, brake_ped
 ``outputs`` is anything indexable by output name (``Plant.outputs``, a dict). They are
 called every 10 ms by the offline runner and the server.
 
-- ``ScriptedDriver``: a pedal profile as a time table, step-wise or linear.
+- ``ScriptedDriver``: a pedal profile as a time table, step-wise or linear, with an
+  optional selector lever column (P, R, N, D); ``driver_inputs`` gives every plant
+  input a driver sets.
 - ``SpeedTrackingDriver``: follows a speed trace (a drive cycle) with a PI controller
   on the speed error, feed-forward of the force the trace needs, anti-windup and the
   brake when the needed force is negative.
@@ -34,35 +36,100 @@ def _table(rows, name):
     return a
 
 
-class ScriptedDriver:
-    """Pedals from a time table.
+#: selector lever positions: name -> the code of the plant input ``selector_lever``
+#: (and of the CAN signal VEH_Driver.SelectorLever)
+SELECTOR_CODES = {"P": 0, "R": 1, "N": 2, "D": 3}
+SELECTOR_NAMES = {code: name for name, code in SELECTOR_CODES.items()}
 
-    ``profile``: rows ``(t_s, accel_pedal_pct, brake_pedal_pct)``, times increasing.
+
+def selector_code(value, where="selector"):
+    """The code (0..3) of a selector position: "P", "R", "N", "D" (any case) or its code."""
+    if isinstance(value, str):
+        code = SELECTOR_CODES.get(value.strip().upper())
+        if code is None:
+            raise ValueError(f"{where}: unknown selector position {value!r} (P, R, N or D)")
+        return code
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: unknown selector position {value!r} (P, R, N or D)") from None
+    if x not in SELECTOR_NAMES:
+        raise ValueError(f"{where}: unknown selector position {value!r} (P, R, N or D)")
+    return int(x)
+
+
+class ScriptedDriver:
+    """Pedals, and optionally the selector lever, from a time table.
+
+    ``profile``: rows ``(t_s, accel_pedal_pct, brake_pedal_pct)`` or, with the
+    selector lever, ``(t_s, accel_pedal_pct, brake_pedal_pct, selector)`` (selector
+    "P", "R", "N", "D" or its code 0..3; every row has one), times increasing.
     ``mode``: "step" holds each row's pedals until the next row (before the first row:
-    the first row); "linear" interpolates between rows and holds the ends.
+    the first row); "linear" interpolates the pedals between rows and holds the ends.
+    The selector is held from its row on in either mode (``selector``).
     """
 
     def __init__(self, profile, mode="step"):
-        a = _table(profile, "pedal profile")
+        try:
+            rows = [list(r) for r in profile]
+        except TypeError:
+            raise ValueError("pedal profile: rows must be (t_s, accel_pedal_pct, brake_pedal_pct"
+                             "[, selector])") from None
+        for k, r in enumerate(rows):
+            if len(r) != len(rows[0]):
+                raise ValueError(f"pedal profile row {k + 1}: {len(r)} values, the first row has "
+                                 f"{len(rows[0])}")
+        selector = None
+        if rows and len(rows[0]) == 4:
+            selector = np.array([float(selector_code(r[3], f"pedal profile row {k + 1}"))
+                                 for k, r in enumerate(rows)])
+            rows = [r[:3] for r in rows]
+        a = _table(rows, "pedal profile")
         if a.shape[1] != 3:
-            raise ValueError("pedal profile: rows must be (t_s, accel_pedal_pct, brake_pedal_pct)")
+            raise ValueError("pedal profile: rows must be (t_s, accel_pedal_pct, brake_pedal_pct"
+                             "[, selector])")
         if np.any(a[:, 1:] < 0) or np.any(a[:, 1:] > 100):
             raise ValueError("pedal profile: pedals must be within 0..100 %")
         if mode not in ("step", "linear"):
             raise ValueError(f"pedal profile mode must be 'step' or 'linear', got {mode!r}")
         self.table = a
         self.mode = mode
+        #: selector code per row (float array), None: the table leaves the selector alone
+        self.selector_table = selector
 
     @property
     def duration_s(self):
         return float(self.table[-1, 0])
 
+    def _row(self, t):
+        return max(0, int(np.searchsorted(self.table[:, 0], t, side="right")) - 1)
+
     def __call__(self, t_s, outputs=None):
         t, a = float(t_s), self.table
         if self.mode == "linear":
             return (float(np.interp(t, a[:, 0], a[:, 1])), float(np.interp(t, a[:, 0], a[:, 2])))
-        k = max(0, int(np.searchsorted(a[:, 0], t, side="right")) - 1)
+        k = self._row(t)
         return float(a[k, 1]), float(a[k, 2])
+
+    def selector(self, t_s):
+        """The selector lever's code at ``t_s`` (the last row at or before it, the
+        first row before it), None when the table has no selector column."""
+        if self.selector_table is None:
+            return None
+        return float(self.selector_table[self._row(float(t_s))])
+
+
+def driver_inputs(driver_fn, t_s, outputs):
+    """The plant inputs a driver sets at ``t_s``: the pedals and, for a driver with a
+    selector column, ``selector_lever`` ({input name: value})."""
+    accel, brake = driver_fn(t_s, outputs)
+    out = {"accel_pedal_pct": accel, "brake_pedal_pct": brake}
+    selector = getattr(driver_fn, "selector", None)
+    if selector is not None:
+        code = selector(t_s)
+        if code is not None:
+            out["selector_lever"] = code
+    return out
 
 
 @dataclass

@@ -238,9 +238,11 @@ class Server:
     machine or an emulated kernel too slow for real time; the TCU must be
     slowed by the same factor). ``driver``: a scripted maneuver the loop
     plays itself (``plant.driver.ScriptedDriver`` or rows of (t_s,
-    accel_pedal_pct, brake_pedal_pct)), started at the first accepted TCU
+    accel_pedal_pct, brake_pedal_pct[, selector])), started at the first accepted TCU
     frame (``maneuver_start`` "tcu") or at once ("now"); the run ends when
     its maneuver time reaches ``maneuver_end_s`` (None: never).
+    ``maneuver_inputs``: its fixed plant inputs (``Maneuver.inputs``: the road
+    grade), set before it plays.
     ``record_path``: a recording (CSV, or with the suffix .mf4 ASAM MDF4
     with the CAN traffic as bus logging in the same file,
     ``rt_loop.mdf_recorder``) of every plant output each
@@ -301,7 +303,8 @@ class Server:
                  stimulus_path: str | os.PathLike | None = None,
                  stimulus_start: str = "plant",
                  faults_path: str | os.PathLike | None = None,
-                 control_path: str | os.PathLike | None = None) -> None:
+                 control_path: str | os.PathLike | None = None,
+                 maneuver_inputs: dict | None = None) -> None:
         from can_dbc import mapping as _mapping  # noqa: PLC0415
         from plant.params import fill_params, load_params  # noqa: PLC0415
 
@@ -315,7 +318,8 @@ class Server:
             raise ServerError(f"time scale {time_scale} at {self.rate_hz:g} Hz gives a period of "
                               f"{self.period_s * 1e3:g} ms; the loop allows up to "
                               f"{MAX_PERIOD_S * 1e3:g} ms")
-        self.driver_rows, self.driver_linear = _check_driver(driver)
+        self.driver_rows, self.driver_linear, self.driver_selectors = _check_driver(driver)
+        self.maneuver_inputs = _check_maneuver_inputs(maneuver_inputs)
         if maneuver_start not in MANEUVER_STARTS:
             raise ServerError(f"maneuver start {maneuver_start!r}: choose "
                               + " or ".join(MANEUVER_STARTS))
@@ -528,10 +532,8 @@ class Server:
             cfg.step_s = self.step_s
             cfg.record_every = self.record_every if self.recorder is not None else 0
             d = loop.driver
-            d.rows = len(self.driver_rows)
-            for i, (t, accel, brake) in enumerate(self.driver_rows):
-                d.t_s[i], d.accel_pedal_pct[i], d.brake_pedal_pct[i] = t, accel, brake
-            d.linear = int(self.driver_linear)
+            _fill_driver(d, self.driver_rows, self.driver_linear, self.driver_selectors,
+                         self.maneuver_inputs)
             d.start_on_tcu = int(self.maneuver_start == "tcu")
             d.end_s = 0.0 if self.maneuver_end_s is None else self.maneuver_end_s
             cfg.priority = self.priority
@@ -910,12 +912,15 @@ class Server:
         if int(loop.maneuver_refused) != refused:
             raise ServerError("the loop refused the maneuver command")
 
-    def start_maneuver(self, maneuver: Any, end_s: float | None = None) -> None:
+    def start_maneuver(self, maneuver: Any, end_s: float | None = None,
+                       inputs: dict | None = None) -> None:
         """Plays a maneuver from the next tick while the loop runs: a shipped
         one by name (``loop_maneuvers``), a ``ScriptedDriver`` or rows
-        (t_s, accel %, brake %). It replaces one playing; at its end (``end_s``,
+        (t_s, accel %, brake %[, selector]). It replaces one playing; at its end (``end_s``,
         by name its duration) the last row's pedals stay and the loop goes
-        on. Pedal sets are refused while it plays."""
+        on. Pedal sets are refused while it plays. ``inputs``: its fixed plant
+        inputs, set as it starts (``{"road_grade_pct": 20}``; by name the
+        maneuver's own)."""
         name = None
         if isinstance(maneuver, str):
             from plant.maneuvers import get_maneuver  # noqa: PLC0415
@@ -925,16 +930,15 @@ class Server:
                                   + ", ".join(self.loop_maneuvers()))
             m = get_maneuver(maneuver)
             name, driver, end_s = maneuver, m.driver, (m.duration_s if end_s is None else end_s)
+            inputs = m.inputs if inputs is None else inputs
         else:
             driver = maneuver
-        rows, linear = _check_driver(driver)
+        rows, linear, selectors = _check_driver(driver)
+        fixed = _check_maneuver_inputs(inputs)
         end = 0.0 if end_s is None else _check_duration(end_s)
 
         def fill(d: Any) -> None:
-            d.rows = len(rows)
-            for i, (t, accel, brake) in enumerate(rows):
-                d.t_s[i], d.accel_pedal_pct[i], d.brake_pedal_pct[i] = t, accel, brake
-            d.linear = int(linear)
+            _fill_driver(d, rows, linear, selectors, fixed)
             d.start_on_tcu = 0
             d.end_s = end
             d.keep_running = 1
@@ -1351,17 +1355,32 @@ def _check_time_scale(time_scale: Any) -> float:
     return scale
 
 
-def _check_driver(driver: Any) -> tuple[list, bool]:
-    """(rows, linear) of a driver table: a ScriptedDriver or rows (t_s, accel %, brake %)."""
+def _check_driver(driver: Any) -> tuple[list, bool, list | None]:
+    """(rows, linear, selector codes per row or None) of a driver table: a
+    ScriptedDriver or rows (t_s, accel %, brake %[, selector P/R/N/D])."""
     if driver is None:
-        return [], False
+        return [], False, None
+    from plant.driver import selector_code  # noqa: PLC0415
+
     table = getattr(driver, "table", driver)
     linear = getattr(driver, "mode", "step") == "linear"
+    selectors = getattr(driver, "selector_table", None)
     try:
-        rows = [(float(t), float(a), float(b)) for t, a, b in table]
-    except (TypeError, ValueError):
-        raise ServerError("driver table: rows must be (t_s, accel_pedal_pct, brake_pedal_pct)"
-                          ) from None
+        raw = [tuple(r) for r in table]
+        if selectors is None and raw and all(len(r) == 4 for r in raw):
+            selectors = [selector_code(r[3], f"driver table row {k + 1}") for k, r in enumerate(raw)]
+            raw = [r[:3] for r in raw]
+        rows = [(float(t), float(a), float(b)) for t, a, b in raw]
+    except ValueError as e:
+        if "selector" in str(e):
+            raise ServerError(str(e)) from None
+        raise ServerError("driver table: rows must be (t_s, accel_pedal_pct, brake_pedal_pct"
+                          "[, selector])") from None
+    except TypeError:
+        raise ServerError("driver table: rows must be (t_s, accel_pedal_pct, brake_pedal_pct"
+                          "[, selector])") from None
+    if selectors is not None:
+        selectors = [float(x) for x in selectors]
     if not rows:
         raise ServerError("driver table: no rows")
     if len(rows) > MAX_DRIVER_ROWS:
@@ -1371,7 +1390,31 @@ def _check_driver(driver: Any) -> tuple[list, bool]:
             raise ServerError(f"driver table row {k + 1}: times must be finite and increasing")
         if not (0 <= a <= 100 and 0 <= b <= 100):
             raise ServerError(f"driver table row {k + 1}: pedals must be within 0..100 %")
-    return rows, linear
+    return rows, linear, selectors
+
+
+def _check_maneuver_inputs(inputs: Any) -> dict:
+    """A maneuver's fixed plant inputs (``plant.maneuvers.FIXED_INPUTS``: the road grade)."""
+    from plant.maneuvers import check_inputs  # noqa: PLC0415
+
+    try:
+        return check_inputs(inputs, "maneuver inputs")
+    except ValueError as e:
+        raise ServerError(str(e)) from None
+
+
+def _fill_driver(d: Any, rows: list, linear: bool, selectors: list | None, inputs: dict) -> None:
+    """An rt_driver's table, selector column and fixed grade (its timing fields stay)."""
+    d.rows = len(rows)
+    for i, (t, accel, brake) in enumerate(rows):
+        d.t_s[i], d.accel_pedal_pct[i], d.brake_pedal_pct[i] = t, accel, brake
+    d.linear = int(linear)
+    d.has_selector = int(selectors is not None)
+    for i, code in enumerate(selectors or ()):
+        d.selector_lever[i] = code
+    grade = inputs.get("road_grade_pct")
+    d.has_grade = int(grade is not None)
+    d.road_grade_pct = 0.0 if grade is None else grade
 
 
 def _check_duration(duration_s: Any) -> float | None:

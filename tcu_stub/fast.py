@@ -55,6 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from plant.driver import driver_inputs
 from tcu_stub import diagnostics as _diag
 from tcu_stub import logic as _logic
 
@@ -720,6 +721,8 @@ def fill_driver(d, driver_fn, keep):
         d.kind = lib.TCU_DRIVER_STEP if driver_fn.mode == "step" else lib.TCU_DRIVER_LINEAR
         d.n = len(t)
         d.t_s, d.a, d.b = arr(t[:, 0]), arr(t[:, 1]), arr(t[:, 2])
+        if driver_fn.selector_table is not None:
+            d.sel = arr(driver_fn.selector_table)
         return True
     if type(driver_fn) is drv.SpeedTrackingDriver and type(driver_fn.car) is drv.CarData:
         c = driver_fn.car
@@ -891,9 +894,9 @@ class FastLoop:
                     k = self.k
                     count = min(self.tcu_per_driver - k % self.tcu_per_driver, end - k)
                     if k % self.tcu_per_driver == 0:
-                        accel, brake = self.driver_fn(plant.time_s - float(r.t0_s), plant.outputs)
-                        plant.inputs["accel_pedal_pct"] = accel
-                        plant.inputs["brake_pedal_pct"] = brake
+                        for name, value in driver_inputs(self.driver_fn, plant.time_s - float(r.t0_s),
+                                                         plant.outputs).items():
+                            plant.inputs[name] = value
                         plant.update_outputs()
                 status = self._chunk(count)
                 self.tcu.drain()
@@ -929,9 +932,9 @@ class FastLoop:
         the last (scenario rows, pedals) applied, then a row if one is due."""
         r, plant = self.run, self.plant
         if not self.driver_in_c and self.driver_fn is not None and self.k % self.tcu_per_driver == 0:
-            accel, brake = self.driver_fn(plant.time_s - float(r.t0_s), plant.outputs)
-            plant.inputs["accel_pedal_pct"] = accel
-            plant.inputs["brake_pedal_pct"] = brake
+            for name, value in driver_inputs(self.driver_fn, plant.time_s - float(r.t0_s),
+                                             plant.outputs).items():
+                plant.inputs[name] = value
             plant.update_outputs()
         self._lib.tcu_run_inputs(r)
         _store_driver(self.driver, self.driver_fn)

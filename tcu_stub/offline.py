@@ -24,6 +24,7 @@ import warnings
 import numpy as np
 
 from can_dbc import codec
+from plant.driver import driver_inputs
 from tcu_stub.logic import PERIOD_S, TcuLogic
 
 DRIVER_PERIOD_S = 0.01
@@ -138,7 +139,9 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
     """Run plant + stub TCU for ``duration_s``.
 
     ``driver_fn(t_s, plant_outputs) -> (accel_pedal_pct, brake_pedal_pct)`` is
-    called every 10 ms. ``stale_fn(t_s)`` (optional) marks plant messages as
+    called every 10 ms (a ScriptedDriver with a selector column also sets
+    ``selector_lever``: ``plant.driver.driver_inputs``). The maneuver's fixed
+    inputs (``Maneuver.start``: the road grade) are the plant's as given. ``stale_fn(t_s)`` (optional) marks plant messages as
     lost: True for all of them (cause unknown), or {message: cause} for some
     (causes as the CAN node gives them: "missing", "timeout", "bad_crc",
     "bad_counter", "bad_length"; ``sensors["stale_messages"]``); a false
@@ -196,9 +199,8 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
         t = plant.time_s - t0
         out = plant.outputs
         if k % tcu_per_driver == 0:
-            accel, brake = driver_fn(t, out)
-            plant.inputs["accel_pedal_pct"] = accel
-            plant.inputs["brake_pedal_pct"] = brake
+            for name, value in driver_inputs(driver_fn, t, out).items():
+                plant.inputs[name] = value
             plant.update_outputs()
         sensors = link.sensors(out, k)
         if stale_fn is not None:

@@ -117,6 +117,12 @@ class Loop:
             d.linear = driver.get("linear", 0)
             d.start_on_tcu = driver.get("start_on_tcu", 0)
             d.end_s = driver.get("end_s", 0.0)
+            if "selector" in driver:    # a code per row (0 P, 1 R, 2 N, 3 D)
+                d.has_selector = 1
+                for i, code in enumerate(driver["selector"]):
+                    d.selector_lever[i] = code
+            if "grade" in driver:       # the maneuver's road grade, %
+                d.has_grade, d.road_grade_pct = 1, driver["grade"]
         self.prepare_rc = lib.rt_loop_prepare(self.c)
         self.thread = None
         self.result = None
@@ -760,6 +766,32 @@ def test_step_longer_than_the_period_or_out_of_range_is_refused():
 ])
 def test_a_bad_driver_table_is_refused(rows):
     assert Loop(driver={"rows": rows}).prepare_rc == -errno.EINVAL
+
+
+@pytest.mark.parametrize("extra", [{"selector": [4.0]}, {"selector": [1.5]}, {"selector": [-1.0]},
+                                   {"grade": 40.5}, {"grade": float("nan")}])
+def test_a_bad_selector_code_or_grade_is_refused(extra):
+    assert Loop(driver={"rows": [(0.0, 0.0, 10.0)], **extra}).prepare_rc == -errno.EINVAL
+
+
+@pytest.mark.parametrize("end_s, selector", [(0.04, 3.0), (0.08, 1.0), (0.15, 0.0)])
+def test_the_driver_plays_the_selector_column_and_sets_the_grade(end_s, selector):
+    rows = [(0.0, 0.0, 30.0), (0.05, 0.0, 30.0), (0.1, 0.0, 30.0)]
+    loop = Loop(driver={"rows": rows, "selector": [3.0, 1.0, 0.0], "grade": 12.5, "end_s": end_s,
+                        "start_on_tcu": 1}, duration_s=5.0)
+    # before the maneuver starts: the first row's selector and the grade already
+    assert loop.c.plant.inputs.selector_lever == 3.0 and loop.c.plant.inputs.road_grade_pct == 12.5
+    loop.c.driver.start_on_tcu = 0
+    loop.start()
+    assert loop.join() == lib.RT_STATE_STOPPED
+    s = loop.stats()
+    assert s.maneuver_state == lib.RT_MANEUVER_DONE
+    assert s.outputs.selector_lever == selector and s.outputs.road_grade_pct == 12.5
+
+
+def test_a_table_without_selector_or_grade_leaves_them():
+    loop = Loop(driver={"rows": [(0.0, 0.0, 30.0)], "end_s": 0.01})
+    assert loop.c.plant.inputs.selector_lever == 3.0 and loop.c.plant.inputs.road_grade_pct == 0.0
 
 
 def test_too_many_driver_rows_are_refused():

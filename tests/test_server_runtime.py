@@ -25,7 +25,7 @@ def pedal(srv):
 
 def test_a_maneuver_starts_and_stops_while_running(bench):
     srv = bench.server
-    assert set(srv.loop_maneuvers()) == {"paper-cycle", "0-100"}
+    assert set(srv.loop_maneuvers()) == {"paper-cycle", "0-100", "creep", "reverse-park", "hill-start"}
     assert not srv.maneuver_playing and srv.snapshot()["maneuver"] == "none"
     control = ControlServer(srv, None)
     srv.start_maneuver("0-100")
@@ -56,6 +56,21 @@ def test_a_maneuver_table_ends_and_the_loop_goes_on(bench):
         "the last row's pedals stay"
     srv.start_maneuver("paper-cycle")           # another one replaces it
     assert srv.maneuver_playing and srv.maneuver_name == "paper-cycle"
+
+
+def test_a_maneuver_plays_its_selector_and_sets_its_grade_as_it_starts(bench):
+    srv = bench.server
+    srv.start_maneuver("hill-start")
+    bench.wait_until("maneuver_time_s > 0.05", timeout_s=1.0)
+    assert float(srv._l.plant.inputs.road_grade_pct) == 20.0
+    srv.start_maneuver([(0.0, 0.0, 30.0, "D"), (0.05, 0.0, 30.0, "R")], end_s=0.1,
+                       inputs={"road_grade_pct": -3.0})
+    bench.wait_until("maneuver_time_s > 0.099", timeout_s=1.0)
+    bench.sleep(0.05)
+    assert float(srv._l.plant.inputs.selector_lever) == 1.0, "R from its row on"
+    assert float(srv._l.plant.inputs.road_grade_pct) == -3.0
+    with pytest.raises(ServerError, match="unknown selector position 'Q'"):
+        srv.start_maneuver([(0.0, 0.0, 30.0, "Q")])
 
 
 @pytest.mark.parametrize("maneuver, words", [

@@ -53,7 +53,9 @@
  * divisors below and the receive timeouts are computed from step_s.
  *
  * Scripted driver (l->driver, optional): a pedal table over maneuver time,
- * played in the tick before the plant step. Maneuver time 0 is the first
+ * with an optional selector lever column and a road grade set once (at
+ * prepare and when a maneuver starts), played in the tick before the plant
+ * step. Maneuver time 0 is the first
  * tick (start_on_tcu = 0) or the first tick after the first accepted TCU
  * frame (start_on_tcu = 1: the plant idles on the first row's pedals until
  * the TCU is there). Maneuver time is plant time since the start, so a run
@@ -95,7 +97,8 @@
  * Return codes: rt_loop_prepare gives -EINVAL (a cfg field out of range:
  * period outside 50 us .. 100 ms, a step outside 50 us .. 10 ms or longer
  * than the period, a negative record_every, a driver table with more than
- * RT_DRIVER_ROWS rows, times not increasing or pedals outside 0..100 %,
+ * RT_DRIVER_ROWS rows, times not increasing, pedals outside 0..100 %, a
+ * selector code other than P, R, N, D or a grade outside -40..40 %,
  * priority outside 0..99, cpu < -1, NaN duration; channel tables missing,
  * too many messages or commands, an unknown transport, source, target,
  * output, status or input index, a value table outside the ranges, a cycle
@@ -413,12 +416,15 @@ _Static_assert(sizeof(dct_outputs) % sizeof(double) == 0, "dct_outputs must be d
 _Static_assert(sizeof(dct_inputs) % sizeof(double) == 0, "dct_inputs must be doubles only");
 
 /* rows within 1..RT_DRIVER_ROWS (or 0), times finite and strictly
- * increasing, pedals within 0..100 %, end_s finite */
+ * increasing, pedals within 0..100 %, selector codes P..D, the grade within
+ * -40..40 %, end_s finite */
 static int check_driver(const rt_driver *d)
 {
     if (d->rows == 0)
         return 0;
     if (d->rows < 0 || d->rows > RT_DRIVER_ROWS || !isfinite(d->end_s))
+        return -1;
+    if (d->has_grade && !(d->road_grade_pct >= -40.0 && d->road_grade_pct <= 40.0))
         return -1;
     for (int i = 0; i < d->rows; i++) {
         if (!isfinite(d->t_s[i]) || (i > 0 && !(d->t_s[i] > d->t_s[i - 1])))
@@ -426,8 +432,22 @@ static int check_driver(const rt_driver *d)
         if (!(d->accel_pedal_pct[i] >= 0.0 && d->accel_pedal_pct[i] <= 100.0) ||
             !(d->brake_pedal_pct[i] >= 0.0 && d->brake_pedal_pct[i] <= 100.0))
             return -1;
+        double sel = d->selector_lever[i];
+        if (d->has_selector && !(sel == DCT_SELECTOR_P || sel == DCT_SELECTOR_R ||
+                                 sel == DCT_SELECTOR_N || sel == DCT_SELECTOR_D))
+            return -1;
     }
     return 0;
+}
+
+/* the maneuver's inputs before it plays (at prepare, waiting for the TCU) and as
+ * it starts: the first row's selector and the road grade */
+static void driver_fixed_inputs(rt_loop *l, const rt_driver *d)
+{
+    if (d->has_selector)
+        l->plant.inputs.selector_lever = d->selector_lever[0];
+    if (d->has_grade)
+        l->plant.inputs.road_grade_pct = d->road_grade_pct;
 }
 
 static int check_lookup(const rt_lookup *t, const rt_channel *ch)
@@ -660,6 +680,7 @@ static int prepare_loop(rt_loop *l)
     if (l->driver.rows > 0) { /* the pedals of the first row until the maneuver starts */
         l->plant.inputs.accel_pedal_pct = l->driver.accel_pedal_pct[0];
         l->plant.inputs.brake_pedal_pct = l->driver.brake_pedal_pct[0];
+        driver_fixed_inputs(l, &l->driver);
         dct_plant_update_outputs(&l->plant);
         l->stats.outputs = l->plant.outputs;
     }
@@ -1524,6 +1545,7 @@ static void maneuver_command(rt_run *r, uint32_t seq)
     uint32_t op = l->maneuver_op;
     if (op == RT_MCMD_START && l->maneuver_next.rows > 0 && check_driver(&l->maneuver_next) == 0) {
         l->driver = l->maneuver_next;
+        driver_fixed_inputs(l, &l->driver);
         r->maneuver_state = RT_MANEUVER_RUNNING;
         r->maneuver_t0_s = l->plant.state.time_s;
         r->maneuver_time_s = 0.0;
@@ -1570,6 +1592,8 @@ static void drive(rt_run *r)
     }
     l->plant.inputs.accel_pedal_pct = accel;
     l->plant.inputs.brake_pedal_pct = brake;
+    if (d->has_selector)
+        l->plant.inputs.selector_lever = d->selector_lever[k];
 }
 
 static inline int hist_bin(double us)

@@ -494,9 +494,10 @@ typedef struct {
                                          the loop runs) */
 } rt_config;
 
-/* the driver of a scripted maneuver, played by the loop itself: pedals as a
- * function of maneuver time, so that a run does not depend on when a Python
- * thread gets the CPU */
+/* the driver of a scripted maneuver, played by the loop itself: pedals (and
+ * the selector lever, when the table has it) as a function of maneuver time,
+ * so that a run does not depend on when a Python thread gets the CPU; the
+ * maneuver's road grade set once, at prepare and at its start */
 typedef struct {
     int rows;                         /* 0: no table (RT_MANEUVER_NONE) */
     int linear;                       /* 0: each row held until the next; 1: linear between rows */
@@ -509,6 +510,11 @@ typedef struct {
     double t_s[RT_DRIVER_ROWS];       /* strictly increasing */
     double accel_pedal_pct[RT_DRIVER_ROWS];
     double brake_pedal_pct[RT_DRIVER_ROWS];
+    int has_selector;                 /* 1: selector_lever[] is played (each row held until
+                                         the next, also with linear); 0: left alone */
+    double selector_lever[RT_DRIVER_ROWS];  /* DCT_SELECTOR_*: 0 P, 1 R, 2 N, 3 D */
+    int has_grade;                    /* 1: road_grade_pct is set at prepare and at the start */
+    double road_grade_pct;
 } rt_driver;
 
 /* one recorder sample: the plant after a tick's step */

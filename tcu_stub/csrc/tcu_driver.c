@@ -1,6 +1,7 @@
 /*
  * tcu_driver.c - the drivers of plant/driver.py: ScriptedDriver (a pedal
- * table, step-wise or linear) and SpeedTrackingDriver (PI on the speed error
+ * table, step-wise or linear, with an optional selector lever column held
+ * from its row on) and SpeedTrackingDriver (PI on the speed error
  * with feed-forward), called every 10 ms with the plant outputs.
  *
  * numpy.interp is ported with its arithmetic (numpy's compiled_base.c), so
@@ -44,8 +45,8 @@ double tcu_np_interp(double x, const double *xp, const double *fp, int n)
     return y;
 }
 
-/* ScriptedDriver "step": the last row at or before t (the first row before it) */
-static void scripted_step(const tcu_driver *d, double t, double *accel, double *brake)
+/* ScriptedDriver._row: the last row at or before t (the first row before it) */
+static int scripted_row(const tcu_driver *d, double t)
 {
     int k = 0;
     for (int i = 0; i < d->n; i++)           /* searchsorted(side="right") - 1 */
@@ -53,8 +54,22 @@ static void scripted_step(const tcu_driver *d, double t, double *accel, double *
             k = i;
         else
             break;
+    return k;
+}
+
+/* ScriptedDriver "step" */
+static void scripted_step(const tcu_driver *d, double t, double *accel, double *brake)
+{
+    int k = scripted_row(d, t);
     *accel = d->a[k];
     *brake = d->b[k];
+}
+
+double tcu_driver_selector(const tcu_driver *d, double t_s)
+{
+    if ((d->kind != TCU_DRIVER_STEP && d->kind != TCU_DRIVER_LINEAR) || d->sel == NULL)
+        return -1.0;
+    return d->sel[scripted_row(d, t_s)];
 }
 
 /* CarData.resistance_n: rolling and air resistance on a level road */

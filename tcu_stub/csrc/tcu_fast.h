@@ -372,6 +372,7 @@ typedef struct {
     const double *t_s;            /* row times / trace times */
     const double *a;              /* accel pedal % / trace speed km/h */
     const double *b;              /* brake pedal % / trace acceleration m/s2 */
+    const double *sel;            /* scripted: selector code per row (0 P .. 3 D), or NULL */
     /* SpeedTrackingDriver */
     double kp;
     double ki;
@@ -406,6 +407,9 @@ double tcu_np_interp(double x, const double *xp, const double *fp, int n);
 /* the pedals at t_s from the plant outputs (kind EXTERNAL: leaves them) */
 void tcu_driver_pedals(tcu_driver *d, double t_s, const dct_outputs *out, double *accel_pct,
                        double *brake_pct);
+/* the selector lever's code at t_s of a scripted driver with a selector column
+   (ScriptedDriver.selector: held from its row on), -1 for any other driver */
+double tcu_driver_selector(const tcu_driver *d, double t_s);
 
 /* The plant's layout this extension was compiled with, in doubles' bytes:
    sizeof(dct_plant), offsetof state, inputs, outputs, sizeof dct_inputs,

@@ -3,7 +3,8 @@
  * (offline.run_offline), many TCU periods in one call.
  *
  * Each TCU period k, in run_offline's order: scenario rows due and, every
- * tcu_per_driver periods, the driver's pedals into the plant inputs (then the
+ * tcu_per_driver periods, the driver's pedals (and the selector lever of a
+ * table with one) into the plant inputs (then the
  * outputs recomputed, so the pedals are in them); the TCU's view through the
  * link; its step; its commands due through the link into the inputs; a row
  * recorded every tcu_per_record periods; the plant steps one TCU period.
@@ -72,6 +73,9 @@ void tcu_run_inputs(tcu_run *r)
         tcu_driver_pedals(r->driver, p->state.time_s - r->t0_s, &p->outputs, &accel, &brake);
         p->inputs.accel_pedal_pct = accel;
         p->inputs.brake_pedal_pct = brake;
+        double selector = tcu_driver_selector(r->driver, p->state.time_s - r->t0_s);
+        if (selector >= 0.0)
+            p->inputs.selector_lever = selector;
         changed = 1;
     }
     if (changed)
