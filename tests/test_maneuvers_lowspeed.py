@@ -338,3 +338,46 @@ def test_simulate_plays_them_with_the_grade_and_selector(name, tmp_path, capsys)
     assert np.all(col["road_grade_pct"][1:] == m.inputs.get("road_grade_pct", 0.0))
     assert set(np.unique(col["selector_lever"])) == set(np.unique(m.driver.selector_table))
     assert math.isclose(col["time_s"][-1], m.duration_s)
+
+
+# ---------------------------------------------------------------------------
+# over CAN: the demo on the embedded transport
+# ---------------------------------------------------------------------------
+
+def test_the_demo_plays_reverse_park_over_can_with_the_selector(tmp_path):
+    """The first 4 s of reverse-park: the loop's scripted driver moves the selector from D
+    to R at 1 s, the plant sends it in VEH_Driver.SelectorLever and the TCU reads it."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from rt_loop.recorder import read_recording
+
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-m", "dct_hil.cli", "demo", "--maneuver", "reverse-park",
+                           "--duration", "4", "--out", str(tmp_path), "--priority", "0", "--quiet"],
+                          capture_output=True, text=True, timeout=120, cwd=repo)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["maneuver"] == "reverse-park" and summary["completed"]
+    assert set(summary["figures"]) == set(get_maneuver("reverse-park").report)
+    rec = read_recording(tmp_path / "plant.csv")
+    started = rec["maneuver_time_s"] >= 0
+    mt, sel = rec["maneuver_time_s"][started], rec["selector_lever"][started]
+    assert (sel[mt < 0.99] == 3).all() and (sel[mt > 1.01] == 1).all()
+    assert (rec["brake_pedal_pct"][started][(mt > 1.01) & (mt < 2.99)] == 40).all()
+    # on the bus (can.log, candump format): D, then R; the transmission oil warm
+    from can_dbc import codec
+
+    seen = {"VEH_Driver": [], "DCT_Shift": []}
+    for line in (tmp_path / "can.log").read_text().splitlines():
+        ident, _, data = line.split()[2].partition("#")
+        name = {0x121: "VEH_Driver", 0x110: "DCT_Shift"}.get(int(ident, 16))
+        if name:
+            seen[name].append(codec.decode(int(ident, 16), bytes.fromhex(data))[1])
+    levers = [v["SelectorLever"] for v in seen["VEH_Driver"]]
+    assert levers[0] == 3 and levers[-1] == 1 and set(levers) == {1, 3}
+    assert all(20 < v["TransOilTemp"] < 130 for v in seen["DCT_Shift"])
+    tcu = json.loads((tmp_path / "tcu-report.json").read_text())
+    assert tcu["error"] is None and tcu["received"]["VEH_Driver"]["accepted"] > 300
