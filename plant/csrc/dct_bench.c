@@ -126,6 +126,8 @@ static void bench_couplings(const dct_plant *pl, bench_inputs *b)
     b->driveline_in.carrier_speed_rad_s = s->gearbox.carrier_speed_rad_s;
     b->driveline_in.left_wheel_speed_rad_s = s->wheel[0].speed_rad_s;
     b->driveline_in.right_wheel_speed_rad_s = s->wheel[1].speed_rad_s;
+    b->driveline_in.body_pitch_rad = s->vehicle.pitch_rad;
+    b->driveline_in.body_pitch_rate_rad_s = s->vehicle.pitch_rate_rad_s;
     dct_driveline_output_eval(&p->driveline, &s->driveline, &b->driveline_in, &dl);
     b->gearbox_in.clutch_torque_nm[0] = co[0].torque_nm;
     b->gearbox_in.clutch_torque_nm[1] = co[1].torque_nm;

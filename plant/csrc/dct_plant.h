@@ -363,17 +363,30 @@ typedef struct {
     double left_damping_nms_per_rad;
     double right_stiffness_nm_per_rad;
     double right_damping_nms_per_rad;
+    /* powertrain roll: engine and gearbox housings on their mounts, turning
+     * about an axis parallel to the shafts; the gear train's reaction (the
+     * half-shafts' torque) rolls them against the mounts */
+    double powertrain_roll_inertia_kgm2;  /* engine and gearbox about the roll axis */
+    double mount_roll_stiffness_nm_per_rad;   /* small roll: the mounts' rubber */
+    double mount_roll_damping_nms_per_rad;
+    double mount_roll_stop_rad;               /* free roll before the progressive stops take over */
+    double mount_roll_stop_stiffness_nm_per_rad; /* added beyond mount_roll_stop_rad */
 } dct_driveline_params;
 
 typedef struct {
     double left_twist_rad;
     double right_twist_rad;
+    double roll_rad;                  /* powertrain roll, + as the wheels turn forward (the mounts
+                                         deflect by roll_rad + the body's pitch, nose up) */
+    double roll_rate_rad_s;
 } dct_driveline_state;
 
 typedef struct {
     double carrier_speed_rad_s;
     double left_wheel_speed_rad_s;
     double right_wheel_speed_rad_s;
+    double body_pitch_rad;            /* the body the mounts sit on (+ nose up) */
+    double body_pitch_rate_rad_s;
 } dct_driveline_input;
 
 typedef struct {
@@ -381,6 +394,8 @@ typedef struct {
     double carrier_load_nm;           /* 2 x shaft torque, taken from the carrier */
     double left_side_speed_rad_s;     /* differential side gears */
     double right_side_speed_rad_s;
+    double mount_torque_nm;           /* the mounts' torque on the powertrain (its reaction on the body) */
+    double roll_accel_rad_s2;
 } dct_driveline_output;
 
 void dct_driveline_init(const dct_driveline_params *p, dct_driveline_state *s);
@@ -388,6 +403,8 @@ void dct_driveline_output_eval(const dct_driveline_params *p, const dct_drivelin
                                const dct_driveline_input *in, dct_driveline_output *out);
 void dct_driveline_advance(const dct_driveline_params *p, dct_driveline_state *s,
                            const dct_driveline_input *in, const dct_driveline_output *out, double h);
+/* potential energy of the powertrain mounts at this deflection (roll + pitch) */
+double dct_driveline_mount_energy(const dct_driveline_params *p, double deflection_rad);
 
 /* ------------------------------------------------------------------ */
 /* Tyre: Pacejka magic formula (longitudinal, pure slip) with a        */

@@ -134,6 +134,8 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     c->driveline_in.carrier_speed_rad_s = s->gearbox.carrier_speed_rad_s;
     c->driveline_in.left_wheel_speed_rad_s = s->wheel[0].speed_rad_s;
     c->driveline_in.right_wheel_speed_rad_s = s->wheel[1].speed_rad_s;
+    c->driveline_in.body_pitch_rad = s->vehicle.pitch_rad;
+    c->driveline_in.body_pitch_rate_rad_s = s->vehicle.pitch_rate_rad_s;
     dct_driveline_output_eval(&p->driveline, &s->driveline, &c->driveline_in, &c->driveline);
 
     /* gearbox */
@@ -174,7 +176,10 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     /* body */
     c->vehicle_in.front_tyre_force_n = c->tyre[0].force_n + c->tyre[1].force_n;
     c->vehicle_in.rear_tyre_force_n = c->tyre[2].force_n;
-    c->vehicle_in.front_wheel_torque_nm = c->wheel[0].body_torque_nm + c->wheel[1].body_torque_nm;
+    /* the front wheels take the brakes' torques from the body; the
+     * half-shafts' reaction reaches it through the powertrain mounts */
+    c->vehicle_in.front_wheel_torque_nm = c->wheel[0].body_torque_nm + c->wheel[1].body_torque_nm -
+                                          c->driveline.carrier_load_nm + c->driveline.mount_torque_nm;
     c->vehicle_in.rear_wheel_torque_nm = c->wheel[2].body_torque_nm;
     c->vehicle_in.road_grade_pct = u->road_grade_pct;
     dct_vehicle_output_eval(&p->vehicle, &s->vehicle, &c->vehicle_in, &c->vehicle);
@@ -510,7 +515,8 @@ static int check_params(const dct_params *p)
         if (!(p->clutch[k].piston_area_m2 > 0.0) || !(p->clutch[k].return_spring_n_per_m > 0.0) ||
             !(p->clutch[k].pack_stiffness_n_per_m > 0.0))
             return DCT_ERR_PARAM;
-    if (!(p->driveline.left_damping_nms_per_rad + p->driveline.right_damping_nms_per_rad > 0.0))
+    if (!(p->driveline.left_damping_nms_per_rad + p->driveline.right_damping_nms_per_rad > 0.0) ||
+        !(p->driveline.powertrain_roll_inertia_kgm2 > 0.0))
         return DCT_ERR_PARAM;
     const dct_thermal_params *th = &p->thermal;
     if (!(th->coolant_heat_capacity_j_per_k > 0.0) || !(th->engine_oil_heat_capacity_j_per_k > 0.0) ||
@@ -675,6 +681,8 @@ double dct_plant_energy(const dct_plant *pl)
             e += 0.5 * p->gearbox.sync[k].stiffness_nm_per_rad * dct_sq(s->gearbox.sync[k].twist_rad);
     e += 0.5 * p->driveline.left_stiffness_nm_per_rad * dct_sq(s->driveline.left_twist_rad);
     e += 0.5 * p->driveline.right_stiffness_nm_per_rad * dct_sq(s->driveline.right_twist_rad);
+    e += 0.5 * p->driveline.powertrain_roll_inertia_kgm2 * dct_sq(s->driveline.roll_rate_rad_s);
+    e += dct_driveline_mount_energy(&p->driveline, s->driveline.roll_rad + s->vehicle.pitch_rad);
     double fz_front, fz_rear;
     dct_vehicle_tyre_loads(&p->vehicle, &s->vehicle, pl->applied.road_grade_pct, &fz_front, &fz_rear);
     double fz[3] = {0.5 * fz_front, 0.5 * fz_front, fz_rear};

@@ -362,18 +362,47 @@ static void test_magic_formula(void)
 
 static void test_differential(void)
 {
-    dct_driveline_params p = {9000, 25, 7000, 25};
-    dct_driveline_state s = {0.01, 0.0};
-    dct_driveline_input in = {10.0, 9.0, 11.0};
+    dct_driveline_params p = {9000, 25, 7000, 25, 18, 45000, 630, 0.015, 400000};
+    dct_driveline_state s = {0.01, 0.0, 0.0, 0.0};
+    dct_driveline_input in = {10.0, 9.0, 11.0, 0.0, 0.0};
     dct_driveline_output o;
     dct_driveline_output_eval(&p, &s, &in, &o);
     double tr = 7000 * s.right_twist_rad + 25 * (o.right_side_speed_rad_s - 11.0);
     CHECK(fabs(o.shaft_torque_nm - tr) < 1e-9, "equal torques %g %g", o.shaft_torque_nm, tr);
     CHECK(fabs(o.left_side_speed_rad_s + o.right_side_speed_rad_s - 20.0) < 1e-12, "carrier mean");
+    /* the powertrain at rest on its mounts: the half-shafts' reaction alone rolls it */
+    CHECK(o.mount_torque_nm == 0.0, "mount %g", o.mount_torque_nm);
+    CHECK(fabs(o.roll_accel_rad_s2 + 2.0 * o.shaft_torque_nm / 18.0) < 1e-12, "roll accel %g",
+          o.roll_accel_rad_s2);
+}
+
+/* powertrain roll: the carrier turns with the housing in the half-shafts'
+ * twist; the mounts' rubber, then the progressive stop beyond phi_s */
+static void test_powertrain_roll(void)
+{
+    dct_driveline_params p = {9000, 25, 7000, 25, 18, 45000, 630, 0.015, 400000};
+    dct_driveline_input in = {10.0, 10.0, 10.0, 0.0, 0.0};
+    dct_driveline_output o, o0;
+    dct_driveline_state s0 = {0.0, 0.0, 0.0, 0.0};
+    dct_driveline_state s = {0.0, 0.0, 0.0, 0.5};
+    dct_driveline_output_eval(&p, &s0, &in, &o0);
+    dct_driveline_output_eval(&p, &s, &in, &o);
+    /* rolling at 0.5 rad/s twists both shafts as a carrier 0.5 rad/s faster would */
+    CHECK(fabs(o.shaft_torque_nm - 25 * 0.5) < 1e-9, "roll rate in the twist %g", o.shaft_torque_nm);
+    CHECK(fabs(o.mount_torque_nm + 630 * 0.5) < 1e-9, "mount damping %g", o.mount_torque_nm);
+    dct_driveline_state a = {0.0, 0.0, 0.01, 0.0}, b = {0.0, 0.0, -0.025, 0.0};
+    dct_driveline_output_eval(&p, &a, &in, &o);
+    CHECK(fabs(o.mount_torque_nm + 45000 * 0.01) < 1e-9, "rubber %g", o.mount_torque_nm);
+    dct_driveline_output_eval(&p, &b, &in, &o);
+    CHECK(fabs(o.mount_torque_nm - (45000 * 0.025 + 400000 * 0.01)) < 1e-9, "stop %g", o.mount_torque_nm);
+    double e = dct_driveline_mount_energy(&p, -0.025);
+    CHECK(fabs(e - (0.5 * 45000 * 0.025 * 0.025 + 0.5 * 400000 * 0.01 * 0.01)) < 1e-12, "energy %g", e);
+    (void)o0;
 }
 
 int main(void)
 {
+    test_powertrain_roll();
     test_friction_stick_slip();
     test_curve();
     test_sync_phases();
