@@ -489,7 +489,7 @@ def _sensor_value(name, value):
 def _integer_signals():
     from can_dbc import codec
     return frozenset(s.name for m in codec.messages("PLANT") for s in m.signals
-                     if s.scale == 1 and s.offset == 0 and not s.is_float)
+                     if s.scale == 1 and s.offset == int(s.offset) and not s.is_float)
 
 
 def store_state(c, tcu, shifts, diag_events, sensors=None):

@@ -85,6 +85,8 @@ def test_sends_all_three_messages_with_valid_e2e_at_their_relative_rates(channel
     with CanTcu.open("virtual", channel) as tcu:
         assert tcu.wait_for(lambda t: t.sent("TCU_ShiftCmd") >= 60 and fresh(t), timeout=WAIT_S)
         assert tcu.wait_for(lambda t: t.logic.phase == "standstill" and not t.stale)
+        # a plant that leaves the selector and the oil temperature out sends their start values
+        assert (tcu.sensors["SelectorLever"], tcu.sensors["TransOilTemp"]) == (3, 90)
     frames = tcu_frames(drain(listener))
     rx = codec.E2eReceiver(sender="TCU")
     for name, datas in frames.items():

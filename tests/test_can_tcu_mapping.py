@@ -39,8 +39,9 @@ STANDSTILL = {
     "sync1_state": 0.0, "sync2_state": 0.0, "sync3_state": 0.0, "sync4_state": 0.0,
 }
 TCU_SENDS = ("pt:TCU_TorqueReq", "pt:TCU_Gear", "pt:TCU_Info", "io:TCU_ValveCurrents", "io:TCU_ForkForces")
-NEEDED = ("pt:ECM_Torque", "pt:ECM_Speed", "pt:ESP_Motion", "pt:ESP_Accel", "io:IO_ShaftSpeeds",
-          "io:IO_OutputSpeeds", "io:IO_Pressures", "io:IO_Forks")
+NEEDED = ("pt:ECM_Torque", "pt:ECM_Speed", "pt:ESP_Motion", "pt:ESP_Accel", "pt:GW_Selector",
+          "io:IO_ShaftSpeeds", "io:IO_OutputSpeeds", "io:IO_Pressures", "io:IO_Forks",
+          "io:IO_Temperatures")
 WAIT_S = 20.0
 
 
@@ -213,7 +214,8 @@ def without_pressures(text):
 def test_reads_sensors_through_the_vehicle_mapping_on_both_buses(vehicle, channel, plant):
     plant.set(engine_speed_rpm=2000.0, vehicle_speed_kmh=36.0, engine_torque_nm=140.0,
               input_shaft1_speed_rpm=1500.0, clutch1_pressure_bar=4.5, fork2_position_mm=-3.2,
-              brake_pedal_pct=0.0, accel_pedal_pct=20.0, sync2_state=2.0)
+              brake_pedal_pct=0.0, accel_pedal_pct=20.0, sync2_state=2.0, selector_lever=1.0,
+              trans_oil_temp_degc=47.0)
     with CanTcu.open("virtual", channel, mapping=vehicle) as tcu:
         assert tcu.channels == {"pt": channel, "io": f"{channel}-io"}
         assert tcu.wait_for(lambda t: fresh(t) and t.sensors.get("EngineSpeed", 0) > 1000, timeout=WAIT_S)
@@ -227,6 +229,8 @@ def test_reads_sensors_through_the_vehicle_mapping_on_both_buses(vehicle, channe
         assert s["ClutchPressure1"] == pytest.approx(4.5, abs=0.05)           # io: IO_Pressures
         assert s["ForkPosition2"] == pytest.approx(-3.2, abs=0.05)            # io: IO_Forks
         assert s["SyncState2"] == 2
+        assert s["SelectorLever"] == 1                                         # pt: GW_Selector, R
+        assert s["TransOilTemp"] == 47.0                                       # io: IO_Temperatures
         # backwards: the speed's sign comes back from VehicleDirection
         plant.set(vehicle_speed_kmh=-5.0, engine_speed_rpm=900.0)
         assert tcu.wait_for(lambda t: t.sensors.get("EngineSpeed", 0) < 1000, timeout=WAIT_S)
