@@ -114,6 +114,17 @@ class TcuCalibration:
     launch_lock_slip_rpm: object = None
     lock_ramp_bar_per_s: object = None
     open_below_input_rpm: object = None
+    # creep and hill start
+    creep_nm: object = None
+    creep_hold_nm: object = None
+    creep_ramp_nm_per_s: object = None
+    creep_max_kmh: object = None
+    creep_fade_kmh: object = None
+    vehicle_weight_n: object = None
+    hill_margin: object = None
+    hill_min_pct: object = None
+    hill_kp_nm_per_rpm: object = None
+    brake_nm_per_pct: object = None
     # shifts
     upshift_rpm: object = None
     downshift_rpm: object = None
@@ -451,7 +462,7 @@ def load_state(c, tcu):
     c.has_request = tcu.torque_request_nm is not None
     c.torque_request_nm = tcu.torque_request_nm if tcu.torque_request_nm is not None else 0.0
     for name in ("shift_t0", "latched_torque_nm", "shift_slip0_rpm", "asr_trim_nm", "asr_cut_nm",
-                 "launch_rpm", "t_s"):
+                 "launch_rpm", "creep_nm", "hill_nm", "t_s"):
         setattr(c, name, getattr(tcu, name))
     c.held = list(tcu.held)
     c.n_shaft = list(tcu.n_shaft)
@@ -506,7 +517,7 @@ def store_state(c, tcu, shifts, diag_events, sensors=None):
     tcu.fork_pos_prev = [float(x) for x in c.fork_pos_prev]
     tcu.torque_request_nm = float(c.torque_request_nm) if c.has_request else None
     for name in ("shift_t0", "latched_torque_nm", "shift_slip0_rpm", "asr_trim_nm", "asr_cut_nm",
-                 "launch_rpm", "t_s"):
+                 "launch_rpm", "creep_nm", "hill_nm", "t_s"):
         setattr(tcu, name, float(getattr(c, name)))
     tcu.held = tuple(float(x) for x in c.held)
     tcu.n_shaft = tuple(float(x) for x in c.n_shaft)
@@ -528,6 +539,7 @@ def store_state(c, tcu, shifts, diag_events, sensors=None):
         tcu.n_engine = float(c.n_engine)
         tcu.n_out = tuple(float(x) for x in c.n_out)
         tcu.v_kmh, tcu.v_sched_kmh = float(c.v_kmh), float(c.v_sched_kmh)
+        tcu.grade_pct = float(c.grade_pct)
         tcu.p_meas = tuple(float(x) for x in c.p_meas)
         tcu.line_bar = float(c.line_bar)
         tcu.fork_mm = tuple(float(x) for x in c.fork_mm)

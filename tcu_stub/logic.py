@@ -135,6 +135,20 @@ LAUNCH_LOCK_SLIP_RPM = 80.0         # slip below which the launch clutch locks
 LOCK_RAMP_BAR_PER_S = 60.0          # pressure rise from slip control to clamp
 OPEN_BELOW_INPUT_RPM = 900.0        # pedal released in 1st below this input speed: open the clutch
 
+# ------------------------------------------------------------ creep and hill start (standstill, launch)
+CREEP_NM = 20.0                     # launch clutch torque, brake released, no pedal: rolls the car at idle speed in 1st
+CREEP_HOLD_NM = 3.0                 # ... on the brake: the pack kept just past its kiss point (about 240 W of slip at idle)
+CREEP_RAMP_NM_PER_S = 40.0          # creep torque rate (3 -> 20 Nm in 0.4 s after the brake is released: no jerk)
+CREEP_MAX_KMH = 8.0                 # creep torque fades to 0 over CREEP_FADE_KMH up to this speed (a cold, fast idle)
+CREEP_FADE_KMH = 2.0
+VEHICLE_WEIGHT_N = 14200.0          # the car with a driver as the TCU knows it (1450 kg): the grade's force
+HILL_MARGIN = 1.25                  # holding torque over the grade's (unknown load, mesh losses, grade signal)
+HILL_MIN_PCT = 2.0                  # uphill grade (in the direction of the gear) below which creep alone holds
+HILL_KP_NM_PER_RPM = 0.3            # engine torque request while holding: per rpm below idle (the idle governor's
+                                    # 60 Nm cannot carry a 20 % grade's torque: the engine would stall)
+BRAKE_NM_PER_PCT = 25.0             # wheel brake torque per brake pedal %, as the TCU estimates it (below the car's
+                                    # 31 Nm/%: the clutch takes over before the brake lets go)
+
 # ------------------------------------------------------------ shifts
 # (accelerator pedal %, engine speed rpm in the present gear): up and down lines
 UPSHIFT_RPM = ((0.0, 1900.0), (25.0, 2100.0), (50.0, 2700.0), (75.0, 4200.0), (100.0, 6300.0))
@@ -291,6 +305,8 @@ class TcuLogic:
         self.asr_trim_nm = 0.0
         self.asr_cut_nm = 0.0
         self.launch_rpm = LAUNCH_RPM_MIN
+        self.creep_nm = 0.0           # creep torque on the launch clutch (ramped), Nm
+        self.hill_nm = 0.0            # holding torque of the grade the brake no longer holds, Nm
         self.t_s = 0.0
         self.events = []              # (time_s, from_gear, to_gear) of every shift started
         self.held = (0.0, 0.0, 0.0)   # pedal, brake, engine torque last received (the engine message lost)
@@ -312,6 +328,7 @@ class TcuLogic:
         self.n_engine = float(s.get("EngineSpeed", 0.0))
         self.n_out = (float(s.get("OutputShaft1Speed", 0.0)), float(s.get("OutputShaft2Speed", 0.0)))
         self.v_kmh = float(s.get("VehicleSpeed", 0.0))
+        self.grade_pct = float(s.get("RoadGrade", 0.0))
         # the schedule runs on the output shaft speed (driven wheels), as the gearbox sees it
         self.v_sched_kmh = self.n_out[0] / FINAL_DRIVE[0] / RPM_PER_KMH
         self.p_meas = (float(s.get("ClutchPressure1", 0.0)), float(s.get("ClutchPressure2", 0.0)))
@@ -596,9 +613,46 @@ class TcuLogic:
         else:
             self._want_gears(1, 2)
         self.gear = self.target_gear = first
-        self.pressure_bar = [0.0, 0.0]
+        floor = self._creep(first)
+        bars = [0.0, 0.0]
+        if floor > 0.0 and self.gear_ready(first):
+            shaft = GEAR_LAYOUT[first][0]
+            bars[shaft] = torque_to_bar(shaft, floor)
+        self.pressure_bar = bars
+        self.torque_request_nm = self._hold_request_nm() if bars != [0.0, 0.0] else None
         if self.pedal > PEDAL_ON_PCT and self.brake < BRAKE_ON_PCT and self.gear_ready(first):
             self._start_launch()
+
+    def _hold_request_nm(self):
+        """Engine torque request while the clutch holds a grade (None: no grade to hold): the
+        holding torque plus a speed loop to idle or, if more, the pedal's demand on top, Nm."""
+        if self.hill_nm <= 0.0:
+            return None
+        demand = self.pedal / 100.0 * _interp(self.n_engine, ENGINE_FULL_LOAD)
+        return max(self.hill_nm + max(HILL_KP_NM_PER_RPM * (IDLE_RPM - self.n_engine), demand), 0.0)
+
+    def _creep(self, gear):
+        """The launch clutch's least torque at low speed, Nm: creep (brake released: CREEP_NM,
+        fading out toward CREEP_MAX_KMH; on the brake: CREEP_HOLD_NM), ramped; and at once
+        the holding torque of an uphill grade as far as the brake does not hold it."""
+        if self.brake >= BRAKE_ON_PCT:
+            target = CREEP_HOLD_NM
+        else:
+            target = CREEP_NM * min(max((CREEP_MAX_KMH - self.v_sched_kmh) / CREEP_FADE_KMH, 0.0), 1.0)
+        self.creep_nm = _ramp(self.creep_nm, target, CREEP_RAMP_NM_PER_S, PERIOD_S)
+        self.hill_nm = self._hill_hold_nm(gear)
+        return max(self.creep_nm, self.hill_nm)
+
+    def _hill_hold_nm(self, gear):
+        """Clutch torque that holds the car on the grade with the brake's share taken off, Nm
+        (grade force x tyre radius / overall ratio x HILL_MARGIN, less the brake's torque)."""
+        grade = self.grade_pct
+        if grade < HILL_MIN_PCT or self.v_sched_kmh >= CREEP_MAX_KMH:
+            return 0.0
+        ratio = GEAR_OVERALL_RATIO[gear]
+        force_n = VEHICLE_WEIGHT_N * grade / math.sqrt(10000.0 + grade * grade)     # m g sin(atan(grade))
+        need = HILL_MARGIN * force_n * TYRE_RADIUS_M / ratio
+        return max(need - BRAKE_NM_PER_PCT * self.brake / ratio, 0.0)
 
     def _start_launch(self):
         self.phase = "launch"
@@ -618,9 +672,12 @@ class TcuLogic:
         share = min(max((self.n_engine - IDLE_RPM) / max(n_target - IDLE_RPM, 1.0), 0.0), 1.0)
         torque = share * max(self.t_engine, 0.0) + LAUNCH_KP_NM_PER_RPM * max(err, 0.0)
         torque = min(max(torque, 0.0), self._traction_clutch_nm(self.gear))
+        torque = max(torque, self._creep(self.gear))    # creep and a grade's holding torque at least
+        self.torque_request_nm = self._hold_request_nm()
         slip = self.n_engine - self.n_shaft[shaft]
         if abs(slip) < LAUNCH_LOCK_SLIP_RPM and self.n_engine > LAUNCH_RPM_MIN - 200:
             self.phase = "drive"
+            self.torque_request_nm = None
         bars = [0.0, 0.0]
         if self.gear_ready(self.gear):          # no torque on a shaft without its gear
             bars[shaft] = torque_to_bar(shaft, torque)

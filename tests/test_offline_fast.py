@@ -103,18 +103,26 @@ def maneuver_run(name, duration_s=None, tcu_impl="auto", **kw):
     return run_offline(plant, m.driver, duration_s or m.duration_s, tcu_impl=tcu_impl, **kw)
 
 
-def lockstep(name, duration_s=None, python_driver=False, faults=None):
+def lockstep(name, duration_s=None, python_driver=False, faults=None, driver=None, inputs=None):
     """The C loop over a maneuver with the Python TCU stepping on the same sensors:
     (C's recording, periods compared). Asserts equal commands every period and
     equal states at the end. ``python_driver``: the driver runs in Python (the
     SpeedTrackingDriver as a plain callable); ``faults``: (t_s, {fault: value}) plant
-    faults in effect from that period's plant step on."""
-    m = get_maneuver(name)
+    faults in effect from that period's plant step on. ``driver``: a pedal function
+    (t_s, outputs) -> (accel %, brake %) instead of the maneuver's (``name`` then only
+    names the run), with plant ``inputs`` set at the start (e.g. the road grade)."""
     plant = Plant()
-    plant.reset(**m.reset_kwargs)
+    if driver is None:
+        m = get_maneuver(name)
+        plant.reset(**m.reset_kwargs)
+        driver = (lambda t, o: m.driver(t, o)) if python_driver else m.driver
+        duration = duration_s or m.duration_s
+    else:
+        plant.reset()
+        python_driver, duration = True, duration_s
+    for key, value in (inputs or {}).items():
+        plant.inputs[key] = value
     k_fault = int(round(faults[0] / logic.PERIOD_S)) if faults else -1
-    driver = (lambda t, o: m.driver(t, o)) if python_driver else m.driver
-    duration = duration_s or m.duration_s
     c_tcu = TcuLogic()
     loop = fast.FastLoop(plant, driver, duration, tcu=c_tcu, record_outputs=offline.RECORDED,
                          trace=TRACE_CHUNK)
@@ -169,6 +177,34 @@ def test_lockstep_paper_cycle_and_0_100_same_commands_every_period(name):
     rec, n = lockstep(name)
     assert n == int(round(get_maneuver(name).duration_s / logic.PERIOD_S))
     assert len(set(rec["tcu_gear"])) >= 4                        # it went through the gears
+
+
+def _creep_driver(t_s, outputs):
+    """On the brake, released (creep), on the brake to a stop, released, then a light launch."""
+    if t_s < 2.0 or 9.0 <= t_s < 12.0:
+        return 0.0, 40.0
+    return (25.0, 0.0) if t_s >= 16.0 else (0.0, 0.0)
+
+
+def _hill_driver(t_s, outputs):
+    """On the brake, the brake let go over 0.3 s, then the accelerator."""
+    if t_s < 2.0:
+        return 0.0, 60.0
+    if t_s < 2.3:
+        return 0.0, 60.0 * (2.3 - t_s) / 0.3
+    return (0.0, 0.0) if t_s < 3.0 else (40.0, 0.0)
+
+
+@pytest.mark.parametrize("name, driver, inputs, duration_s", [
+    ("creep", _creep_driver, {}, 20.0),
+    ("hill-start-20pct", _hill_driver, {"road_grade_pct": 20.0}, 8.0),
+])
+def test_lockstep_creep_and_hill_start_same_commands_every_period(name, driver, inputs, duration_s):
+    rec, n = lockstep(name, duration_s, driver=driver, inputs=inputs)
+    assert n == int(round(duration_s / logic.PERIOD_S))
+    phases = set(rec["tcu_phase"].astype(int))
+    assert logic.PHASE_CODES["standstill"] in phases and logic.PHASE_CODES["launch"] in phases
+    assert rec["vehicle_speed_kmh"].max() > 4.0                 # it crept / pulled away
 
 
 @pytest.mark.parametrize("faults, dtc", [

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from plant.model import Plant
+from tcu_stub import logic
 from tcu_stub.logic import TcuLogic
 from tcu_stub.offline import run_offline, sensors_from_plant
 
@@ -38,7 +39,7 @@ def test_full_load_upshifts_keep_pulling(full_load_run):
     assert r["vehicle_accel_mps2"][shifting].min() > -1.0
 
 
-def test_brake_to_standstill_downshifts_to_first_and_opens_clutches():
+def test_brake_to_standstill_downshifts_to_first_and_holds_k1_at_its_kiss_point():
     def driver(t_s, outputs):
         if t_s < 6.0:
             return _full_throttle(t_s, outputs)
@@ -52,7 +53,9 @@ def test_brake_to_standstill_downshifts_to_first_and_opens_clutches():
     end = r["time_s"] > 15.0
     assert r["vehicle_speed_kmh"][end].max() < 0.5
     assert tcu.gear == 1 and tcu.phase == "standstill"
-    assert r["clutch1_pressure_bar"][end].max() < 0.5
+    # on the brake only the creep hold torque: K1 just past its kiss point, K2 open
+    hold_bar = logic.CLUTCH_KISS_BAR[0] + logic.CREEP_HOLD_NM / logic.CLUTCH_NM_PER_BAR[0]
+    assert np.abs(r["clutch1_pressure_bar"][end] - hold_bar).max() < 0.1
     assert r["clutch2_pressure_bar"][end].max() < 0.5
     assert 650.0 < r["engine_speed_rpm"][end].min() and r["engine_speed_rpm"][end].max() < 900.0
     assert r["gear_clashes"][-1] == 0

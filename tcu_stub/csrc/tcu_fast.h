@@ -134,6 +134,17 @@ typedef struct {
     double launch_lock_slip_rpm;
     double lock_ramp_bar_per_s;
     double open_below_input_rpm;
+    /* creep and hill start */
+    double creep_nm;
+    double creep_hold_nm;
+    double creep_ramp_nm_per_s;
+    double creep_max_kmh;
+    double creep_fade_kmh;
+    double vehicle_weight_n;
+    double hill_margin;
+    double hill_min_pct;
+    double hill_kp_nm_per_rpm;
+    double brake_nm_per_pct;
     /* shifts: (pedal %, rpm) tables */
     int32_t upshift_n;
     double upshift_rpm[TCU_MAX_TABLE][2];
@@ -280,6 +291,8 @@ typedef struct {                  /* logic.TcuLogic */
     double asr_trim_nm;
     double asr_cut_nm;
     double launch_rpm;
+    double creep_nm;              /* creep torque on the launch clutch (ramped) */
+    double hill_nm;               /* holding torque of the grade the brake does not hold */
     double t_s;
     double held[3];               /* pedal, brake, engine torque last received */
     tcu_clutch_loop loops[2];
@@ -288,6 +301,7 @@ typedef struct {                  /* logic.TcuLogic */
     double pedal, brake, t_engine, n_engine;
     double n_out[2];
     double v_kmh, v_sched_kmh;
+    double grade_pct;
     double p_meas[2];
     double line_bar;
     double fork_mm[4];

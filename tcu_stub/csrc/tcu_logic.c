@@ -139,6 +139,7 @@ static void read_sensors(const tcu_cal *cal, tcu_state *s, const double *x)
     s->n_out[0] = x[TCU_S_OUTPUT_SHAFT1_SPEED];
     s->n_out[1] = x[TCU_S_OUTPUT_SHAFT2_SPEED];
     s->v_kmh = x[TCU_S_VEHICLE_SPEED];
+    s->grade_pct = x[TCU_S_ROAD_GRADE];
     /* the schedule runs on the output shaft speed (driven wheels), as the gearbox sees it */
     s->v_sched_kmh = s->n_out[0] / cal->final_drive[0] / cal->rpm_per_kmh;
     s->p_meas[0] = x[TCU_S_CLUTCH_PRESSURE1];
@@ -434,6 +435,43 @@ static void shift_open(const tcu_cal *cal, tcu_state *s)
     }
 }
 
+/* _hill_hold_nm: clutch torque that holds the car on the grade, the brake's share taken off */
+static double hill_hold_nm(const tcu_cal *cal, const tcu_state *s, int gear)
+{
+    double grade = s->grade_pct;
+    if (grade < cal->hill_min_pct || s->v_sched_kmh >= cal->creep_max_kmh)
+        return 0.0;
+    double ratio = cal->gear_overall_ratio[gear - 1];
+    double force_n = cal->vehicle_weight_n * grade / sqrt(10000.0 + grade * grade);
+    double need = cal->hill_margin * force_n * cal->tyre_radius_m / ratio;
+    return py_max(need - cal->brake_nm_per_pct * s->brake / ratio, 0.0);
+}
+
+/* _creep: the launch clutch's least torque at low speed (creep ramped, the grade's hold at once) */
+static double creep(const tcu_cal *cal, tcu_state *s, int gear)
+{
+    double target;
+    if (s->brake >= cal->brake_on_pct)
+        target = cal->creep_hold_nm;
+    else
+        target = cal->creep_nm *
+                 py_min(py_max((cal->creep_max_kmh - s->v_sched_kmh) / cal->creep_fade_kmh, 0.0), 1.0);
+    s->creep_nm = ramp(s->creep_nm, target, cal->creep_ramp_nm_per_s, cal->period_s);
+    s->hill_nm = hill_hold_nm(cal, s, gear);
+    return py_max(s->creep_nm, s->hill_nm);
+}
+
+/* _hold_request_nm: engine torque request while the clutch holds a grade (0: none) */
+static int hold_request(const tcu_cal *cal, const tcu_state *s, double *request_nm)
+{
+    if (s->hill_nm <= 0.0)
+        return 0;
+    double demand = s->pedal / 100.0 * interp(s->n_engine, cal->engine_full_load, cal->engine_full_load_n);
+    *request_nm = py_max(s->hill_nm + py_max(cal->hill_kp_nm_per_rpm * (cal->idle_rpm - s->n_engine), demand),
+                         0.0);
+    return 1;
+}
+
 static void standstill(const tcu_cal *cal, tcu_state *s)
 {
     int first = 1;
@@ -446,7 +484,17 @@ static void standstill(const tcu_cal *cal, tcu_state *s)
         want_gears(s, 1, 2);
     }
     s->gear = s->target_gear = first;
-    s->pressure_bar[0] = s->pressure_bar[1] = 0.0;
+    double floor = creep(cal, s, first);
+    double bars[2] = {0.0, 0.0};
+    if (floor > 0.0 && gear_ready(cal, s, first)) {
+        int shaft = TCU_GEAR_SHAFT[first];
+        bars[shaft] = tcu_torque_to_bar(cal, shaft, floor);
+    }
+    s->pressure_bar[0] = bars[0];
+    s->pressure_bar[1] = bars[1];
+    s->has_request = 0;
+    if (bars[0] != 0.0 || bars[1] != 0.0)
+        s->has_request = hold_request(cal, s, &s->torque_request_nm);
     if (s->pedal > cal->pedal_on_pct && s->brake < cal->brake_on_pct && gear_ready(cal, s, first))
         s->phase = TCU_LAUNCH;
 }
@@ -477,9 +525,13 @@ static void launch(const tcu_cal *cal, tcu_state *s)
                                  0.0), 1.0);
     double torque = share * py_max(s->t_engine, 0.0) + cal->launch_kp_nm_per_rpm * py_max(err, 0.0);
     torque = py_min(py_max(torque, 0.0), traction_clutch_nm(cal, s, s->gear));
+    torque = py_max(torque, creep(cal, s, s->gear));   /* creep and a grade's holding torque at least */
+    s->has_request = hold_request(cal, s, &s->torque_request_nm);
     double slip = s->n_engine - s->n_shaft[shaft];
-    if (fabs(slip) < cal->launch_lock_slip_rpm && s->n_engine > cal->launch_rpm_min - 200)
+    if (fabs(slip) < cal->launch_lock_slip_rpm && s->n_engine > cal->launch_rpm_min - 200) {
         s->phase = TCU_DRIVE;
+        s->has_request = 0;
+    }
     double bars[2] = {0.0, 0.0};
     if (gear_ready(cal, s, s->gear))   /* no torque on a shaft without its gear */
         bars[shaft] = tcu_torque_to_bar(cal, shaft, torque);
