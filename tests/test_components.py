@@ -309,6 +309,64 @@ def test_engine_zero_pedal_gives_drag_curve(car, h):
         assert eng.out.drag_nm == pytest.approx(drag, rel=EXACT)
 
 
+def test_engine_full_pedal_gives_full_load_minus_the_accessories(car, h):
+    """The full-load curve is the rated brake torque (the engine's friction in
+    it); what the accessories take (alternator, A/C, the transmission's
+    pump) comes off it at the clutch."""
+    p = part(car, "engine")
+    for rpm in (2000, 5500):
+        full = lib.dct_curve_eval(ffi.addressof(p.full_load), rpm)
+        eng = Engine(p, rpm, accel_pedal_pct=100.0, accessory_torque_nm=9.0)
+        eng.run(8.0, h)   # 23 boost time constants
+        assert eng.out.torque_nm == pytest.approx(full - 9.0, rel=1e-9)
+        assert eng.out.accessory_torque_nm == pytest.approx(9.0, rel=1e-12)
+
+
+def test_engine_request_below_the_driver_is_spark_retard_with_boost_held(car, h):
+    """A TCU request below the driver's torque (an upshift's cut): the
+    delivered torque falls to it within tau_fall while the air path stays at
+    the driver's (boost held); when the request ends the torque is back
+    within a few tau_fall, not after the turbo lag (tau_boost)."""
+    p = part(car, "engine")
+    rpm = 4000
+    full = lib.dct_curve_eval(ffi.addressof(p.full_load), rpm)
+    drag = lib.dct_curve_eval(ffi.addressof(p.drag), rpm)
+    eng = Engine(p, rpm, accel_pedal_pct=100.0)
+    eng.run(8.0, h)   # 23 boost time constants
+    assert eng.out.torque_nm == pytest.approx(full, rel=1e-9)
+    req = 0.5 * full                      # above (1 - share) of the air torque: spark alone
+    assert req - drag > (1.0 - p.spark_cut_max_share) * (full - drag)
+    eng.inp.torque_request_active = 1.0
+    eng.inp.torque_request_nm = req
+    cut = eng.run(10 * p.tau_fall_s, h)
+    assert time_to_63_percent([full - t for t in cut], h) == pytest.approx(p.tau_fall_s, abs=2 * h)
+    assert eng.out.torque_nm == pytest.approx(req, rel=1e-3)
+    assert eng.s.combustion_torque_nm == pytest.approx(full - drag, rel=1e-9)   # boost held
+    assert eng.s.spark_cut_nm == pytest.approx(full - req, rel=1e-3)
+    # the retarded spark burns the air path's fuel: more than the same torque at best spark
+    at_best = Engine(p, rpm, accel_pedal_pct=100.0 * (req - drag) / (full - drag))
+    at_best.run(8.0, h)
+    assert eng.out.fuel_rate_g_s > 1.5 * at_best.out.fuel_rate_g_s
+    eng.inp.torque_request_active = 0.0
+    back = eng.run(5 * p.tau_fall_s, h)
+    assert back[-1] > req + 0.99 * (full - req)
+    assert 5 * p.tau_fall_s < 0.5 * p.tau_boost_s
+
+
+def test_engine_deep_request_closes_the_air_path_too(car, h):
+    """A request below what the spark can cut (1 - share of the air torque):
+    the air path falls to request / (1 - share), the spark cuts the rest."""
+    p = part(car, "engine")
+    rpm = 4000
+    full = lib.dct_curve_eval(ffi.addressof(p.full_load), rpm)
+    drag = lib.dct_curve_eval(ffi.addressof(p.drag), rpm)
+    eng = Engine(p, rpm, accel_pedal_pct=100.0, torque_request_active=1.0, torque_request_nm=20.0)
+    eng.run(2.0, h)
+    demand = 20.0 - drag
+    assert eng.out.torque_nm == pytest.approx(20.0, rel=1e-6)
+    assert eng.s.combustion_torque_nm == pytest.approx(demand / (1.0 - p.spark_cut_max_share), rel=1e-6)
+
+
 def test_engine_rise_and_fall_lag(car, h):
     p = part(car, "engine")
     rpm = 3000
@@ -890,17 +948,40 @@ def test_tyre_transient_slip_converges_to_steady_slip(car, h, v, wr):
                                             rel=1e-6)
 
 
+def rolling_coefficient(p, v):
+    """Gillespie's law: f0 + fs (|V| / V_ref)^2.5."""
+    return p.rolling_resistance + p.rolling_resistance_speed * (
+        abs(v) / p.rolling_resistance_ref_speed_m_s) ** 2.5
+
+
 def test_tyre_rolling_resistance_opposes_rotation(car):
     p = part(car, "tyre")
     fz = 4000.0
-    moment = p.rolling_resistance * fz * p.radius_m
     # 50 rad/s is over 20 smoothing widths: the smoothed sign is 1 exactly
     assert 50.0 > 20.0 * p.rolling_smoothing_rad_s
     for w in (50.0, -50.0):
+        moment = rolling_coefficient(p, w * p.radius_m) * fz * p.radius_m
         out = tyre_eval(p, 0.0, w, w * p.radius_m, fz)
         # the wheel equation subtracts the moment: same sign as w opposes it
         assert out.rolling_moment_nm == pytest.approx(math.copysign(moment, w), rel=EXACT)
     assert tyre_eval(p, 0.0, 0.0, 0.0, fz).rolling_moment_nm == 0.0
+
+
+@pytest.mark.parametrize("v_kmh", [0.0, 50.0, 120.0, 235.0])
+def test_tyre_rolling_resistance_rises_with_speed(car, v_kmh):
+    """f = f0 + fs (V / V_ref)^2.5 (Gillespie, eq. 4-3), V the wheel centre's
+    speed, rolling freely (w R = V): 2.4 x f0 at 235 km/h."""
+    p = part(car, "tyre")
+    v = v_kmh / 3.6
+    w = v / p.radius_m
+    out = tyre_eval(p, 0.0, w, v, 4000.0)
+    if v == 0.0:
+        assert out.rolling_moment_nm == 0.0
+        return
+    assert out.rolling_moment_nm == pytest.approx(
+        rolling_coefficient(p, v) * 4000.0 * p.radius_m, rel=1e-12)
+    if v_kmh == 235.0:
+        assert 2.0 < rolling_coefficient(p, v) / p.rolling_resistance < 3.0
 
 
 def test_tyre_lumped_pair_is_twice_one_tyre(car):

@@ -427,7 +427,7 @@ def test_initialize_step_get(make, version):
     assert f.get("time_s") == pytest.approx(0.5)
     out = f.get(*_output_names(f.model))
     assert np.all(np.isfinite(out))
-    assert f.get("engine_speed_rpm") > rpm0 + 400   # the pedal revs the engine in neutral (against the alternator)
+    assert f.get("engine_speed_rpm") > rpm0 + 250   # the pedal revs the engine in neutral (against the alternator and the transmission's pump)
     if version == 3:
         assert f.last_successful_time == 0.5
     assert f.terminate() == OK

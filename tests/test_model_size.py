@@ -39,7 +39,8 @@ def test_every_state_belongs_to_one_component():
 def test_counts_sum_to_the_state_size():
     counts = state_counts()
     assert list(counts) == ["time", *COMPONENT_NAMES]
-    assert sum(counts.values()) == len(STATE_NAMES) == 72
+    assert sum(counts.values()) == len(STATE_NAMES) == 73
+    assert counts["engine"] == 6                  # speed, air-path torque, governor, fuel, running, spark cut
     assert counts["driveline"] == 2 + 2          # half-shaft twists, powertrain roll and its rate
     assert counts["gearbox"] == 3 + 4 * 6        # shafts, carrier, four synchronizers
     assert counts["hydraulics"] == 1 + 2 + 2 * 4  # line, two chambers, two valves

@@ -158,7 +158,8 @@ static void bench_couplings(const dct_plant *pl, bench_inputs *b)
     }
     b->vehicle_in.front_tyre_force_n = to[0].force_n + to[1].force_n;
     b->vehicle_in.rear_tyre_force_n = to[2].force_n;
-    b->vehicle_in.front_wheel_torque_nm = wo[0].body_torque_nm + wo[1].body_torque_nm;
+    b->vehicle_in.front_wheel_torque_nm = wo[0].body_torque_nm + wo[1].body_torque_nm -
+                                          dl.carrier_load_nm + dl.mount_torque_nm;
     b->vehicle_in.rear_wheel_torque_nm = wo[2].body_torque_nm;
     b->vehicle_in.road_grade_pct = u->road_grade_pct;
     {
@@ -169,7 +170,7 @@ static void bench_couplings(const dct_plant *pl, bench_inputs *b)
         dct_gearbox_output_eval(&p->gearbox, &pl->derived.gearbox, &s->gearbox, &b->gearbox_in, &go);
         double w = s->engine.speed_rad_s;
         b->thermal_in.fuel_heat_w = eo.burnt_fuel_rate_g_s * p->thermal.fuel_lhv_j_per_g;
-        b->thermal_in.combustion_power_w = s->engine.combustion_torque_nm * w;
+        b->thermal_in.combustion_power_w = eo.combustion_torque_nm * w;
         b->thermal_in.friction_power_w = -eo.drag_nm * w;
         b->thermal_in.trans_heat_w = co[0].heat_w + co[1].heat_w + go.power_loss_w;
         b->thermal_in.vehicle_speed_m_s = s->vehicle.speed_m_s;

@@ -110,7 +110,8 @@ typedef struct {
     double na_torque_fraction;        /* share of full-load torque available without boost */
     double tau_rise_s;                /* torque build-up time constant (manifold filling) */
     double tau_boost_s;               /* build-up time constant above the NA share (turbo lag) */
-    double tau_fall_s;                /* torque decay time constant */
+    double tau_fall_s;                /* torque decay time constant (throttle closing; spark retard
+                                         and its recovery) */
     double idle_speed_rpm;            /* idle governor target */
     double idle_kp_nm_per_rpm;
     double idle_ki_nm_per_rpm_s;
@@ -120,14 +121,19 @@ typedef struct {
     double drag_smoothing_rad_s;      /* drag torque fades to 0 at standstill over this speed */
     dct_bsfc_map bsfc;
     double fuel_density_kg_per_l;
+    double spark_cut_max_share;       /* a TCU torque request below the driver's is met by spark
+                                         retard, the air path (boost) held, up to this share of the
+                                         air-path torque; below that the air path follows too */
 } dct_engine_params;
 
 typedef struct {
     double speed_rad_s;               /* crank speed (= clutch drum speed) */
-    double combustion_torque_nm;      /* lagged combustion torque (brake torque minus drag) */
+    double combustion_torque_nm;      /* lagged air-path combustion torque (what the air and fuel
+                                         give at best spark; brake torque minus drag, plus the cut) */
     double idle_integral_nm;          /* idle governor integrator */
     double fuel_g;                    /* fuel burnt */
     double running;                   /* 1 running, 0 stalled / switched off */
+    double spark_cut_nm;              /* combustion torque taken off by spark retard (TCU request) */
 } dct_engine_state;
 
 typedef struct {
@@ -145,6 +151,8 @@ typedef struct {
 typedef struct {
     double torque_nm;                 /* brake torque on the crank (combustion + drag) */
     double demand_nm;                 /* combustion torque demanded (before the lag) */
+    double air_demand_nm;             /* the air path's target (the driver's, or a request above it) */
+    double combustion_torque_nm;      /* delivered: the air-path torque minus the spark cut */
     double drag_nm;                   /* drag torque at this speed (<= 0) */
     double fuel_rate_g_s;             /* with the enrichment */
     double burnt_fuel_rate_g_s;       /* without it: what burns */
@@ -426,8 +434,10 @@ typedef struct {
     double low_speed_limit_m_s;       /* the damping fades out up to this speed */
     double carcass_damping_ns_per_m;  /* longitudinal carcass damping, in parallel with its
                                          stiffness (the deflection's spring), per tyre */
-    double rolling_resistance;        /* coefficient */
+    double rolling_resistance;        /* coefficient at low speed */
     double rolling_smoothing_rad_s;   /* rolling resistance fades to 0 at standstill */
+    double rolling_resistance_speed;  /* its rise with speed: + this x (V / ref speed)^2.5 */
+    double rolling_resistance_ref_speed_m_s;
 } dct_tyre_params;
 
 typedef struct {
@@ -600,6 +610,10 @@ typedef struct {
     dct_pressure_map line;            /* line pressure over line-solenoid current */
     double tau_s;                     /* pressure regulator and pump lag */
     double max_current_a;
+    double pump_displacement_cm3;     /* the transmission's oil pump, per crank revolution (it is
+                                         driven by the engine): its torque on the crank is
+                                         line pressure x displacement / (2 pi efficiency) */
+    double pump_efficiency;           /* hydromechanical */
 } dct_supply_params;
 
 typedef struct {
@@ -999,6 +1013,8 @@ typedef struct {
     double clutch2_friction_coeff;
     double clutch1_drag_torque_nm;    /* viscous drag of the open wet pack (in clutch1_torque_nm) */
     double clutch2_drag_torque_nm;
+    double trans_pump_torque_nm;      /* the transmission's oil pump on the crank (not in
+                                         accessory_torque_nm) */
 } dct_outputs;
 
 /* Physical faults (failure simulation, rt_loop's fault table or a test):

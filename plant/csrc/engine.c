@@ -12,14 +12,23 @@
  * torque range [0, full load - drag], so pedal 0 gives drag, pedal 100 full
  * load. A TCU torque request, when active, replaces the pedal demand (the
  * idle governor keeps priority so that an intervention cannot stall it).
+ * A request below the driver's torque is met as an engine control unit
+ * does for a shift: spark retard cuts the torque (in and out within
+ * tau_fall) while the air path, and so the boost, stays at the driver's
+ * torque, as far as the retard can cut (spark_cut_max_share of the air-path
+ * torque); the torque is back at once when the request ends, without a new
+ * turbo lag. The retarded spark burns the air path's fuel. A request above
+ * the driver's opens the air path (with its lags).
  *
  * Thermal effects (thermal.c) come in as inputs, all 0 for the warm engine:
  * the drag curve x (1 + drag_excess), the idle target + idle_rise_rpm, the
  * fuel x (1 + fuel_enrichment) (the extra fuel does not burn: no torque).
- * Accessories (alternator, power steering, A/C) take accessory_torque_nm
- * from the crank; the engine's torque structure covers them, as it covers
- * the drag: pedal 100 % and a torque request mean brake torque at the
- * clutch, and the idle governor holds the idle speed against them.
+ * Accessories (alternator, power steering, A/C, the transmission's oil
+ * pump) take accessory_torque_nm from the crank. The full-load curve is the
+ * engine's rated brake torque, its own friction (the drag) in it: pedal 100 %
+ * gives full load minus the accessories at the clutch; a torque request is
+ * a brake torque at the clutch (the accessories covered, within full load);
+ * the idle governor holds the idle speed against them.
  */
 #include "dct_plant.h"
 #include "dct_util.h"
@@ -78,6 +87,7 @@ void dct_engine_init(const dct_engine_params *p, dct_engine_state *s, double spe
     s->speed_rad_s = speed_rad_s;
     s->fuel_g = 0.0;
     s->running = running ? 1.0 : 0.0;
+    s->spark_cut_nm = 0.0;
     /* running: start with the combustion torque that holds this speed
      * unloaded, and the governor integrator holding idle */
     double hold = running ? -drag_torque(p, speed_rad_s, 1.0) : 0.0;
@@ -95,29 +105,41 @@ void dct_engine_output_eval(const dct_engine_params *p, const dct_engine_state *
     double drag = drag_torque(p, w, factor);
     double acc = in->accessory_torque_nm * dct_smooth_sign(w, p->drag_smoothing_rad_s);
     double full = dct_curve_eval(&p->full_load, n);
-    double drag_need = -factor * dct_curve_eval(&p->drag, fabs(n)) + in->accessory_torque_nm;
+    /* the full-load curve is the brake torque of the engine as rated (its
+     * friction in it): the combustion torque can reach full load + the
+     * drag; what the accessories take comes off the brake torque at the
+     * clutch at full load, and the pedal spans that range */
+    double drag_need = -factor * dct_curve_eval(&p->drag, fabs(n));
     double range = full + drag_need;
     if (range < 0.0)
         range = 0.0;
-    double demand = 0.0;
+    double demand = 0.0, air = 0.0;
     int fired = s->running > 0.5 && in->engine_on > 0.5;
     if (fired) {
         double err = p->idle_speed_rpm + in->idle_rise_rpm - n;
         double gov = dct_clamp(p->idle_kp_nm_per_rpm * err + s->idle_integral_nm, 0.0,
                                p->idle_torque_max_nm);
+        double driver = dct_clamp(0.01 * in->accel_pedal_pct * range + gov, 0.0, range);
+        demand = air = driver;
         if (in->torque_request_active > 0.5) {
-            double req = in->torque_request_nm + drag_need;
-            demand = req > gov ? req : gov;
-        } else {
-            demand = 0.01 * in->accel_pedal_pct * range + gov;
+            /* a request is a brake torque at the clutch: accessories covered */
+            double req = in->torque_request_nm + drag_need + in->accessory_torque_nm;
+            demand = dct_clamp(req > gov ? req : gov, 0.0, range);
+            /* the air path keeps the driver's torque as long as spark
+             * retard can cut the rest; a request above it opens the air path */
+            double keep = demand / (1.0 - p->spark_cut_max_share);
+            air = driver < keep ? driver : keep;
+            if (demand > air)
+                air = demand;
         }
-        demand = dct_clamp(demand, 0.0, range);
         if (n > p->rev_limit_rpm)
-            demand = 0.0; /* fuel cut */
+            demand = air = 0.0; /* fuel cut */
     }
     out->demand_nm = demand;
+    out->air_demand_nm = air;
     out->drag_nm = drag;
-    double comb = s->combustion_torque_nm;
+    double comb = s->combustion_torque_nm - s->spark_cut_nm;
+    out->combustion_torque_nm = comb;
     out->torque_nm = comb + drag - acc;
     out->accessory_torque_nm = acc;
     double fuel = 0.0;
@@ -125,7 +147,8 @@ void dct_engine_output_eval(const dct_engine_params *p, const dct_engine_state *
         /* below the map's lowest torque row (idle, light load) the engine
          * still burns what that row needs: idle consumption. The work of
          * the accessories is the engine's work too. */
-        double t = out->torque_nm + acc;
+        /* spark retard wastes fuel: the air and fuel of the air-path torque burn */
+        double t = out->torque_nm + acc + s->spark_cut_nm;
         if (t < p->bsfc.torque_nm[0])
             t = p->bsfc.torque_nm[0];
         fuel = dct_bsfc_eval(&p->bsfc, n, t) * t * w / 3.6e6;
@@ -141,7 +164,7 @@ void dct_engine_advance(const dct_engine_params *p, dct_engine_state *s,
     double w = s->speed_rad_s;
     double n = w * DCT_RPM_PER_RAD_S;
     double comb = s->combustion_torque_nm;
-    double target = out->demand_nm;
+    double target = out->air_demand_nm;
     double tau;
     if (target > comb) {
         tau = p->tau_rise_s;
@@ -154,6 +177,15 @@ void dct_engine_advance(const dct_engine_params *p, dct_engine_state *s,
     /* exact discretisation of the lag would need exp(); h/tau <= 1 is
      * guaranteed by the parameter ranges, so Euler is monotone here */
     s->combustion_torque_nm = comb + (h / tau) * (target - comb);
+    /* spark retard: while a TCU request holds the torque below the air
+     * path's, it cuts the difference (up to its share), in and out within
+     * tau_fall; without a request it goes back to 0 as fast */
+    double cut = 0.0;
+    if (in->torque_request_active > 0.5) {
+        cut = dct_clamp(s->combustion_torque_nm - out->demand_nm, 0.0,
+                        p->spark_cut_max_share * s->combustion_torque_nm);
+    }
+    s->spark_cut_nm += (h / p->tau_fall_s) * (cut - s->spark_cut_nm);
     s->speed_rad_s = w + h * out->speed_deriv_rad_s2;
     s->fuel_g += h * out->fuel_rate_g_s;
 

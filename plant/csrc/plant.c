@@ -45,6 +45,7 @@ typedef struct {
     dct_thermal_effects thermal_fx;
     dct_thermal_input thermal_in;
     dct_thermal_output thermal;
+    double pump_torque_nm;                /* the transmission's oil pump on the crank */
 } coupling;
 
 /* accessories on the crank (a torque that opposes the rotation): the
@@ -58,6 +59,18 @@ static double accessory_torque(const dct_thermal_params *p, double speed_rad_s)
     double alt = p->alternator_load_w / p->alternator_efficiency / (w > w_min ? w : w_min);
     double t = alt + p->power_steering_nm + (p->ac_on > 0.5 ? p->ac_torque_nm : 0.0);
     return t * dct_smooth_sign(w, p->accessory_smoothing_rad_s);
+}
+
+/* the transmission's oil pump on the crank: it delivers its displacement
+ * every revolution against the line pressure (the regulator spills what the
+ * clutches do not take), so it takes line pressure x displacement / 2 pi
+ * over its efficiency; all of it ends as heat in the transmission oil */
+static double pump_torque(const dct_supply_params *p, double line_pressure_pa, double speed_rad_s,
+                          double smoothing_rad_s)
+{
+    double pa = line_pressure_pa > 0.0 ? line_pressure_pa : 0.0;
+    return pa * p->pump_displacement_cm3 * 1e-6 / (2.0 * DCT_PI * p->pump_efficiency) *
+           dct_smooth_sign(speed_rad_s, smoothing_rad_s);
 }
 
 static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
@@ -127,7 +140,10 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     c->engine_in.drag_excess = c->thermal_fx.engine_drag_factor - 1.0;
     c->engine_in.idle_rise_rpm = c->thermal_fx.idle_rise_rpm;
     c->engine_in.fuel_enrichment = c->thermal_fx.fuel_enrichment;
-    c->engine_in.accessory_torque_nm = accessory_torque(&p->thermal, s->engine.speed_rad_s);
+    c->pump_torque_nm = pump_torque(&p->hydraulics.supply, s->hydraulics.line_pressure_pa,
+                                    s->engine.speed_rad_s, p->thermal.accessory_smoothing_rad_s);
+    c->engine_in.accessory_torque_nm = accessory_torque(&p->thermal, s->engine.speed_rad_s) +
+                                       c->pump_torque_nm;
     dct_engine_output_eval(&p->engine, &s->engine, &c->engine_in, &c->engine);
 
     /* differential and half-shafts */
@@ -188,9 +204,10 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
      * slip and the gearbox's losses */
     double w = s->engine.speed_rad_s;
     c->thermal_in.fuel_heat_w = c->engine.burnt_fuel_rate_g_s * p->thermal.fuel_lhv_j_per_g;
-    c->thermal_in.combustion_power_w = s->engine.combustion_torque_nm * w;
+    c->thermal_in.combustion_power_w = c->engine.combustion_torque_nm * w;
     c->thermal_in.friction_power_w = -c->engine.drag_nm * w;
-    c->thermal_in.trans_heat_w = c->clutch[0].heat_w + c->clutch[1].heat_w + c->gearbox.power_loss_w;
+    c->thermal_in.trans_heat_w = c->clutch[0].heat_w + c->clutch[1].heat_w + c->gearbox.power_loss_w +
+                                 c->pump_torque_nm * w;
     c->thermal_in.vehicle_speed_m_s = s->vehicle.speed_m_s;
     dct_thermal_output_eval(&p->thermal, &s->thermal, &c->thermal_fx, &c->thermal_in, &c->thermal);
 }
@@ -351,7 +368,8 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     o->trans_heat_in_w = c->thermal.trans_heat_in_w;
     o->heat_rejected_w = c->thermal.radiator_w + c->thermal.engine_ambient_w + c->thermal.trans_ambient_w;
     o->trans_oil_viscosity_mm2_s = c->thermal_fx.trans_oil_viscosity_m2_s * 1e6;
-    o->accessory_torque_nm = c->engine.accessory_torque_nm;
+    o->accessory_torque_nm = c->engine.accessory_torque_nm - c->pump_torque_nm;
+    o->trans_pump_torque_nm = c->pump_torque_nm;
     o->gear = engaged_gear(pl, c);
     o->selector_lever = pl->applied.selector_lever;
     o->park_lock_engaged = c->wheel[0].park_locked > 0.5 || c->wheel[1].park_locked > 0.5 ? 1.0 : 0.0;
@@ -634,11 +652,15 @@ int dct_plant_reset(dct_plant *pl, const dct_initial *init)
         double k = fx.engine_drag_factor - 1.0;
         double w_i = (p->engine.idle_speed_rpm + fx.idle_rise_rpm) * DCT_RAD_S_PER_RPM;
         double n_e = fabs(w_eng) * DCT_RPM_PER_RAD_S, n_i = w_i * DCT_RPM_PER_RAD_S;
+        double line_pa = dct_pressure_map_eval(&p->hydraulics.supply.line, 0.0) * DCT_PA_PER_BAR;
+        double sm = p->thermal.accessory_smoothing_rad_s;
         s->engine.combustion_torque_nm += -k * dct_curve_eval(&p->engine.drag, n_e) *
                                               dct_smooth_sign(w_eng, p->engine.drag_smoothing_rad_s) +
-                                          accessory_torque(&p->thermal, w_eng);
+                                          accessory_torque(&p->thermal, w_eng) +
+                                          pump_torque(&p->hydraulics.supply, line_pa, w_eng, sm);
         s->engine.idle_integral_nm = dct_clamp(-(1.0 + k) * dct_curve_eval(&p->engine.drag, n_i) +
-                                                   accessory_torque(&p->thermal, w_i),
+                                                   accessory_torque(&p->thermal, w_i) +
+                                                   pump_torque(&p->hydraulics.supply, line_pa, w_i, sm),
                                                0.0, p->engine.idle_torque_max_nm);
     }
     for (int k = 0; k < 2; k++)

@@ -17,7 +17,8 @@
  * it the contact patch slides), the limit widening as the speed rises and
  * the relaxation takes over.
  * The carcass damps its deflection: + n c_c du/dt (Kelvin-Voigt carcass).
- * Rolling resistance is a moment c_rr Fz R opposing the rotation.
+ * Rolling resistance is a moment c_rr Fz R opposing the rotation, c_rr rising
+ * with the speed.
  * n tyres lumped in one position (the rear axle) each carry Fz / n.
  */
 #include "dct_plant.h"
@@ -94,7 +95,12 @@ void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
     out->force_n = f;
     out->contact_weight = w;
     out->tyre_load_n = fz / n;
-    out->rolling_moment_nm = p->rolling_resistance * fz * p->radius_m *
+    /* the carcass's hysteresis loss per metre grows with speed (standing
+     * waves at the end): f = f0 + fs (V / V_ref)^2.5 (Gillespie, Fundamentals
+     * of Vehicle Dynamics, eq. 4-3) */
+    double x = fabs(v) / p->rolling_resistance_ref_speed_m_s;
+    double f_rr = p->rolling_resistance + p->rolling_resistance_speed * x * x * sqrt(x);
+    out->rolling_moment_nm = f_rr * fz * p->radius_m *
                              dct_smooth_sign(in->wheel_speed_rad_s, p->rolling_smoothing_rad_s);
 }
 
