@@ -549,6 +549,24 @@ def test_bad_time_scale_driver_or_recording_is_a_one_line_error(channel, kwargs,
     assert words in str(e.value) and "\n" not in str(e.value)
 
 
+def test_a_maneuvers_grade_and_first_selector_hold_while_it_waits_for_the_tcu(channel):
+    from plant.maneuvers import get_maneuver
+
+    m = get_maneuver("hill-start")
+    rows = [(0.0, 0.0, 60.0, "N"), (1.0, 0.0, 0.0, "D")]
+    srv = Server(channel, interface="virtual", priority=0, driver=rows, maneuver_inputs=m.inputs)
+    srv.start()
+    try:
+        time.sleep(0.2)
+        snap = srv.snapshot()
+        assert snap["maneuver"] == "waiting for the TCU"
+        assert snap["plant"]["brake_pedal_pct"] == 60.0
+        inputs = srv._l.plant.inputs
+        assert (float(inputs.road_grade_pct), float(inputs.selector_lever)) == (20.0, 2.0)
+    finally:
+        srv.stop()
+
+
 def test_the_driver_table_waits_for_the_tcu_and_the_recording_holds_the_run(channel, tmp_path):
     from rt_loop.recorder import read_recording
 
