@@ -240,6 +240,32 @@ def test_clutch_open_drag_and_sliding_torque(car, index):
             math.copysign(cap, slip) + p.drag_nms_per_rad * slip, rel=EXACT)
 
 
+@pytest.mark.parametrize("index", [0, 1])
+def test_clutch_heat_is_what_the_element_does_not_store(car, index):
+    """Heat = torque x slip - k z dz/dt (the stick spring's stored power,
+    dz/dt = slip while sticking) + drag x slip. Sliding: capacity x slip.
+    Sticking with the torque held at the capacity (the twist just below a
+    limit that grew since the last step, slip large): (capacity - k z) x slip,
+    a few N m x slip, not the stick damper's c slip^2 (246 kW at 750 rpm).
+    Sticking unclamped (small slip): c slip^2."""
+    p = part(car, "clutch", index)
+    k, c = p.friction.stiffness_nm_per_rad, p.friction.damping_nms_per_rad
+    slip = 78.5
+    cap = clutch_eval(p, 1.8, slip).slide_capacity_nm
+    assert 0.0 < cap < 50.0
+    drag = p.drag_nms_per_rad * slip
+    out = clutch_eval(p, 1.8, slip, twist=0.999 * cap / k)
+    assert out.friction.sliding == 0.0 and out.friction.torque_nm == pytest.approx(cap, rel=EXACT)
+    assert out.heat_w == pytest.approx((cap - 0.999 * cap) * slip + drag * slip, rel=1e-9)
+    out = clutch_eval(p, 1.8, slip, twist=cap / k)
+    assert out.friction.sliding == 1.0
+    assert out.heat_w == pytest.approx(cap * slip + drag * slip, rel=1e-9)
+    small = 1e-3
+    out = clutch_eval(p, 10.0, small, twist=0.0)
+    assert out.friction.sliding == 0.0
+    assert out.heat_w == pytest.approx(c * small * small + p.drag_nms_per_rad * small * small, rel=1e-9)
+
+
 # ---------------------------------------------------------------------------
 # engine
 # ---------------------------------------------------------------------------

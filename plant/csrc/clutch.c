@@ -42,9 +42,14 @@ void dct_clutch_output_eval(const dct_clutch_params *p, const dct_clutch_state *
     out->drag_torque_nm = drag;
     out->mu_kinetic = p->mu_kinetic * mu_factor;
     out->torque_nm = out->friction.torque_nm + drag;
-    /* heat: sliding at the capacity, or the stick damper; and the drag */
-    double fr = out->friction.sliding > 0.5 ? out->friction.torque_nm * slip
-                                            : p->friction.damping_nms_per_rad * slip * slip;
+    /* heat: sliding at the capacity; sticking, what the element takes
+     * (torque x slip) less what its spring stores (k z dz/dt, dz/dt = slip):
+     * the stick damper's c slip^2, or less while the torque is held at the
+     * capacity (a capacity that grows step by step keeps the twist just
+     * below its limit); and the drag */
+    double fr = out->friction.sliding > 0.5
+                    ? out->friction.torque_nm * slip
+                    : (out->friction.torque_nm - p->friction.stiffness_nm_per_rad * s->twist_rad) * slip;
     out->heat_w = fr + drag * slip;
 }
 
