@@ -2,15 +2,19 @@
 
 Both start from the same state and get the same inputs: the launch-1st
 scenario (valve currents through the hydraulics), then a power-on shift to
-2nd (fork force on the 2-4 sleeve, K1 handed over to K2) and a stop on the
-brakes: 7 s, 14000 steps. Every state and every output is compared after
-every step.
+2nd (fork force on the 2-4 sleeve, K1 handed over to K2) with a TCU torque
+request below the driver's torque over the handover (the engine's spark
+cut), a stop on the brakes, and the selector lever to P while the car still
+rolls at 26 km/h (the parking pawl ratchets, then engages below its speed
+and holds the front wheels): 9 s, 18000 steps. Every state and every output
+is compared after every step.
 
 Tolerance: 1e-9 of the largest magnitude the variable takes in the run
 (per state or output; a variable that crosses zero has no useful relative
 error of its own). The two implementations do the same IEEE double operations
 in the same order and call the same libm, so on this machine they agree to
-the last bit; the tolerance leaves room for a compiler that reorders or
+the last bit (but for magnitudes near 1e-307: the C step flushes subnormal
+results to zero, Python keeps them); the tolerance leaves room for a compiler that reorders or
 contracts (fused multiply-add) the C arithmetic, which moves results by a few
 ulps per operation. It is not loosened anywhere: the run's discrete events
 (stick/slip, synchronizer phase, valve end stops) are decided by comparisons
@@ -31,13 +35,16 @@ HYDRAULICS = {"hydraulics": {"pressure_commanded": 0}}
 # after launch-1st (4.5 s): time_s -> inputs set from then on
 SHIFT_AND_BRAKE = [
     (4.5, {"fork_force2_n": 900.0}),                       # pre-select 2nd on the 2-4 sleeve
-    (5.3, {"solenoid_current2_a": 0.35, "solenoid_current1_a": 0.6}),
+    (5.3, {"solenoid_current2_a": 0.35, "solenoid_current1_a": 0.6,
+           "torque_request_active": 1.0, "engine_torque_request_nm": 60.0}),  # torque cut: spark retard
     (5.4, {"solenoid_current2_a": 0.6, "solenoid_current1_a": 0.3}),
     (5.5, {"solenoid_current2_a": 1.0, "solenoid_current1_a": 0.0}),  # K1 -> K2 handed over
+    (5.6, {"torque_request_active": 0.0}),                 # torque back
     (5.7, {"fork_force2_n": 0.0}),
     (6.0, {"accel_pedal_pct": 0.0, "brake_pedal_pct": 80.0,
            "solenoid_current2_a": 0.0}),                   # lift off, open K2, brake
-    (7.0, {}),                                             # end
+    (7.2, {"selector_lever": 0.0, "brake_pedal_pct": 40.0}),  # P while rolling: the pawl ratchets
+    (9.0, {}),                                             # end: parked on the lock
 ]
 
 
@@ -100,8 +107,9 @@ def test_every_output_agrees_after_every_step(runs):
 
 
 def test_the_run_exercises_every_component(runs):
-    _, _, co, _ = runs
+    cs, _, co, _ = runs
     col = {name: co[:, i] for i, name in enumerate(OUTPUT_NAMES)}
+    state = {name: cs[:, i] for i, name in enumerate(STATE_NAMES)}
     assert col["vehicle_speed_kmh"].max() > 30.0                     # engine, driveline, vehicle
     assert col["clutch1_clamp_force_n"].max() > 1000.0               # K1 valve, chamber, piston
     assert col["clutch2_clamp_force_n"].max() > 1000.0               # K2
@@ -113,6 +121,14 @@ def test_the_run_exercises_every_component(runs):
     assert col["brake_torque_nm"].max() > 1000.0                     # brakes
     assert col["front_tyre_slip"].max() > 0.02                      # tyres in transient slip
     assert np.ptp(col["pitch_deg"]) > 0.1                             # body pitch
+    assert state["engine.spark_cut_nm"].max() > 20.0                 # the request's spark cut
+    assert np.abs(state["driveline.roll_rad"]).max() > 0.01          # powertrain roll on its mounts
+    assert col["trans_pump_torque_nm"].min() > 1.0                   # the oil pump on the crank
+    assert np.ptp(col["clutch1_kiss_pressure_bar"]) > 0.0            # pack gap with the oil temperature
+    p_sel = col["selector_lever"] == 0.0
+    assert p_sel[-1] and np.any(p_sel & (col["park_lock_engaged"] == 0.0)
+                                & (col["vehicle_speed_kmh"] > 10.0))  # P too fast: ratchets
+    assert col["park_lock_engaged"][-1] == 1.0                       # then holds
 
 
 def test_pressure_commanded_mode_agrees():
@@ -150,7 +166,7 @@ def test_bad_input_is_one_line_error():
 
 def test_state_setter_rejects_wrong_length():
     py = PyPlant(Plant().params)
-    with pytest.raises(ValueError, match="70"):
+    with pytest.raises(ValueError, match=str(len(STATE_NAMES))):
         py.state = [0.0] * 3
 
 

@@ -15,12 +15,13 @@ two agree to rounding (tests/test_pyplant.py runs both from the same start):
                      hydraulics_init/_output/_advance
     synchronizer.c   sync_cone_torque, sync_init/_output/_advance
     gearbox.c        gearbox_prepare, gearbox_output, gearbox_advance
-    driveline.c      driveline_output, driveline_advance
-    wheel.c          wheel_output, wheel_advance
+    driveline.c      driveline_output, driveline_advance (and the powertrain roll)
+    wheel.c          _park_locked, _wheel_capacity, wheel_output, wheel_advance
     tyre.c           magic_formula, magic_formula_peak_slip, tyre_output, tyre_advance
     vehicle.c        vehicle_tyre_loads, vehicle_output, vehicle_advance
     thermal.c        walther_viscosity, thermal_effects, thermal_output, thermal_advance
-    plant.c          PyPlant: evaluate, advance, write_outputs, apply_inputs, step
+    plant.c          accessory_torque, pump_torque, pack_closed_pressure_pa,
+                     PyPlant: evaluate, advance, write_outputs, apply_inputs, step
 
 Parameters are the dict of ``plant.params.load_params`` (the layout of
 ``dct_params``), read as attributes; the state is kept in small objects shaped
@@ -28,6 +29,10 @@ like the C state structs, and ``PyPlant.state`` flattens them into the order
 of ``dct_state`` (``plant.model.STATE_NAMES``). Scalars are Python floats and
 ``math``: the straightforward way to write this model in Python, which is
 what the C core is compared against (``bench_step``).
+
+Not mirrored: the physical faults (faults.c; the Python plant is the healthy
+car) and the C step's flush of subnormal results to zero (dct_util.h), which
+moves only magnitudes below about 1e-307.
 """
 
 from __future__ import annotations
@@ -158,7 +163,8 @@ def friction_advance(p, twist_rad, out, cap_nm, h):
 # --------------------------------------------------------------------------
 
 class EngineState(_Struct):
-    __slots__ = ("speed_rad_s", "combustion_torque_nm", "idle_integral_nm", "fuel_g", "running")
+    __slots__ = ("speed_rad_s", "combustion_torque_nm", "idle_integral_nm", "fuel_g", "running",
+                 "spark_cut_nm")
 
 
 class EngineInput(_Struct):
@@ -168,8 +174,8 @@ class EngineInput(_Struct):
 
 
 class EngineOutput(_Struct):
-    __slots__ = ("torque_nm", "demand_nm", "drag_nm", "fuel_rate_g_s", "burnt_fuel_rate_g_s",
-                 "accessory_torque_nm", "speed_deriv_rad_s2")
+    __slots__ = ("torque_nm", "demand_nm", "air_demand_nm", "combustion_torque_nm", "drag_nm",
+                 "fuel_rate_g_s", "burnt_fuel_rate_g_s", "accessory_torque_nm", "speed_deriv_rad_s2")
 
 
 def curve_eval(c, speed_rpm):
@@ -209,6 +215,7 @@ def engine_init(p, s, speed_rad_s, running):
     s.speed_rad_s = speed_rad_s
     s.fuel_g = 0.0
     s.running = 1.0 if running else 0.0
+    s.spark_cut_nm = 0.0
     hold = -_engine_drag(p, speed_rad_s) if running else 0.0
     s.combustion_torque_nm = hold
     idle_hold = -_engine_drag(p, p.idle_speed_rpm * RAD_S_PER_RPM)
@@ -223,30 +230,40 @@ def engine_output(p, s, inp):
     drag = _engine_drag(p, w, factor)
     acc = inp.accessory_torque_nm * smooth_sign(w, p.drag_smoothing_rad_s)
     full = curve_eval(p.full_load, n)
-    drag_need = -factor * curve_eval(p.drag, abs(n)) + inp.accessory_torque_nm
+    # full load is the rated brake torque (its drag in it); the accessories come off it
+    drag_need = -factor * curve_eval(p.drag, abs(n))
     rng = full + drag_need
     if rng < 0.0:
         rng = 0.0
     demand = 0.0
+    air = 0.0
     fired = s.running > 0.5 and inp.engine_on > 0.5
     if fired:
         err = p.idle_speed_rpm + inp.idle_rise_rpm - n
         gov = clamp(p.idle_kp_nm_per_rpm * err + s.idle_integral_nm, 0.0, p.idle_torque_max_nm)
+        driver = clamp(0.01 * inp.accel_pedal_pct * rng + gov, 0.0, rng)
+        demand = air = driver
         if inp.torque_request_active > 0.5:
-            req = inp.torque_request_nm + drag_need
-            demand = req if req > gov else gov
-        else:
-            demand = 0.01 * inp.accel_pedal_pct * rng + gov
-        demand = clamp(demand, 0.0, rng)
+            # a request is a brake torque at the clutch: accessories covered
+            req = inp.torque_request_nm + drag_need + inp.accessory_torque_nm
+            demand = clamp(req if req > gov else gov, 0.0, rng)
+            # the air path keeps the driver's torque while spark retard can cut the rest
+            keep = demand / (1.0 - p.spark_cut_max_share)
+            air = driver if driver < keep else keep
+            if demand > air:
+                air = demand
         if n > p.rev_limit_rpm:
-            demand = 0.0  # fuel cut
+            demand = air = 0.0  # fuel cut
     out.demand_nm = demand
+    out.air_demand_nm = air
     out.drag_nm = drag
-    out.torque_nm = s.combustion_torque_nm + drag - acc
+    comb = s.combustion_torque_nm - s.spark_cut_nm
+    out.combustion_torque_nm = comb
+    out.torque_nm = comb + drag - acc
     out.accessory_torque_nm = acc
     fuel = 0.0
     if fired and demand > 0.0 and w > 0.0:
-        t = out.torque_nm + acc
+        t = out.torque_nm + acc + s.spark_cut_nm  # the retarded spark burns the air path's fuel
         if t < p.bsfc.torque_nm[0]:
             t = p.bsfc.torque_nm[0]
         fuel = bsfc_eval(p.bsfc, n, t) * t * w / 3.6e6
@@ -260,7 +277,7 @@ def engine_advance(p, s, inp, out, h):
     w = s.speed_rad_s
     n = w * RPM_PER_RAD_S
     comb = s.combustion_torque_nm
-    target = out.demand_nm
+    target = out.air_demand_nm
     if target > comb:
         tau = p.tau_rise_s
         if p.turbocharged > 0.5 and comb > p.na_torque_fraction * curve_eval(p.full_load, n):
@@ -268,6 +285,12 @@ def engine_advance(p, s, inp, out, h):
     else:
         tau = p.tau_fall_s
     s.combustion_torque_nm = comb + (h / tau) * (target - comb)
+    # spark retard: cuts the request's difference (up to its share), in and out within tau_fall
+    cut = 0.0
+    if inp.torque_request_active > 0.5:
+        cut = clamp(s.combustion_torque_nm - out.demand_nm, 0.0,
+                    p.spark_cut_max_share * s.combustion_torque_nm)
+    s.spark_cut_nm += (h / p.tau_fall_s) * (cut - s.spark_cut_nm)
     s.speed_rad_s = w + h * out.speed_deriv_rad_s2
     s.fuel_g += h * out.fuel_rate_g_s
     if s.running > 0.5 and inp.engine_on > 0.5:
@@ -319,7 +342,7 @@ class ClutchInput(_Struct):
 
 class ClutchOutput(_Struct):
     __slots__ = ("torque_nm", "clamp_force_n", "capacity_nm", "slide_capacity_nm", "slip_rad_s",
-                 "heat_w", "friction")
+                 "heat_w", "drag_torque_nm", "mu_kinetic", "friction")
 
 
 def _clutch_mu(p, slip_rad_s):
@@ -339,9 +362,12 @@ def clutch_output(p, s, inp):
     out.slide_capacity_nm = cap
     out.slip_rad_s = slip
     drag = p.drag_nms_per_rad * (1.0 + inp.drag_excess) * slip
+    out.drag_torque_nm = drag
+    out.mu_kinetic = p.mu_kinetic * mu_factor
     out.torque_nm = out.friction.torque_nm + drag
+    # sticking: what the element takes less what its spring stores
     fr = (out.friction.torque_nm * slip if out.friction.sliding > 0.5
-          else p.friction.damping_nms_per_rad * slip * slip)
+          else (out.friction.torque_nm - p.friction.stiffness_nm_per_rad * s.twist_rad) * slip)
     out.heat_w = fr + drag * slip
     return out
 
@@ -826,30 +852,41 @@ def gearbox_advance(p, d, s, out, h):
 # --------------------------------------------------------------------------
 
 class DrivelineState(_Struct):
-    __slots__ = ("left_twist_rad", "right_twist_rad")
+    __slots__ = ("left_twist_rad", "right_twist_rad", "roll_rad", "roll_rate_rad_s")
 
 
 class DrivelineOutput(_Struct):
-    __slots__ = ("shaft_torque_nm", "carrier_load_nm", "left_side_speed_rad_s", "right_side_speed_rad_s")
+    __slots__ = ("shaft_torque_nm", "carrier_load_nm", "left_side_speed_rad_s", "right_side_speed_rad_s",
+                 "mount_torque_nm", "roll_accel_rad_s2")
 
 
-def driveline_output(p, s, carrier_speed_rad_s, left_wheel_speed_rad_s, right_wheel_speed_rad_s):
+def driveline_output(p, s, carrier_speed_rad_s, left_wheel_speed_rad_s, right_wheel_speed_rad_s,
+                     body_pitch_rad, body_pitch_rate_rad_s):
     out = DrivelineOutput()
     kl, cl = p.left_stiffness_nm_per_rad, p.left_damping_nms_per_rad
     kr, cr = p.right_stiffness_nm_per_rad, p.right_damping_nms_per_rad
-    wc = carrier_speed_rad_s
+    wc = carrier_speed_rad_s + s.roll_rate_rad_s  # the carrier turns with the rolled powertrain
     d = (kr * s.right_twist_rad - kl * s.left_twist_rad + cr * (wc - right_wheel_speed_rad_s)
          - cl * (wc - left_wheel_speed_rad_s)) / (cl + cr)
     out.left_side_speed_rad_s = wc + d
     out.right_side_speed_rad_s = wc - d
     out.shaft_torque_nm = kl * s.left_twist_rad + cl * (wc + d - left_wheel_speed_rad_s)
     out.carrier_load_nm = 2.0 * out.shaft_torque_nm
+    # powertrain roll on its mounts: their deflection is the roll against the body's pitch
+    phi = s.roll_rad + body_pitch_rad
+    over = abs(phi) - p.mount_roll_stop_rad
+    stop = p.mount_roll_stop_stiffness_nm_per_rad * over if over > 0.0 else 0.0
+    out.mount_torque_nm = (-p.mount_roll_stiffness_nm_per_rad * phi - (stop if phi > 0.0 else -stop)
+                           - p.mount_roll_damping_nms_per_rad * (s.roll_rate_rad_s + body_pitch_rate_rad_s))
+    out.roll_accel_rad_s2 = (out.mount_torque_nm - out.carrier_load_nm) / p.powertrain_roll_inertia_kgm2
     return out
 
 
 def driveline_advance(s, out, left_wheel_speed_rad_s, right_wheel_speed_rad_s, h):
     s.left_twist_rad += h * (out.left_side_speed_rad_s - left_wheel_speed_rad_s)
     s.right_twist_rad += h * (out.right_side_speed_rad_s - right_wheel_speed_rad_s)
+    s.roll_rad += h * s.roll_rate_rad_s
+    s.roll_rate_rad_s += h * out.roll_accel_rad_s2
 
 
 # --------------------------------------------------------------------------
@@ -861,16 +898,33 @@ class WheelState(_Struct):
 
 
 class WheelInput(_Struct):
-    __slots__ = ("drive_torque_nm", "tyre_force_n", "tyre_radius_m", "rolling_moment_nm", "brake_pedal_pct")
+    __slots__ = ("drive_torque_nm", "tyre_force_n", "tyre_radius_m", "rolling_moment_nm", "brake_pedal_pct",
+                 "park_lock")
 
 
 class WheelOutput(_Struct):
-    __slots__ = ("brake_torque_nm", "body_torque_nm", "speed_deriv_rad_s2", "brake")
+    __slots__ = ("brake_torque_nm", "body_torque_nm", "speed_deriv_rad_s2", "capacity_nm", "park_locked",
+                 "brake")
+
+
+def _park_locked(p, s, inp):
+    """Lever in P, a lock on this position, and the wheel slow enough for the pawl."""
+    return (inp.park_lock > 0.5 and p.park_lock_torque_nm > 0.0
+            and abs(s.speed_rad_s) * inp.tyre_radius_m < p.park_lock_max_speed_kmh / 3.6)
+
+
+def _wheel_capacity(p, s, inp):
+    cap = 0.01 * inp.brake_pedal_pct * p.brake_torque_max_nm
+    if _park_locked(p, s, inp):
+        cap += p.park_lock_torque_nm
+    return cap
 
 
 def wheel_output(p, s, inp):
     out = WheelOutput()
-    cap = 0.01 * inp.brake_pedal_pct * p.brake_torque_max_nm
+    cap = _wheel_capacity(p, s, inp)
+    out.capacity_nm = cap
+    out.park_locked = 1.0 if _park_locked(p, s, inp) else 0.0
     out.brake = friction_eval(p.brake, s.brake_twist_rad, s.speed_rad_s, cap)
     out.brake_torque_nm = out.brake.torque_nm
     out.body_torque_nm = inp.drive_torque_nm - out.brake.torque_nm
@@ -880,8 +934,7 @@ def wheel_output(p, s, inp):
 
 
 def wheel_advance(p, s, inp, out, h):
-    cap = 0.01 * inp.brake_pedal_pct * p.brake_torque_max_nm
-    s.brake_twist_rad = friction_advance(p.brake, s.brake_twist_rad, out.brake, cap, h)
+    s.brake_twist_rad = friction_advance(p.brake, s.brake_twist_rad, out.brake, out.capacity_nm, h)
     s.speed_rad_s += h * out.speed_deriv_rad_s2
 
 
@@ -954,8 +1007,10 @@ def tyre_output(p, s, wheel_speed_rad_s, ground_speed_m_s, normal_force_n, count
     out.force_n = f
     out.contact_weight = w
     out.tyre_load_n = fz / n
-    out.rolling_moment_nm = (p.rolling_resistance * fz * p.radius_m
-                             * smooth_sign(wheel_speed_rad_s, p.rolling_smoothing_rad_s))
+    # rolling resistance rises with speed: f0 + fs (V / V_ref)^2.5
+    x = abs(v) / p.rolling_resistance_ref_speed_m_s
+    f_rr = p.rolling_resistance + p.rolling_resistance_speed * x * x * math.sqrt(x)
+    out.rolling_moment_nm = f_rr * fz * p.radius_m * smooth_sign(wheel_speed_rad_s, p.rolling_smoothing_rad_s)
     return out
 
 
@@ -1078,7 +1133,7 @@ INPUT_NAMES = (
     "accel_pedal_pct", "brake_pedal_pct", "solenoid_current1_a", "solenoid_current2_a",
     "line_solenoid_current_a", "clutch1_pressure_bar", "clutch2_pressure_bar", "fork_force1_n",
     "fork_force2_n", "fork_force3_n", "fork_force4_n", "road_grade_pct", "engine_torque_request_nm",
-    "torque_request_active", "engine_on",
+    "torque_request_active", "engine_on", "selector_lever",
 )
 
 OUTPUT_NAMES = (
@@ -1097,7 +1152,13 @@ OUTPUT_NAMES = (
     "accel_pedal_pct", "brake_pedal_pct", "input_clamps", "coolant_temp_degc",
     "engine_oil_temp_degc", "trans_oil_temp_degc", "thermostat_opening", "engine_heat_in_w",
     "trans_heat_in_w", "heat_rejected_w", "trans_oil_viscosity_mm2_s", "accessory_torque_nm", "gear",
+    "selector_lever", "park_lock_engaged", "clutch1_kiss_pressure_bar", "clutch2_kiss_pressure_bar",
+    "clutch1_friction_coeff", "clutch2_friction_coeff", "clutch1_drag_torque_nm", "clutch2_drag_torque_nm",
+    "trans_pump_torque_nm",
 )
+
+SELECTOR_P = 0.0
+SELECTOR_D = 3.0
 
 GEAR_TORQUE_MIN_NM = 2.0
 
@@ -1116,7 +1177,7 @@ class ThermalState(_Struct):
 class ThermalEffects(_Struct):
     __slots__ = ("engine_drag_factor", "idle_rise_rpm", "fuel_enrichment", "trans_viscosity_ratio",
                  "trans_oil_viscosity_m2_s", "engine_oil_viscosity_ratio", "clutch_drag_factor",
-                 "churning_factor", "clutch_mu_factor", "thermostat_opening")
+                 "churning_factor", "clutch_mu_factor", "clutch_gap_change_mm", "thermostat_opening")
 
 
 class ThermalOutput(_Struct):
@@ -1170,6 +1231,7 @@ def thermal_effects(p, d, trans_oil, s):
     fx.churning_factor = math.exp(p.churning_viscosity_exponent * lt)
     dt = s.trans_oil_temp_degc - p.trans_ref_temp_degc
     fx.clutch_mu_factor = 1.0 + p.clutch_mu_change_per_k * dt
+    fx.clutch_gap_change_mm = p.clutch_gap_expansion_per_k * p.clutch_gap_length_mm * dt
     fx.thermostat_opening = clamp((s.coolant_temp_degc - p.thermostat_open_degc)
                                   / (p.thermostat_full_degc - p.thermostat_open_degc),
                                   p.thermostat_min_opening, 1.0)
@@ -1217,6 +1279,18 @@ def accessory_torque(p, speed_rad_s):
     return t * smooth_sign(w, p.accessory_smoothing_rad_s)
 
 
+def pump_torque(p, line_pressure_pa, speed_rad_s, smoothing_rad_s):
+    """The transmission's engine-driven oil pump on the crank (p: hydraulics.supply)."""
+    pa = line_pressure_pa if line_pressure_pa > 0.0 else 0.0
+    return (pa * p.pump_displacement_cm3 * 1e-6 / (2.0 * PI * p.pump_efficiency)
+            * smooth_sign(speed_rad_s, smoothing_rad_s))
+
+
+def pack_closed_pressure_pa(cp):
+    """The chamber pressure at which the piston has closed the pack gap (the kiss point)."""
+    return (cp.return_spring_n + cp.return_spring_n_per_m * cp.pack_gap_mm * 1e-3) / cp.piston_area_m2
+
+
 def _namespace(value):
     """The load_params dict read as attributes (lists of tables as lists)."""
     if isinstance(value, dict):
@@ -1229,9 +1303,9 @@ def _namespace(value):
 class Coupling:
     """Every coupling variable of one evaluation (plant.c: struct coupling)."""
 
-    __slots__ = ("current_a", "line_current_a", "hydraulics", "clutch_in", "clutch", "engine_in", "engine",
-                 "wheel_speeds", "driveline", "gearbox", "tyre", "wheel_in", "wheel", "vehicle",
-                 "thermal_fx", "thermal")
+    __slots__ = ("clutch_params", "chamber", "current_a", "line_current_a", "hydraulics", "clutch_in",
+                 "clutch", "engine_in", "engine", "wheel_speeds", "body_pitch", "driveline", "gearbox",
+                 "tyre", "wheel_in", "wheel", "vehicle", "thermal_fx", "thermal", "pump_torque_nm")
 
 
 class PyPlant:
@@ -1265,6 +1339,7 @@ class PyPlant:
         self.thermal = ThermalState()
         self.inputs = {name: 0.0 for name in INPUT_NAMES}
         self.inputs["engine_on"] = 1.0
+        self.inputs["selector_lever"] = SELECTOR_D
         self.applied = dict(self.inputs)
         self.outputs = {name: 0.0 for name in OUTPUT_NAMES}
         self.step_count = 0.0
@@ -1365,11 +1440,15 @@ class PyPlant:
             w_i = (p.engine.idle_speed_rpm + fx.idle_rise_rpm) * RAD_S_PER_RPM
             n_e = abs(w_eng) * RPM_PER_RAD_S
             n_i = w_i * RPM_PER_RAD_S
+            line_pa = pressure_map_eval(p.hydraulics.supply.line, 0.0) * PA_PER_BAR
+            sm = th.accessory_smoothing_rad_s
             self.engine.combustion_torque_nm += (-k * curve_eval(p.engine.drag, n_e)
                                                  * smooth_sign(w_eng, p.engine.drag_smoothing_rad_s)
-                                                 + accessory_torque(th, w_eng))
+                                                 + accessory_torque(th, w_eng)
+                                                 + pump_torque(p.hydraulics.supply, line_pa, w_eng, sm))
             self.engine.idle_integral_nm = clamp(-(1.0 + k) * curve_eval(p.engine.drag, n_i)
-                                                 + accessory_torque(th, w_i),
+                                                 + accessory_torque(th, w_i)
+                                                 + pump_torque(p.hydraulics.supply, line_pa, w_i, sm),
                                                  0.0, p.engine.idle_torque_max_nm)
         hydraulics_init(p.hydraulics, self.hydraulics)
         for i in range(3):
@@ -1416,6 +1495,8 @@ class PyPlant:
         a["engine_torque_request_nm"] = lim(u["engine_torque_request_nm"], -200.0, 1000.0)
         a["torque_request_active"] = 1.0 if u["torque_request_active"] > 0.5 else 0.0
         a["engine_on"] = 1.0 if u["engine_on"] > 0.5 else 0.0
+        # the lever is in one of its positions: the nearest, within P..D
+        a["selector_lever"] = float(math.floor(lim(u["selector_lever"], SELECTOR_P, SELECTOR_D) + 0.5))
 
     # ---------------------------------------------------- one evaluation
     def _evaluate(self):
@@ -1423,6 +1504,17 @@ class PyPlant:
         u = self.applied
         c = Coupling()
         fx = c.thermal_fx = thermal_effects(p.thermal, self.thermal_derived, p.hydraulics.oil, self.thermal)
+        # the pack gaps at this oil temperature (thermal expansion) and their chamber law
+        c.clutch_params = []
+        for k in range(2):
+            cp = SimpleNamespace(**vars(p.clutch[k]))
+            gap = p.clutch[k].pack_gap_mm + fx.clutch_gap_change_mm
+            cp.pack_gap_mm = gap if gap > 0.0 else 0.0
+            c.clutch_params.append(cp)
+        if fx.clutch_gap_change_mm != 0.0:
+            c.chamber = hydraulics_prepare(p.hydraulics, c.clutch_params)
+        else:
+            c.chamber = self.chambers
         c.current_a = (u["solenoid_current1_a"], u["solenoid_current2_a"])
         c.line_current_a = u["line_solenoid_current_a"]
         # hydraulics: clamp forces from the chambers, or from commanded pressures
@@ -1431,12 +1523,12 @@ class PyPlant:
                                   clutch_pressure_pa=[0.0, 0.0])
             pressure = (u["clutch1_pressure_bar"], u["clutch2_pressure_bar"])
             for k in range(2):
-                po = piston_eval(p.clutch[k], pressure[k] * PA_PER_BAR)
+                po = piston_eval(c.clutch_params[k], pressure[k] * PA_PER_BAR)
                 hy.clamp_force_n[k] = po.clamp_force_n
                 hy.piston_position_m[k] = po.position_m
                 hy.clutch_pressure_pa[k] = pressure[k] * PA_PER_BAR
         else:
-            hy = hydraulics_output(self.chambers, p.clutch, self.hydraulics)
+            hy = hydraulics_output(c.chamber, c.clutch_params, self.hydraulics)
         c.hydraulics = hy
 
         # clutches: engine drum to the input shafts
@@ -1457,13 +1549,18 @@ class PyPlant:
                                   load_torque_nm=c.clutch[0].torque_nm + c.clutch[1].torque_nm,
                                   drag_excess=fx.engine_drag_factor - 1.0,
                                   idle_rise_rpm=fx.idle_rise_rpm, fuel_enrichment=fx.fuel_enrichment,
-                                  accessory_torque_nm=accessory_torque(p.thermal, self.engine.speed_rad_s))
+                                  accessory_torque_nm=0.0)
+        c.pump_torque_nm = pump_torque(p.hydraulics.supply, self.hydraulics.line_pressure_pa,
+                                       self.engine.speed_rad_s, p.thermal.accessory_smoothing_rad_s)
+        c.engine_in.accessory_torque_nm = (accessory_torque(p.thermal, self.engine.speed_rad_s)
+                                           + c.pump_torque_nm)
         c.engine = engine_output(p.engine, self.engine, c.engine_in)
 
         # differential and half-shafts
         c.wheel_speeds = (self.wheel[0].speed_rad_s, self.wheel[1].speed_rad_s)
+        c.body_pitch = (self.vehicle.pitch_rad, self.vehicle.pitch_rate_rad_s)
         c.driveline = driveline_output(p.driveline, self.driveline, self.gearbox.carrier_speed_rad_s,
-                                       c.wheel_speeds[0], c.wheel_speeds[1])
+                                       c.wheel_speeds[0], c.wheel_speeds[1], *c.body_pitch)
 
         # gearbox
         forks = (u["fork_force1_n"], u["fork_force2_n"], u["fork_force3_n"], u["fork_force4_n"])
@@ -1483,30 +1580,36 @@ class PyPlant:
             to = tyre_output(p.tyre, self.tyre[i], self.wheel[i].speed_rad_s, self.vehicle.speed_m_s,
                              fz[i], count[i])
             wi = WheelInput(drive_torque_nm=shaft[i], tyre_force_n=to.force_n, tyre_radius_m=p.tyre.radius_m,
-                            rolling_moment_nm=to.rolling_moment_nm, brake_pedal_pct=u["brake_pedal_pct"])
+                            rolling_moment_nm=to.rolling_moment_nm, brake_pedal_pct=u["brake_pedal_pct"],
+                            park_lock=1.0 if u["selector_lever"] == SELECTOR_P else 0.0)
             wp = p.front_wheel if i < 2 else p.rear_wheels
             c.tyre.append(to)
             c.wheel_in.append(wi)
             c.wheel.append(wheel_output(wp, self.wheel[i], wi))
 
         # body
+        # the front wheels take the brakes' torques from the body; the half-shafts'
+        # reaction reaches it through the powertrain mounts
+        front_torque = (c.wheel[0].body_torque_nm + c.wheel[1].body_torque_nm - c.driveline.carrier_load_nm
+                        + c.driveline.mount_torque_nm)
         c.vehicle = vehicle_output(p.vehicle, self.vehicle, c.tyre[0].force_n + c.tyre[1].force_n,
-                                   c.tyre[2].force_n, c.wheel[0].body_torque_nm + c.wheel[1].body_torque_nm,
-                                   c.wheel[2].body_torque_nm, u["road_grade_pct"])
+                                   c.tyre[2].force_n, front_torque, c.wheel[2].body_torque_nm,
+                                   u["road_grade_pct"])
 
         # heat
         w = self.engine.speed_rad_s
         c.thermal = thermal_output(p.thermal, self.thermal, fx,
                                    c.engine.burnt_fuel_rate_g_s * p.thermal.fuel_lhv_j_per_g,
-                                   self.engine.combustion_torque_nm * w, -c.engine.drag_nm * w,
-                                   c.clutch[0].heat_w + c.clutch[1].heat_w + c.gearbox.power_loss_w,
+                                   c.engine.combustion_torque_nm * w, -c.engine.drag_nm * w,
+                                   c.clutch[0].heat_w + c.clutch[1].heat_w + c.gearbox.power_loss_w
+                                   + c.pump_torque_nm * w,
                                    self.vehicle.speed_m_s)
         return c
 
     def _advance(self, c, h):
         p = self.p
         if not (p.hydraulics.pressure_commanded > 0.5):
-            hydraulics_advance(p.hydraulics, self.chambers, self.hydraulics, c.current_a, c.line_current_a, h,
+            hydraulics_advance(p.hydraulics, c.chamber, self.hydraulics, c.current_a, c.line_current_a, h,
                                c.thermal_fx.trans_oil_viscosity_m2_s)
         engine_advance(p.engine, self.engine, c.engine_in, c.engine, h)
         for k in range(2):
@@ -1625,8 +1728,15 @@ class PyPlant:
         o["trans_heat_in_w"] = c.thermal.trans_heat_in_w
         o["heat_rejected_w"] = c.thermal.radiator_w + c.thermal.engine_ambient_w + c.thermal.trans_ambient_w
         o["trans_oil_viscosity_mm2_s"] = c.thermal_fx.trans_oil_viscosity_m2_s * 1e6
-        o["accessory_torque_nm"] = c.engine.accessory_torque_nm
+        o["accessory_torque_nm"] = c.engine.accessory_torque_nm - c.pump_torque_nm
+        o["trans_pump_torque_nm"] = c.pump_torque_nm
         o["gear"] = self._engaged_gear(c)
+        o["selector_lever"] = a["selector_lever"]
+        o["park_lock_engaged"] = 1.0 if c.wheel[0].park_locked > 0.5 or c.wheel[1].park_locked > 0.5 else 0.0
+        for k in range(2):
+            o[f"clutch{k + 1}_kiss_pressure_bar"] = pack_closed_pressure_pa(c.clutch_params[k]) / PA_PER_BAR
+            o[f"clutch{k + 1}_friction_coeff"] = c.clutch[k].mu_kinetic
+            o[f"clutch{k + 1}_drag_torque_nm"] = c.clutch[k].drag_torque_nm
 
     # --------------------------------------------------------------- step
     def _check_state(self):
