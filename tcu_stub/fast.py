@@ -82,6 +82,8 @@ class TcuCalibration:
     idle_rpm: object = None
     # clutch model
     clutch_kiss_bar: object = None
+    clutch_mu_over_temp: object = None
+    oil_default_degc: object = None
     clutch_nm_per_bar: object = None
     clutch_lock_bar: object = None
     clutch_max_bar: object = None
@@ -95,6 +97,7 @@ class TcuCalibration:
     pressure_i_limit_a: object = None
     fill_current_a: object = None
     fill_time_s: object = None
+    fill_time_over_temp: object = None
     empty_bar: object = None
     line_current_a: object = None
     # forks
@@ -124,7 +127,18 @@ class TcuCalibration:
     hill_margin: object = None
     hill_min_pct: object = None
     hill_kp_nm_per_rpm: object = None
+    hill_stall_rpm: object = None
     brake_nm_per_pct: object = None
+    # kiss point adaptation
+    adapt_open_s: object = None
+    adapt_settle_s: object = None
+    adapt_max_kmh: object = None
+    adapt_torque_tau_s: object = None
+    adapt_speed_tau_s: object = None
+    adapt_steady_rpm: object = None
+    adapt_gain_per_s: object = None
+    adapt_max_bar_per_s: object = None
+    adapt_range_bar: object = None
     # shifts
     upshift_rpm: object = None
     downshift_rpm: object = None
@@ -200,9 +214,10 @@ class TcuCalibration:
 
 
 CALIBRATION_NAMES = tuple(f.name.upper() for f in dataclasses.fields(TcuCalibration))
-_TABLES = ("UPSHIFT_RPM", "DOWNSHIFT_RPM", "ENGINE_FULL_LOAD")
+_TABLES = ("UPSHIFT_RPM", "DOWNSHIFT_RPM", "ENGINE_FULL_LOAD", "CLUTCH_MU_OVER_TEMP", "FILL_TIME_OVER_TEMP")
 _TABLE_ROWS = {"UPSHIFT_RPM": "upshift_n", "DOWNSHIFT_RPM": "downshift_n",
-               "ENGINE_FULL_LOAD": "engine_full_load_n"}     # tcu_cal's row counts
+               "ENGINE_FULL_LOAD": "engine_full_load_n", "CLUTCH_MU_OVER_TEMP": "clutch_mu_over_temp_n",
+               "FILL_TIME_OVER_TEMP": "fill_time_over_temp_n"}     # tcu_cal's row counts
 _PAIRS = ("FINAL_DRIVE", "CLUTCH_KISS_BAR", "CLUTCH_NM_PER_BAR")
 MAX_TABLE_ROWS = 16
 
@@ -462,8 +477,11 @@ def load_state(c, tcu):
     c.has_request = tcu.torque_request_nm is not None
     c.torque_request_nm = tcu.torque_request_nm if tcu.torque_request_nm is not None else 0.0
     for name in ("shift_t0", "latched_torque_nm", "shift_slip0_rpm", "asr_trim_nm", "asr_cut_nm",
-                 "launch_rpm", "creep_nm", "hill_nm", "t_s"):
+                 "launch_rpm", "creep_nm", "hill_nm", "adapt_t_s", "te_filt_nm", "n_filt_rpm",
+                 "idle_load_nm", "t_s"):
         setattr(c, name, getattr(tcu, name))
+    c.kiss_bar = list(tcu.kiss_bar)
+    c.oil_degc = tcu.oil_degc
     c.held = list(tcu.held)
     c.n_shaft = list(tcu.n_shaft)
     for i, loop in enumerate(tcu.loops):
@@ -517,8 +535,11 @@ def store_state(c, tcu, shifts, diag_events, sensors=None):
     tcu.fork_pos_prev = [float(x) for x in c.fork_pos_prev]
     tcu.torque_request_nm = float(c.torque_request_nm) if c.has_request else None
     for name in ("shift_t0", "latched_torque_nm", "shift_slip0_rpm", "asr_trim_nm", "asr_cut_nm",
-                 "launch_rpm", "creep_nm", "hill_nm", "t_s"):
+                 "launch_rpm", "creep_nm", "hill_nm", "adapt_t_s", "te_filt_nm", "n_filt_rpm",
+                 "idle_load_nm", "t_s"):
         setattr(tcu, name, float(getattr(c, name)))
+    tcu.kiss_bar = [float(x) for x in c.kiss_bar]
+    tcu.oil_degc = float(c.oil_degc)
     tcu.held = tuple(float(x) for x in c.held)
     tcu.n_shaft = tuple(float(x) for x in c.n_shaft)
     tcu.events += shifts

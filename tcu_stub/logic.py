@@ -91,8 +91,13 @@ ENGINE_INERTIA_KGM2 = 0.20          # crank + flywheel + clutch drum
 IDLE_RPM = 750.0
 
 # ------------------------------------------------------------ clutch model, K1 and K2
-CLUTCH_KISS_BAR = (1.56, 1.27)      # pressure at which the pack closes (return spring / piston area)
+CLUTCH_KISS_BAR = (1.56, 1.27)      # pressure at which the pack closes (return spring / piston area): the
+                                    # adaptation's start value (TcuLogic.kiss_bar, learnt at a stop on the brake)
 CLUTCH_NM_PER_BAR = (35.6, 36.3)    # capacity gain above the kiss point (static mu)
+# friction over transmission oil temperature (degC, factor on CLUTCH_NM_PER_BAR): the TCU's own table;
+# wet paper linings grip a little more in cold, viscous oil (bench data of such linings: a few % per 50 K)
+CLUTCH_MU_OVER_TEMP = ((-20.0, 1.08), (20.0, 1.05), (80.0, 1.0), (120.0, 0.97))
+OIL_DEFAULT_DEGC = 90.0             # TransOilTemp not received (an older plant or matrix): warm
 CLUTCH_LOCK_BAR = 14.0              # clamp pressure of a locked clutch
 CLUTCH_MAX_BAR = 19.0
 
@@ -105,7 +110,10 @@ PRESSURE_KP_A_PER_BAR = 0.01
 PRESSURE_KI_A_PER_BAR_S = 0.4
 PRESSURE_I_LIMIT_A = 0.08
 FILL_CURRENT_A = 0.5                # fill pulse current
-FILL_TIME_S = 0.036                 # fill pulse length (piston stroke about 40 ms at 0.5 A)
+FILL_TIME_S = 0.036                 # fill pulse length (piston stroke about 40 ms at 0.5 A), warm oil
+# fill pulse length factor over oil temperature (degC, factor): viscous oil flows slower through the
+# valve's metering edges and channels, the piston strokes later
+FILL_TIME_OVER_TEMP = ((-20.0, 1.8), (20.0, 1.25), (60.0, 1.0))
 EMPTY_BAR = 0.5                     # below this measured pressure an open clutch counts as empty
 LINE_CURRENT_A = 0.0                # line pressure solenoid: 0 A = 20 bar
 
@@ -146,8 +154,22 @@ HILL_MARGIN = 1.25                  # holding torque over the grade's (unknown l
 HILL_MIN_PCT = 2.0                  # uphill grade (in the direction of the gear) below which creep alone holds
 HILL_KP_NM_PER_RPM = 0.3            # engine torque request while holding: per rpm below idle (the idle governor's
                                     # 60 Nm cannot carry a 20 % grade's torque: the engine would stall)
+HILL_STALL_RPM = 600.0              # the holding torque at most the engine's torque + HILL_KP_NM_PER_RPM x the
+                                    # engine speed above this: the clutch cannot pull the engine into a stall
+                                    # while its torque builds up (the turbo engine's lag)
 BRAKE_NM_PER_PCT = 25.0             # wheel brake torque per brake pedal %, as the TCU estimates it (below the car's
                                     # 31 Nm/%: the clutch takes over before the brake lets go)
+
+# ------------------------------------------------------------ kiss point adaptation (K1, stopped on the brake)
+ADAPT_OPEN_S = 1.0                  # K1 held open this long once stopped on the brake: the engine's torque is its idle load
+ADAPT_SETTLE_S = 1.0                # then CREEP_HOLD_NM this long before learning (fill, pressure loop, idle governor)
+ADAPT_MAX_KMH = 1.0                 # stopped: VehicleSpeed below this (not the output shaft: it rings as K1 closes)
+ADAPT_TORQUE_TAU_S = 0.1            # low-pass of EngineTorque (a 10 ms signal in 0.1 Nm steps)
+ADAPT_SPEED_TAU_S = 0.2             # low-pass of the engine speed ...
+ADAPT_STEADY_RPM = 15.0             # ... the engine within this of it: steady (its torque is the clutch's then)
+ADAPT_GAIN_PER_S = 2.0              # kiss point rate per bar of torque error (error / Nm per bar)
+ADAPT_MAX_BAR_PER_S = 0.2           # kiss point rate limit (a wrong torque reading cannot throw it far)
+ADAPT_RANGE_BAR = 1.0               # the adapted kiss point stays within this of CLUTCH_KISS_BAR
 
 # ------------------------------------------------------------ shifts
 # (accelerator pedal %, engine speed rpm in the present gear): up and down lines
@@ -239,7 +261,7 @@ class ClutchLoop:
         self.fill_left_s = 0.0
         self.target_bar = 0.0
 
-    def current(self, target_bar, measured_bar, dt):
+    def current(self, target_bar, measured_bar, dt, fill_time_s=FILL_TIME_S):
         target_bar = min(max(target_bar, 0.0), CLUTCH_MAX_BAR)
         was_open = self.target_bar <= 0.0
         self.target_bar = target_bar
@@ -248,7 +270,7 @@ class ClutchLoop:
             self.fill_left_s = 0.0
             return 0.0
         if was_open and measured_bar < EMPTY_BAR:
-            self.fill_left_s = FILL_TIME_S
+            self.fill_left_s = fill_time_s
         if self.fill_left_s > 0.0:
             self.fill_left_s -= dt
             return FILL_CURRENT_A
@@ -268,6 +290,17 @@ def torque_to_bar(clutch, torque_nm):
 
 class TcuLogic:
     """The TCU: ``step`` every PERIOD_S with the plant signals, returns the commands."""
+
+    def torque_to_bar(self, clutch, torque_nm):
+        """Pressure for a clutch capacity with the adapted kiss point and the gain at the oil
+        temperature, bar."""
+        if torque_nm <= 0.0:
+            return self.kiss_bar[clutch]
+        return self.kiss_bar[clutch] + torque_nm / self.nm_per_bar(clutch)
+
+    def nm_per_bar(self, clutch):
+        """Capacity gain above the kiss point at the oil temperature, Nm/bar."""
+        return CLUTCH_NM_PER_BAR[clutch] * _interp(self.oil_degc, CLUTCH_MU_OVER_TEMP)
 
     PERIOD_S = PERIOD_S
     GEAR_LAYOUT = GEAR_LAYOUT
@@ -307,6 +340,12 @@ class TcuLogic:
         self.launch_rpm = LAUNCH_RPM_MIN
         self.creep_nm = 0.0           # creep torque on the launch clutch (ramped), Nm
         self.hill_nm = 0.0            # holding torque of the grade the brake no longer holds, Nm
+        self.kiss_bar = list(CLUTCH_KISS_BAR)   # adapted kiss points of K1, K2, bar
+        self.oil_degc = OIL_DEFAULT_DEGC    # transmission oil temperature as last read, degC
+        self.adapt_t_s = 0.0          # time stopped on the brake (the adaptation's sequence), s
+        self.te_filt_nm = 0.0         # EngineTorque low-pass, Nm
+        self.n_filt_rpm = 0.0         # engine speed low-pass, rpm
+        self.idle_load_nm = 0.0       # the engine's torque with K1 open at the stop, Nm
         self.t_s = 0.0
         self.events = []              # (time_s, from_gear, to_gear) of every shift started
         self.held = (0.0, 0.0, 0.0)   # pedal, brake, engine torque last received (the engine message lost)
@@ -329,6 +368,7 @@ class TcuLogic:
         self.n_out = (float(s.get("OutputShaft1Speed", 0.0)), float(s.get("OutputShaft2Speed", 0.0)))
         self.v_kmh = float(s.get("VehicleSpeed", 0.0))
         self.grade_pct = float(s.get("RoadGrade", 0.0))
+        self.oil_degc = float(s.get("TransOilTemp", OIL_DEFAULT_DEGC))
         # the schedule runs on the output shaft speed (driven wheels), as the gearbox sees it
         self.v_sched_kmh = self.n_out[0] / FINAL_DRIVE[0] / RPM_PER_KMH
         self.p_meas = (float(s.get("ClutchPressure1", 0.0)), float(s.get("ClutchPressure2", 0.0)))
@@ -580,7 +620,7 @@ class TcuLogic:
         self.pressure_bar = [0.0, 0.0]
         # the other half still drives (its clutch did not open: a valve stuck, a pressure
         # that stays): no tie-up; no engine torque, so its sleeve can leave its gear
-        tied = self.p_meas[other] > CLUTCH_KISS_BAR[other] + TIED_BAR and not all(
+        tied = self.p_meas[other] > self.kiss_bar[other] + TIED_BAR and not all(
             self._sleeve_neutral(k) and self.sync_state[k] != SYNC_ENGAGED for k in SHAFT_SLEEVES[other])
         if tied:
             self.torque_request_nm = 0.0
@@ -600,7 +640,7 @@ class TcuLogic:
             self.phase = "launch"
         else:
             self.phase = "drive"
-            self.pressure_bar[shaft] = torque_to_bar(shaft, 0.0)
+            self.pressure_bar[shaft] = self.torque_to_bar(shaft, 0.0)
 
     # ---------------------------------------------------------- phases
     def _standstill(self):
@@ -614,10 +654,12 @@ class TcuLogic:
             self._want_gears(1, 2)
         self.gear = self.target_gear = first
         floor = self._creep(first)
+        if self._adapt_kiss(first):
+            floor = 0.0                         # K1 open: the engine's idle load
         bars = [0.0, 0.0]
         if floor > 0.0 and self.gear_ready(first):
             shaft = GEAR_LAYOUT[first][0]
-            bars[shaft] = torque_to_bar(shaft, floor)
+            bars[shaft] = self.torque_to_bar(shaft, floor)
         self.pressure_bar = bars
         self.torque_request_nm = self._hold_request_nm() if bars != [0.0, 0.0] else None
         if self.pedal > PEDAL_ON_PCT and self.brake < BRAKE_ON_PCT and self.gear_ready(first):
@@ -643,6 +685,35 @@ class TcuLogic:
         self.hill_nm = self._hill_hold_nm(gear)
         return max(self.creep_nm, self.hill_nm)
 
+    def _adapt_kiss(self, gear):
+        """Kiss point adaptation of ``gear``'s clutch, stopped on the brake: the clutch open for
+        ADAPT_OPEN_S (the engine's torque then is its idle load), then CREEP_HOLD_NM; once
+        settled, the clutch's torque is the engine's above that idle load, and the kiss point
+        moves by ADAPT_GAIN_PER_S x (commanded - estimated torque) / Nm per bar, rate and range
+        bounded. True while the clutch is to be held open."""
+        shaft = GEAR_LAYOUT[gear][0]
+        self.te_filt_nm += PERIOD_S / ADAPT_TORQUE_TAU_S * (self.t_engine - self.te_filt_nm)
+        self.n_filt_rpm += PERIOD_S / ADAPT_SPEED_TAU_S * (self.n_engine - self.n_filt_rpm)
+        stopped = self.brake >= BRAKE_ON_PCT and self.pedal <= PEDAL_ON_PCT and \
+            abs(self.v_kmh) < ADAPT_MAX_KMH and self.hill_nm <= 0.0 and self.gear_ready(gear)
+        if not stopped:
+            self.adapt_t_s = 0.0
+            return False
+        self.adapt_t_s += PERIOD_S
+        steady = abs(self.n_engine - self.n_filt_rpm) < ADAPT_STEADY_RPM
+        if self.adapt_t_s < ADAPT_OPEN_S:
+            if steady:
+                self.idle_load_nm = self.te_filt_nm
+            return True
+        if self.adapt_t_s >= ADAPT_OPEN_S + ADAPT_SETTLE_S and steady and self.creep_nm == CREEP_HOLD_NM:
+            error_nm = self.creep_nm - (self.te_filt_nm - self.idle_load_nm)
+            rate = min(max(ADAPT_GAIN_PER_S * error_nm / self.nm_per_bar(shaft), -ADAPT_MAX_BAR_PER_S),
+                       ADAPT_MAX_BAR_PER_S)
+            self.kiss_bar[shaft] = min(max(self.kiss_bar[shaft] + rate * PERIOD_S,
+                                           CLUTCH_KISS_BAR[shaft] - ADAPT_RANGE_BAR),
+                                       CLUTCH_KISS_BAR[shaft] + ADAPT_RANGE_BAR)
+        return False
+
     def _hill_hold_nm(self, gear):
         """Clutch torque that holds the car on the grade with the brake's share taken off, Nm
         (grade force x tyre radius / overall ratio x HILL_MARGIN, less the brake's torque)."""
@@ -652,7 +723,8 @@ class TcuLogic:
         ratio = GEAR_OVERALL_RATIO[gear]
         force_n = VEHICLE_WEIGHT_N * grade / math.sqrt(10000.0 + grade * grade)     # m g sin(atan(grade))
         need = HILL_MARGIN * force_n * TYRE_RADIUS_M / ratio
-        return max(need - BRAKE_NM_PER_PCT * self.brake / ratio, 0.0)
+        hold = max(need - BRAKE_NM_PER_PCT * self.brake / ratio, 0.0)
+        return min(hold, max(max(self.t_engine, 0.0) + HILL_KP_NM_PER_RPM * (self.n_engine - HILL_STALL_RPM), 0.0))
 
     def _start_launch(self):
         self.phase = "launch"
@@ -680,7 +752,7 @@ class TcuLogic:
             self.torque_request_nm = None
         bars = [0.0, 0.0]
         if self.gear_ready(self.gear):          # no torque on a shaft without its gear
-            bars[shaft] = torque_to_bar(shaft, torque)
+            bars[shaft] = self.torque_to_bar(shaft, torque)
         self.pressure_bar = bars
 
     def _drive(self):
@@ -733,8 +805,8 @@ class TcuLogic:
         t_on = frac * need
         t_off = max(need - t_on, 0.0)
         bars = [0.0, 0.0]
-        bars[on] = torque_to_bar(on, t_on)
-        bars[off] = min(torque_to_bar(off, t_off), self.pressure_bar[off]) if frac < 1.0 else 0.0
+        bars[on] = self.torque_to_bar(on, t_on)
+        bars[off] = min(self.torque_to_bar(off, t_off), self.pressure_bar[off]) if frac < 1.0 else 0.0
         self.pressure_bar = bars
         if frac >= 1.0:
             self.phase = "upshift_inertia"
@@ -754,7 +826,7 @@ class TcuLogic:
         request = t_clutch - j_torque
         self.torque_request_nm = max(min(request, self.latched_torque_nm), 0.0)
         bars = [0.0, 0.0]
-        bars[on] = torque_to_bar(on, t_clutch)
+        bars[on] = self.torque_to_bar(on, t_clutch)
         self.pressure_bar = bars
         if slip < SYNC_DONE_RPM or self.t_s - self.shift_t0 > SHIFT_TIMEOUT_S:
             self._finish_shift()
@@ -770,10 +842,10 @@ class TcuLogic:
         bars = [0.0, 0.0]
         no_blip = False
         if self.torque_request_nm is None and t_e > 2 * COAST_PULL_NM:
-            bars[off] = torque_to_bar(off, DOWN_OFFGOING_SHARE * t_e)
-            bars[on] = torque_to_bar(on, 0.0)
+            bars[off] = self.torque_to_bar(off, DOWN_OFFGOING_SHARE * t_e)
+            bars[on] = self.torque_to_bar(on, 0.0)
         else:
-            bars[on] = torque_to_bar(on, 0.0)
+            bars[on] = self.torque_to_bar(on, 0.0)
             below = self.n_shaft[on] - self.n_engine
             self.torque_request_nm = min(max(BLIP_KP_NM_PER_RPM * below, 0.0), BLIP_MAX_NM)
             # no torque requests (engine message lost): the on-coming clutch pulls the engine up
@@ -794,8 +866,8 @@ class TcuLogic:
         frac = min((self.t_s - self.shift_t0) / TORQUE_PHASE_S, 1.0)
         need = TORQUE_MARGIN * t_e + TORQUE_MARGIN_NM
         bars = [0.0, 0.0]
-        bars[on] = torque_to_bar(on, max(frac * need, COAST_PULL_NM))
-        bars[off] = torque_to_bar(off, (1.0 - frac) * DOWN_OFFGOING_SHARE * t_e) if frac < 1.0 and \
+        bars[on] = self.torque_to_bar(on, max(frac * need, COAST_PULL_NM))
+        bars[off] = self.torque_to_bar(off, (1.0 - frac) * DOWN_OFFGOING_SHARE * t_e) if frac < 1.0 and \
             self.latched_torque_nm > 0 else 0.0
         self.pressure_bar = bars
         if frac >= 1.0:
@@ -897,8 +969,9 @@ class TcuLogic:
                 loop.reset()
             forces = [0.0] * 4
         else:
-            i1 = self.loops[0].current(self.pressure_bar[0], self.p_meas[0], dt)
-            i2 = self.loops[1].current(self.pressure_bar[1], self.p_meas[1], dt)
+            fill_s = FILL_TIME_S * _interp(self.oil_degc, FILL_TIME_OVER_TEMP)
+            i1 = self.loops[0].current(self.pressure_bar[0], self.p_meas[0], dt, fill_s)
+            i2 = self.loops[1].current(self.pressure_bar[1], self.p_meas[1], dt, fill_s)
             forces = self._fork_forces()
         request = self.torque_request_nm
         if not stale:

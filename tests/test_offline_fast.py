@@ -103,31 +103,33 @@ def maneuver_run(name, duration_s=None, tcu_impl="auto", **kw):
     return run_offline(plant, m.driver, duration_s or m.duration_s, tcu_impl=tcu_impl, **kw)
 
 
-def lockstep(name, duration_s=None, python_driver=False, faults=None, driver=None, inputs=None):
+def lockstep(name, duration_s=None, python_driver=False, faults=None, driver=None, inputs=None, reset=None,
+             calibration=None):
     """The C loop over a maneuver with the Python TCU stepping on the same sensors:
     (C's recording, periods compared). Asserts equal commands every period and
     equal states at the end. ``python_driver``: the driver runs in Python (the
     SpeedTrackingDriver as a plain callable); ``faults``: (t_s, {fault: value}) plant
     faults in effect from that period's plant step on. ``driver``: a pedal function
     (t_s, outputs) -> (accel %, brake %) instead of the maneuver's (``name`` then only
-    names the run), with plant ``inputs`` set at the start (e.g. the road grade)."""
+    names the run), with plant ``inputs`` set at the start (e.g. the road grade). ``reset``:
+    the plant's reset arguments (a cold start); ``calibration``: both TCUs' calibration."""
     plant = Plant()
     if driver is None:
         m = get_maneuver(name)
-        plant.reset(**m.reset_kwargs)
+        plant.reset(**dict(m.reset_kwargs, **(reset or {})))
         driver = (lambda t, o: m.driver(t, o)) if python_driver else m.driver
         duration = duration_s or m.duration_s
     else:
-        plant.reset()
+        plant.reset(**(reset or {}))
         python_driver, duration = True, duration_s
     for key, value in (inputs or {}).items():
         plant.inputs[key] = value
     k_fault = int(round(faults[0] / logic.PERIOD_S)) if faults else -1
-    c_tcu = TcuLogic()
+    c_tcu = fast.python_tcu(calibration)
     loop = fast.FastLoop(plant, driver, duration, tcu=c_tcu, record_outputs=offline.RECORDED,
                          trace=TRACE_CHUNK)
     assert loop.driver_in_c != python_driver
-    py = TcuLogic()
+    py = fast.python_tcu(calibration)
     names = fast.sensor_names()
     commands = fast.command_names()
     compared = 0
@@ -205,6 +207,30 @@ def test_lockstep_creep_and_hill_start_same_commands_every_period(name, driver, 
     phases = set(rec["tcu_phase"].astype(int))
     assert logic.PHASE_CODES["standstill"] in phases and logic.PHASE_CODES["launch"] in phases
     assert rec["vehicle_speed_kmh"].max() > 4.0                 # it crept / pulled away
+
+
+def _stop_and_go(t_s, outputs):
+    """Stops on the brake (7 s: the kiss point is learnt) between creep (3 s) and a light pedal (2 s)."""
+    c = t_s % 12.0
+    if c < 7.0:
+        return 0.0, 40.0
+    return (0.0, 0.0) if c < 10.0 else (15.0, 0.0)
+
+
+COLD = {"coolant_temp_degc": 5.0, "engine_oil_temp_degc": 5.0, "trans_oil_temp_degc": 5.0}
+
+
+def test_lockstep_kiss_adaptation_from_a_cold_start_same_commands_every_period():
+    kiss = (logic.CLUTCH_KISS_BAR[0] + 0.4, logic.CLUTCH_KISS_BAR[1])
+    rec, _ = lockstep("kiss-adaptation", 48.0, driver=_stop_and_go, reset=COLD,
+                      calibration={"CLUTCH_KISS_BAR": kiss})
+    assert rec["vehicle_speed_kmh"].max() > 1.0           # cold: it creeps slowly
+
+
+def test_lockstep_paper_cycle_from_a_cold_start_same_commands_every_period():
+    # the oil temperature in the torque-to-pressure gain and the fill time
+    rec, _ = lockstep("paper-cycle", 30.0, reset=COLD)
+    assert len(set(rec["tcu_gear"])) >= 3
 
 
 @pytest.mark.parametrize("faults, dtc", [

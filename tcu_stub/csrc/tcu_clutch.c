@@ -1,6 +1,6 @@
 /*
  * tcu_clutch.c - clutch pressure loop and clutch model of the reference TCU
- * (logic.ClutchLoop, logic.torque_to_bar).
+ * (logic.ClutchLoop, TcuLogic.torque_to_bar).
  */
 #include "tcu_fast.h"
 #include "tcu_util.h"
@@ -15,7 +15,7 @@ void tcu_clutch_reset(tcu_clutch_loop *loop)
 /* target pressure -> solenoid current: valve feed-forward + PI on the measured
    pressure; a fill pulse first when the clutch was open and its chamber empty */
 double tcu_clutch_current(const tcu_cal *cal, tcu_clutch_loop *loop, double target_bar,
-                          double measured_bar, double dt)
+                          double measured_bar, double dt, double fill_time_s)
 {
     target_bar = py_min(py_max(target_bar, 0.0), cal->clutch_max_bar);
     int was_open = loop->target_bar <= 0.0;
@@ -26,7 +26,7 @@ double tcu_clutch_current(const tcu_cal *cal, tcu_clutch_loop *loop, double targ
         return 0.0;
     }
     if (was_open && measured_bar < cal->empty_bar)
-        loop->fill_left_s = cal->fill_time_s;
+        loop->fill_left_s = fill_time_s;
     if (loop->fill_left_s > 0.0) {
         loop->fill_left_s -= dt;
         return cal->fill_current_a;
@@ -41,10 +41,11 @@ double tcu_clutch_current(const tcu_cal *cal, tcu_clutch_loop *loop, double targ
                   cal->valve_max_a);
 }
 
-/* pressure for a clutch capacity, bar (the kiss point for no torque) */
-double tcu_torque_to_bar(const tcu_cal *cal, int clutch, double torque_nm)
+/* TcuLogic.torque_to_bar: pressure for a clutch capacity with the adapted kiss point and the
+   gain at the oil temperature, bar */
+double tcu_torque_to_bar(const tcu_cal *cal, const tcu_state *s, int clutch, double torque_nm)
 {
     if (torque_nm <= 0.0)
-        return cal->clutch_kiss_bar[clutch];
-    return cal->clutch_kiss_bar[clutch] + torque_nm / cal->clutch_nm_per_bar[clutch];
+        return s->kiss_bar[clutch];
+    return s->kiss_bar[clutch] + torque_nm / tcu_nm_per_bar(cal, s, clutch);
 }

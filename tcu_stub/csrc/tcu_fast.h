@@ -102,6 +102,9 @@ typedef struct {
     double rpm_per_kmh;                       /* RPM_PER_KMH */
     /* clutch model */
     double clutch_kiss_bar[2];
+    int32_t clutch_mu_over_temp_n;
+    double clutch_mu_over_temp[TCU_MAX_TABLE][2];   /* (oil degC, factor on clutch_nm_per_bar) */
+    double oil_default_degc;
     double clutch_nm_per_bar[2];
     double clutch_lock_bar;
     double clutch_max_bar;
@@ -115,6 +118,8 @@ typedef struct {
     double pressure_i_limit_a;
     double fill_current_a;
     double fill_time_s;
+    int32_t fill_time_over_temp_n;
+    double fill_time_over_temp[TCU_MAX_TABLE][2];   /* (oil degC, factor on fill_time_s) */
     double empty_bar;
     double line_current_a;
     /* forks */
@@ -144,7 +149,18 @@ typedef struct {
     double hill_margin;
     double hill_min_pct;
     double hill_kp_nm_per_rpm;
+    double hill_stall_rpm;
     double brake_nm_per_pct;
+    /* kiss point adaptation */
+    double adapt_open_s;
+    double adapt_settle_s;
+    double adapt_max_kmh;
+    double adapt_torque_tau_s;
+    double adapt_speed_tau_s;
+    double adapt_steady_rpm;
+    double adapt_gain_per_s;
+    double adapt_max_bar_per_s;
+    double adapt_range_bar;
     /* shifts: (pedal %, rpm) tables */
     int32_t upshift_n;
     double upshift_rpm[TCU_MAX_TABLE][2];
@@ -293,6 +309,12 @@ typedef struct {                  /* logic.TcuLogic */
     double launch_rpm;
     double creep_nm;              /* creep torque on the launch clutch (ramped) */
     double hill_nm;               /* holding torque of the grade the brake does not hold */
+    double kiss_bar[2];           /* adapted kiss points of K1, K2 */
+    double oil_degc;              /* transmission oil temperature as last read */
+    double adapt_t_s;             /* time stopped on the brake (the adaptation's sequence) */
+    double te_filt_nm;            /* EngineTorque low-pass */
+    double n_filt_rpm;            /* engine speed low-pass */
+    double idle_load_nm;          /* the engine's torque with K1 open at the stop */
     double t_s;
     double held[3];               /* pedal, brake, engine torque last received */
     tcu_clutch_loop loops[2];
@@ -327,9 +349,10 @@ void tcu_step(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensor
 
 /* internal to the TCU's files */
 double tcu_clutch_current(const tcu_cal *cal, tcu_clutch_loop *loop, double target_bar,
-                          double measured_bar, double dt);
+                          double measured_bar, double dt, double fill_time_s);
 void tcu_clutch_reset(tcu_clutch_loop *loop);
-double tcu_torque_to_bar(const tcu_cal *cal, int clutch, double torque_nm);
+double tcu_torque_to_bar(const tcu_cal *cal, const tcu_state *s, int clutch, double torque_nm);
+double tcu_nm_per_bar(const tcu_cal *cal, const tcu_state *s, int clutch);
 void tcu_diag_reset(const tcu_cal *cal, tcu_diag *d);
 void tcu_diag_messages(const tcu_cal *cal, tcu_diag *d, double t_s);
 void tcu_diag_monitor(const tcu_cal *cal, tcu_state *s);

@@ -57,6 +57,13 @@ static double interp(double x, const double table[][2], int n)
     return table[n - 1][1];
 }
 
+/* TcuLogic.nm_per_bar: capacity gain above the kiss point at the oil temperature */
+double tcu_nm_per_bar(const tcu_cal *cal, const tcu_state *s, int clutch)
+{
+    return cal->clutch_nm_per_bar[clutch] *
+           interp(s->oil_degc, cal->clutch_mu_over_temp, cal->clutch_mu_over_temp_n);
+}
+
 static double ramp(double value, double target, double rate, double dt)
 {
     double step = rate * dt;
@@ -89,6 +96,9 @@ void tcu_reset(const tcu_cal *cal, tcu_state *s)
     s->target_gear = 1;
     s->shift_from = 1;
     s->launch_rpm = cal->launch_rpm_min;
+    s->kiss_bar[0] = cal->clutch_kiss_bar[0];
+    s->kiss_bar[1] = cal->clutch_kiss_bar[1];
+    s->oil_degc = cal->oil_default_degc;
     for (int i = 0; i < 2; i++)
         tcu_clutch_reset(&s->loops[i]);
     tcu_diag_reset(cal, &s->diag);
@@ -140,6 +150,7 @@ static void read_sensors(const tcu_cal *cal, tcu_state *s, const double *x)
     s->n_out[1] = x[TCU_S_OUTPUT_SHAFT2_SPEED];
     s->v_kmh = x[TCU_S_VEHICLE_SPEED];
     s->grade_pct = x[TCU_S_ROAD_GRADE];
+    s->oil_degc = x[TCU_S_TRANS_OIL_TEMP];
     /* the schedule runs on the output shaft speed (driven wheels), as the gearbox sees it */
     s->v_sched_kmh = s->n_out[0] / cal->final_drive[0] / cal->rpm_per_kmh;
     s->p_meas[0] = x[TCU_S_CLUTCH_PRESSURE1];
@@ -408,7 +419,7 @@ static void shift_open(const tcu_cal *cal, tcu_state *s)
         if (!(sleeve_neutral(cal, s, k) && s->sync_state[k] != TCU_SYNC_ENGAGED))
             all_free = 0;
     }
-    int tied = s->p_meas[other] > cal->clutch_kiss_bar[other] + cal->tied_bar && !all_free;
+    int tied = s->p_meas[other] > s->kiss_bar[other] + cal->tied_bar && !all_free;
     if (tied) {
         s->has_request = 1;
         s->torque_request_nm = 0.0;
@@ -431,7 +442,7 @@ static void shift_open(const tcu_cal *cal, tcu_state *s)
         s->phase = TCU_LAUNCH;
     } else {
         s->phase = TCU_DRIVE;
-        s->pressure_bar[shaft] = tcu_torque_to_bar(cal, shaft, 0.0);
+        s->pressure_bar[shaft] = tcu_torque_to_bar(cal, s, shaft, 0.0);
     }
 }
 
@@ -444,7 +455,10 @@ static double hill_hold_nm(const tcu_cal *cal, const tcu_state *s, int gear)
     double ratio = cal->gear_overall_ratio[gear - 1];
     double force_n = cal->vehicle_weight_n * grade / sqrt(10000.0 + grade * grade);
     double need = cal->hill_margin * force_n * cal->tyre_radius_m / ratio;
-    return py_max(need - cal->brake_nm_per_pct * s->brake / ratio, 0.0);
+    double hold = py_max(need - cal->brake_nm_per_pct * s->brake / ratio, 0.0);
+    /* at most what the engine gives, so the clutch cannot pull it into a stall */
+    return py_min(hold, py_max(py_max(s->t_engine, 0.0) + cal->hill_kp_nm_per_rpm * (s->n_engine - cal->hill_stall_rpm),
+                               0.0));
 }
 
 /* _creep: the launch clutch's least torque at low speed (creep ramped, the grade's hold at once) */
@@ -459,6 +473,37 @@ static double creep(const tcu_cal *cal, tcu_state *s, int gear)
     s->creep_nm = ramp(s->creep_nm, target, cal->creep_ramp_nm_per_s, cal->period_s);
     s->hill_nm = hill_hold_nm(cal, s, gear);
     return py_max(s->creep_nm, s->hill_nm);
+}
+
+/* _adapt_kiss: kiss point adaptation of gear's clutch stopped on the brake; 1 while it is held open */
+static int adapt_kiss(const tcu_cal *cal, tcu_state *s, int gear)
+{
+    int shaft = TCU_GEAR_SHAFT[gear];
+    s->te_filt_nm += cal->period_s / cal->adapt_torque_tau_s * (s->t_engine - s->te_filt_nm);
+    s->n_filt_rpm += cal->period_s / cal->adapt_speed_tau_s * (s->n_engine - s->n_filt_rpm);
+    int stopped = s->brake >= cal->brake_on_pct && s->pedal <= cal->pedal_on_pct &&
+                  fabs(s->v_kmh) < cal->adapt_max_kmh && s->hill_nm <= 0.0 && gear_ready(cal, s, gear);
+    if (!stopped) {
+        s->adapt_t_s = 0.0;
+        return 0;
+    }
+    s->adapt_t_s += cal->period_s;
+    int steady = fabs(s->n_engine - s->n_filt_rpm) < cal->adapt_steady_rpm;
+    if (s->adapt_t_s < cal->adapt_open_s) {
+        if (steady)
+            s->idle_load_nm = s->te_filt_nm;
+        return 1;
+    }
+    if (s->adapt_t_s >= cal->adapt_open_s + cal->adapt_settle_s && steady && s->creep_nm == cal->creep_hold_nm) {
+        double error_nm = s->creep_nm - (s->te_filt_nm - s->idle_load_nm);
+        double rate = py_min(py_max(cal->adapt_gain_per_s * error_nm / tcu_nm_per_bar(cal, s, shaft),
+                                    -cal->adapt_max_bar_per_s),
+                             cal->adapt_max_bar_per_s);
+        s->kiss_bar[shaft] = py_min(py_max(s->kiss_bar[shaft] + rate * cal->period_s,
+                                           cal->clutch_kiss_bar[shaft] - cal->adapt_range_bar),
+                                    cal->clutch_kiss_bar[shaft] + cal->adapt_range_bar);
+    }
+    return 0;
 }
 
 /* _hold_request_nm: engine torque request while the clutch holds a grade (0: none) */
@@ -485,10 +530,12 @@ static void standstill(const tcu_cal *cal, tcu_state *s)
     }
     s->gear = s->target_gear = first;
     double floor = creep(cal, s, first);
+    if (adapt_kiss(cal, s, first))
+        floor = 0.0;              /* K1 open: the engine's idle load */
     double bars[2] = {0.0, 0.0};
     if (floor > 0.0 && gear_ready(cal, s, first)) {
         int shaft = TCU_GEAR_SHAFT[first];
-        bars[shaft] = tcu_torque_to_bar(cal, shaft, floor);
+        bars[shaft] = tcu_torque_to_bar(cal, s, shaft, floor);
     }
     s->pressure_bar[0] = bars[0];
     s->pressure_bar[1] = bars[1];
@@ -534,7 +581,7 @@ static void launch(const tcu_cal *cal, tcu_state *s)
     }
     double bars[2] = {0.0, 0.0};
     if (gear_ready(cal, s, s->gear))   /* no torque on a shaft without its gear */
-        bars[shaft] = tcu_torque_to_bar(cal, shaft, torque);
+        bars[shaft] = tcu_torque_to_bar(cal, s, shaft, torque);
     s->pressure_bar[0] = bars[0];
     s->pressure_bar[1] = bars[1];
 }
@@ -595,8 +642,8 @@ static void upshift_torque(const tcu_cal *cal, tcu_state *s)
     double t_on = frac * need;
     double t_off = py_max(need - t_on, 0.0);
     double bars[2] = {0.0, 0.0};
-    bars[on] = tcu_torque_to_bar(cal, on, t_on);
-    bars[off] = frac < 1.0 ? py_min(tcu_torque_to_bar(cal, off, t_off), s->pressure_bar[off]) : 0.0;
+    bars[on] = tcu_torque_to_bar(cal, s, on, t_on);
+    bars[off] = frac < 1.0 ? py_min(tcu_torque_to_bar(cal, s, off, t_off), s->pressure_bar[off]) : 0.0;
     s->pressure_bar[0] = bars[0];
     s->pressure_bar[1] = bars[1];
     if (frac >= 1.0) {
@@ -628,7 +675,7 @@ static void upshift_inertia(const tcu_cal *cal, tcu_state *s)
     s->has_request = 1;
     s->torque_request_nm = py_max(py_min(request, s->latched_torque_nm), 0.0);
     double bars[2] = {0.0, 0.0};
-    bars[on] = tcu_torque_to_bar(cal, on, t_clutch);
+    bars[on] = tcu_torque_to_bar(cal, s, on, t_clutch);
     s->pressure_bar[0] = bars[0];
     s->pressure_bar[1] = bars[1];
     if (slip < cal->sync_done_rpm || s->t_s - s->shift_t0 > cal->shift_timeout_s)
@@ -644,10 +691,10 @@ static void downshift_inertia(const tcu_cal *cal, tcu_state *s)
     double t_e = py_max(s->t_engine, 0.0);
     double bars[2] = {0.0, 0.0};
     if (!s->has_request && t_e > 2 * cal->coast_pull_nm) {
-        bars[off] = tcu_torque_to_bar(cal, off, cal->down_offgoing_share * t_e);
-        bars[on] = tcu_torque_to_bar(cal, on, 0.0);
+        bars[off] = tcu_torque_to_bar(cal, s, off, cal->down_offgoing_share * t_e);
+        bars[on] = tcu_torque_to_bar(cal, s, on, 0.0);
     } else {
-        bars[on] = tcu_torque_to_bar(cal, on, 0.0);
+        bars[on] = tcu_torque_to_bar(cal, s, on, 0.0);
         double below = s->n_shaft[on] - s->n_engine;
         s->has_request = 1;
         s->torque_request_nm = py_min(py_max(cal->blip_kp_nm_per_rpm * below, 0.0), cal->blip_max_nm);
@@ -672,9 +719,9 @@ static void downshift_torque(const tcu_cal *cal, tcu_state *s)
     double frac = py_min((s->t_s - s->shift_t0) / cal->torque_phase_s, 1.0);
     double need = cal->torque_margin * t_e + cal->torque_margin_nm;
     double bars[2] = {0.0, 0.0};
-    bars[on] = tcu_torque_to_bar(cal, on, py_max(frac * need, cal->coast_pull_nm));
+    bars[on] = tcu_torque_to_bar(cal, s, on, py_max(frac * need, cal->coast_pull_nm));
     bars[off] = frac < 1.0 && s->latched_torque_nm > 0
-                    ? tcu_torque_to_bar(cal, off, (1.0 - frac) * cal->down_offgoing_share * t_e)
+                    ? tcu_torque_to_bar(cal, s, off, (1.0 - frac) * cal->down_offgoing_share * t_e)
                     : 0.0;
     s->pressure_bar[0] = bars[0];
     s->pressure_bar[1] = bars[1];
@@ -734,8 +781,9 @@ static void commands_out(const tcu_cal *cal, tcu_state *s, int stale, double *c)
         for (int k = 0; k < 4; k++)
             forces[k] = 0.0;
     } else {
-        i1 = tcu_clutch_current(cal, &s->loops[0], s->pressure_bar[0], s->p_meas[0], dt);
-        i2 = tcu_clutch_current(cal, &s->loops[1], s->pressure_bar[1], s->p_meas[1], dt);
+        double fill_s = cal->fill_time_s * interp(s->oil_degc, cal->fill_time_over_temp, cal->fill_time_over_temp_n);
+        i1 = tcu_clutch_current(cal, &s->loops[0], s->pressure_bar[0], s->p_meas[0], dt, fill_s);
+        i2 = tcu_clutch_current(cal, &s->loops[1], s->pressure_bar[1], s->p_meas[1], dt, fill_s);
         fork_forces(cal, s, forces);
     }
     int has = s->has_request;
