@@ -380,7 +380,7 @@ class Diagnostics:
             if invalid:
                 plausible_fail = None            # the invalid monitor's case
             elif g:
-                expect = logic.n_out[0 if g <= 4 else 1] * logic.GEAR_RATIO[g]
+                expect = logic.gear_input_rpm(g)
                 plausible_fail = abs(n - expect) > max(SPEED_TOLERANCE_RPM, SPEED_TOLERANCE_SHARE * abs(expect))
             else:
                 plausible_fail = None
@@ -419,11 +419,11 @@ class Diagnostics:
             if self.release_s[s] > 0.0:
                 self.release_s[s] = max(self.release_s[s] - dt, 0.0)
                 self._engage_wait_s[s] = 0.0
-            elif want and want != g:
+            elif want > 0 and want != g:               # R is not monitored
                 self._engage_wait_s[s] += dt
             else:
                 self._engage_wait_s[s] = 0.0
-                if want:
+                if want > 0:
                     self._engage_failed &= ~(1 << (want - 1))     # engaged: a retry again next time
         engage_fail = False
         for s in (0, 1):

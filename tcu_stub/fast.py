@@ -63,7 +63,8 @@ from tcu_stub import logic as _logic
 # names, values derived from others, and SPEED_INVALID_RPM (the DBC's, from diagnostics.py)
 STRUCTURAL = frozenset(("PERIOD_S", "TOP_GEAR", "GEAR_LAYOUT", "SHAFT_SLEEVES", "SHAFT_GEARS",
                         "GEAR_RATIO", "RPM_PER_KMH", "SYNC_ENGAGED", "PHASES", "PHASE_CODES",
-                        "SHIFT_PHASES", "FAULT_COUNT_MAX", "SPEED_INVALID_RPM"))
+                        "SHIFT_PHASES", "FAULT_COUNT_MAX", "SPEED_INVALID_RPM", "REVERSE", "SELECTOR_P",
+                        "SELECTOR_R", "SELECTOR_N", "SELECTOR_D"))
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,10 @@ class TcuCalibration:
     launch_lock_slip_rpm: object = None
     lock_ramp_bar_per_s: object = None
     open_below_input_rpm: object = None
+    # reverse and the selector lever
+    reverse_overall_ratio: object = None
+    reverse_max_kmh: object = None
+    neutral_resume_kmh: object = None
     # creep and hill start
     creep_nm: object = None
     creep_hold_nm: object = None
@@ -482,6 +487,7 @@ def load_state(c, tcu):
         setattr(c, name, getattr(tcu, name))
     c.kiss_bar = list(tcu.kiss_bar)
     c.oil_degc = tcu.oil_degc
+    c.selector = tcu.selector
     c.held = list(tcu.held)
     c.n_shaft = list(tcu.n_shaft)
     for i, loop in enumerate(tcu.loops):
@@ -540,6 +546,7 @@ def store_state(c, tcu, shifts, diag_events, sensors=None):
         setattr(tcu, name, float(getattr(c, name)))
     tcu.kiss_bar = [float(x) for x in c.kiss_bar]
     tcu.oil_degc = float(c.oil_degc)
+    tcu.selector = int(c.selector)
     tcu.held = tuple(float(x) for x in c.held)
     tcu.n_shaft = tuple(float(x) for x in c.n_shaft)
     tcu.events += shifts

@@ -81,8 +81,10 @@ GEAR_OVERALL_RATIO = {1: 14.257, 2: 8.442, 3: 5.353, 4: 3.714, 5: 2.781, 6: 2.30
 FINAL_DRIVE = (4.118, 3.043)        # output shaft 1 (gears 1-4), output shaft 2 (5, 6)
 TYRE_RADIUS_M = 0.316
 TOP_GEAR = 6
-# gear -> (input shaft 0/1, sleeve 0..3, side +1/-1)
-GEAR_LAYOUT = {1: (0, 0, 1), 2: (1, 1, 1), 3: (0, 0, -1), 4: (1, 1, -1), 5: (0, 2, 1), 6: (1, 3, 1)}
+REVERSE = -1                        # the reverse gear's number (TargetGear -1)
+# gear -> (input shaft 0/1, sleeve 0..3, side +1/-1); R: the 5-R sleeve's other side, on K1
+GEAR_LAYOUT = {1: (0, 0, 1), 2: (1, 1, 1), 3: (0, 0, -1), 4: (1, 1, -1), 5: (0, 2, 1), 6: (1, 3, 1), REVERSE: (0, 2, -1)}
+REVERSE_OVERALL_RATIO = 12.142      # R x final drive of output shaft 2 (3.990 x 3.043)
 SHAFT_SLEEVES = {0: (0, 2), 1: (1, 3)}
 SHAFT_GEARS = {0: (1, 3, 5), 1: (2, 4, 6)}
 # gear -> input shaft speed / its output shaft's speed (gears 1-4 on output shaft 1, 5 and 6 on 2)
@@ -142,6 +144,11 @@ LAUNCH_KP_NM_PER_RPM = 0.25         # clutch torque correction over engine speed
 LAUNCH_LOCK_SLIP_RPM = 80.0         # slip below which the launch clutch locks
 LOCK_RAMP_BAR_PER_S = 60.0          # pressure rise from slip control to clamp
 OPEN_BELOW_INPUT_RPM = 900.0        # pedal released in 1st below this input speed: open the clutch
+
+# ------------------------------------------------------------ selector lever (VEH_Driver.SelectorLever)
+SELECTOR_P, SELECTOR_R, SELECTOR_N, SELECTOR_D = 0, 1, 2, 3
+REVERSE_MAX_KMH = 3.0               # R engages only below this forward speed (else neutral, clutches open)
+NEUTRAL_RESUME_KMH = 10.0           # D again above this speed (after N or a refused R): the gear for the speed
 
 # ------------------------------------------------------------ creep and hill start (standstill, launch)
 CREEP_NM = 20.0                     # launch clutch torque, brake released, no pedal: rolls the car at idle speed in 1st
@@ -225,7 +232,8 @@ SHIFT_PHASES = frozenset(("upshift_torque", "upshift_inertia", "downshift_inerti
 FAULT_COUNT_MAX = 255               # TCU_Status.FaultCount saturates here
 _SLEEVE_SHAFT = (0, 1, 0, 1)        # sleeve -> input shaft
 # input shaft -> ((gear, sleeve, side), ...)
-_SHAFT_SLEEVE_SIDES = {shaft: tuple((g,) + GEAR_LAYOUT[g][1:] for g in gears) for shaft, gears in SHAFT_GEARS.items()}
+_SHAFT_SLEEVE_SIDES = {shaft: tuple((g,) + GEAR_LAYOUT[g][1:] for g in gears + ((REVERSE,) if shaft == 0 else ()))
+                       for shaft, gears in SHAFT_GEARS.items()}
 
 
 def _interp(x, table):
@@ -240,6 +248,10 @@ def _interp(x, table):
 def _ramp(value, target, rate, dt):
     step = rate * dt
     return min(value + step, target) if target > value else max(value - step, target)
+
+
+def _overall_ratio(gear):
+    return REVERSE_OVERALL_RATIO if gear == REVERSE else GEAR_OVERALL_RATIO[gear]
 
 
 def gear_rpm(gear, vehicle_speed_kmh):
@@ -342,6 +354,7 @@ class TcuLogic:
         self.hill_nm = 0.0            # holding torque of the grade the brake no longer holds, Nm
         self.kiss_bar = list(CLUTCH_KISS_BAR)   # adapted kiss points of K1, K2, bar
         self.oil_degc = OIL_DEFAULT_DEGC    # transmission oil temperature as last read, degC
+        self.selector = SELECTOR_D    # selector lever as last read
         self.adapt_t_s = 0.0          # time stopped on the brake (the adaptation's sequence), s
         self.te_filt_nm = 0.0         # EngineTorque low-pass, Nm
         self.n_filt_rpm = 0.0         # engine speed low-pass, rpm
@@ -369,6 +382,7 @@ class TcuLogic:
         self.v_kmh = float(s.get("VehicleSpeed", 0.0))
         self.grade_pct = float(s.get("RoadGrade", 0.0))
         self.oil_degc = float(s.get("TransOilTemp", OIL_DEFAULT_DEGC))
+        self.selector = int(round(float(s.get("SelectorLever", SELECTOR_D))))
         # the schedule runs on the output shaft speed (driven wheels), as the gearbox sees it
         self.v_sched_kmh = self.n_out[0] / FINAL_DRIVE[0] / RPM_PER_KMH
         self.p_meas = (float(s.get("ClutchPressure1", 0.0)), float(s.get("ClutchPressure2", 0.0)))
@@ -394,8 +408,15 @@ class TcuLogic:
             return n
         g = self.engaged_gear[shaft]
         if g:
-            return self.n_out[0 if g <= 4 else 1] * GEAR_RATIO[g]
+            return self.gear_input_rpm(g)
         return self.n_shaft[shaft]
+
+    def gear_input_rpm(self, g):
+        """Input shaft speed that the output shafts give through gear ``g`` (R turns it
+        against output shaft 2), rpm."""
+        if g == REVERSE:
+            return -self.n_out[1] * (REVERSE_OVERALL_RATIO / FINAL_DRIVE[1])
+        return self.n_out[0 if g <= 4 else 1] * GEAR_RATIO[g]
 
     def _engaged_on(self, shaft):
         """The gear engaged on an input shaft (0: none)."""
@@ -499,6 +520,8 @@ class TcuLogic:
 
     def _preselection(self):
         g = self.gear
+        if g == REVERSE:
+            return 2
         if self.target_gear != g:
             return self.target_gear
         rising = self.pedal > PEDAL_ON_PCT and self.brake < BRAKE_ON_PCT
@@ -512,8 +535,8 @@ class TcuLogic:
 
     # ---------------------------------------------------------- gears inhibited (diagnostics)
     def allowed(self, gear):
-        """``gear`` (1..6) is not inhibited by the diagnostics."""
-        return not (self.diag.inhibited >> (gear - 1)) & 1
+        """``gear`` (1..6) is not inhibited by the diagnostics (R is never inhibited)."""
+        return gear < 0 or not (self.diag.inhibited >> (gear - 1)) & 1
 
     def _next_allowed(self, g, step, shaft=None):
         """The next allowed gear from ``g`` in direction ``step`` (+1/-1), on ``shaft`` if given; 0: none."""
@@ -644,8 +667,27 @@ class TcuLogic:
 
     # ---------------------------------------------------------- phases
     def _standstill(self):
-        first = 1
-        if self.diag.inhibited:                 # launch in the lowest allowed gear
+        sel = self.selector
+        if sel == SELECTOR_D and self.v_sched_kmh > NEUTRAL_RESUME_KMH:
+            self._recover()                     # D again while rolling: the gear for the speed, by slip
+            return
+        if sel != SELECTOR_D and (sel != SELECTOR_R or self.v_sched_kmh > REVERSE_MAX_KMH):
+            # P, N, or R refused while rolling forward: both clutches open, no torque request
+            if sel == SELECTOR_R:
+                self._want_gears()              # neutral until slow enough for R
+            elif self.gear == REVERSE:
+                self._want_gears(REVERSE, 2)    # the gears may stay engaged
+            else:
+                self._want_gears(1, 2)
+            self.target_gear = 0
+            self.pressure_bar = [0.0, 0.0]
+            self.torque_request_nm = None
+            self.creep_nm = 0.0
+            return
+        first = REVERSE if sel == SELECTOR_R else 1
+        if sel == SELECTOR_R:
+            self._want_gears(REVERSE, 2)
+        elif self.diag.inhibited:               # launch in the lowest allowed gear
             first = self._next_allowed(0, 1)
             if not first:
                 return
@@ -676,13 +718,15 @@ class TcuLogic:
     def _creep(self, gear):
         """The launch clutch's least torque at low speed, Nm: creep (brake released: CREEP_NM,
         fading out toward CREEP_MAX_KMH; on the brake: CREEP_HOLD_NM), ramped; and at once
-        the holding torque of an uphill grade as far as the brake does not hold it."""
+        the holding torque of an uphill grade as far as the brake does not hold it. Speed and
+        grade in the gear's direction (R: backwards)."""
+        v = -self.v_sched_kmh if gear == REVERSE else self.v_sched_kmh
         if self.brake >= BRAKE_ON_PCT:
             target = CREEP_HOLD_NM
         else:
-            target = CREEP_NM * min(max((CREEP_MAX_KMH - self.v_sched_kmh) / CREEP_FADE_KMH, 0.0), 1.0)
+            target = CREEP_NM * min(max((CREEP_MAX_KMH - v) / CREEP_FADE_KMH, 0.0), 1.0)
         self.creep_nm = _ramp(self.creep_nm, target, CREEP_RAMP_NM_PER_S, PERIOD_S)
-        self.hill_nm = self._hill_hold_nm(gear)
+        self.hill_nm = self._hill_hold_nm(gear, v)
         return max(self.creep_nm, self.hill_nm)
 
     def _adapt_kiss(self, gear):
@@ -714,13 +758,14 @@ class TcuLogic:
                                        CLUTCH_KISS_BAR[shaft] + ADAPT_RANGE_BAR)
         return False
 
-    def _hill_hold_nm(self, gear):
+    def _hill_hold_nm(self, gear, v):
         """Clutch torque that holds the car on the grade with the brake's share taken off, Nm
-        (grade force x tyre radius / overall ratio x HILL_MARGIN, less the brake's torque)."""
-        grade = self.grade_pct
-        if grade < HILL_MIN_PCT or self.v_sched_kmh >= CREEP_MAX_KMH:
+        (grade force x tyre radius / overall ratio x HILL_MARGIN, less the brake's torque);
+        ``v``: the speed in the gear's direction, km/h."""
+        grade = -self.grade_pct if gear == REVERSE else self.grade_pct
+        if grade < HILL_MIN_PCT or v >= CREEP_MAX_KMH:
             return 0.0
-        ratio = GEAR_OVERALL_RATIO[gear]
+        ratio = _overall_ratio(gear)
         force_n = VEHICLE_WEIGHT_N * grade / math.sqrt(10000.0 + grade * grade)     # m g sin(atan(grade))
         need = HILL_MARGIN * force_n * TYRE_RADIUS_M / ratio
         hold = max(need - BRAKE_NM_PER_PCT * self.brake / ratio, 0.0)
@@ -729,8 +774,21 @@ class TcuLogic:
     def _start_launch(self):
         self.phase = "launch"
 
+    def _selector_away(self):
+        """The lever left the gear's direction (N, P, R while in a forward gear, D while in R):
+        both clutches open, standstill (which engages what the lever asks for). True then."""
+        if (self.selector == SELECTOR_D and self.gear != REVERSE) or \
+                (self.selector == SELECTOR_R and self.gear == REVERSE):
+            return False
+        self.phase = "standstill"
+        self.pressure_bar = [0.0, 0.0]
+        self.torque_request_nm = None
+        return True
+
     def _launch(self):
         """Slip the clutch of ``gear``, holding the engine at a speed that rises with the pedal."""
+        if self._selector_away():
+            return
         shaft = GEAR_LAYOUT[self.gear][0]
         self._want_gears(self.gear, self._preselection())
         if self.pedal <= PEDAL_ON_PCT and self.n_shaft[shaft] < OPEN_BELOW_INPUT_RPM:
@@ -756,12 +814,20 @@ class TcuLogic:
         self.pressure_bar = bars
 
     def _drive(self):
+        if self._selector_away():
+            return
         shaft = GEAR_LAYOUT[self.gear][0]
         other = 1 - shaft
         bars = [0.0, 0.0]
         lock = CLUTCH_MAX_BAR if self.diag.boost[shaft] else CLUTCH_LOCK_BAR
         bars[shaft] = _ramp(self.pressure_bar[shaft], lock, LOCK_RAMP_BAR_PER_S, PERIOD_S)
         self.pressure_bar = bars
+        if self.gear == REVERSE:                # R: no schedule, back to standstill when released
+            self.target_gear = REVERSE
+            self._want_gears(REVERSE, 2)
+            if self.pedal <= PEDAL_ON_PCT and self.n_shaft[shaft] < OPEN_BELOW_INPUT_RPM:
+                self.phase = "standstill"
+            return
         if self.gear == 1 and self.pedal <= PEDAL_ON_PCT and self.n_shaft[shaft] < OPEN_BELOW_INPUT_RPM:
             self.phase = "standstill"
             return
@@ -891,7 +957,7 @@ class TcuLogic:
 
     def _traction_clutch_nm(self, gear):
         """Clutch torque the tyres can take in ``gear`` (feed-forward + slip trim), Nm."""
-        ratio = GEAR_OVERALL_RATIO[gear]
+        ratio = _overall_ratio(gear)
         return TRACTION_FORCE_N * TYRE_RADIUS_M / (ratio * MESH_EFFICIENCY) + self.asr_trim_nm + \
             self.asr_cut_nm
 
@@ -902,7 +968,7 @@ class TcuLogic:
             self.asr_trim_nm = self.asr_cut_nm = 0.0
             return None
         self._update_slip_trim()
-        ratio = GEAR_OVERALL_RATIO[self.gear]
+        ratio = _overall_ratio(self.gear)
         limit = self._traction_clutch_nm(self.gear)
         if self.phase == "drive":     # the engine also accelerates its own inertia
             limit += ENGINE_INERTIA_KGM2 * TRACTION_ACCEL_MPS2 * ratio / TYRE_RADIUS_M

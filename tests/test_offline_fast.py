@@ -121,7 +121,8 @@ def lockstep(name, duration_s=None, python_driver=False, faults=None, driver=Non
         duration = duration_s or m.duration_s
     else:
         plant.reset(**(reset or {}))
-        python_driver, duration = True, duration_s
+        from plant.driver import ScriptedDriver
+        python_driver, duration = not isinstance(driver, ScriptedDriver), duration_s
     for key, value in (inputs or {}).items():
         plant.inputs[key] = value
     k_fault = int(round(faults[0] / logic.PERIOD_S)) if faults else -1
@@ -225,6 +226,17 @@ def test_lockstep_kiss_adaptation_from_a_cold_start_same_commands_every_period()
     rec, _ = lockstep("kiss-adaptation", 48.0, driver=_stop_and_go, reset=COLD,
                       calibration={"CLUTCH_KISS_BAR": kiss})
     assert rec["vehicle_speed_kmh"].max() > 1.0           # cold: it creeps slowly
+
+
+def test_lockstep_reverse_park_and_a_refused_r_same_commands_every_period():
+    from plant.driver import ScriptedDriver
+
+    rec, _ = lockstep("reverse-park")
+    assert (rec["tcu_gear"] == -1).any() and rec["vehicle_speed_kmh"].min() < -3.0
+    selector = ScriptedDriver([(0.0, 40.0, 0.0, "D"), (5.0, 0.0, 0.0, "R"), (7.0, 0.0, 30.0, "R"),
+                               (12.0, 0.0, 0.0, "R"), (15.0, 0.0, 30.0, "D"), (18.0, 0.0, 0.0, "N")])
+    rec, _ = lockstep("refused-r", 20.0, driver=selector)
+    assert (rec["tcu_target_gear"] == 0).any() and (rec["tcu_gear"] == -1).any()
 
 
 def test_lockstep_paper_cycle_from_a_cold_start_same_commands_every_period():

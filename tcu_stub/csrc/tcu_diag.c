@@ -171,7 +171,7 @@ static void limp(const tcu_cal *cal, tcu_diag *d, int shaft)
         d->limp_home = 1;
         int healthy = 1 - shaft;
         for (int g = 1; g < cal->limp_gear[healthy]; g++)
-            if (TCU_GEAR_SHAFT[g] == healthy)
+            if (TCU_GEAR_SHAFT[tcu_gi(g)] == healthy)
                 d->inhibited |= 1 << (g - 1);
     }
 }
@@ -194,7 +194,7 @@ void tcu_diag_monitor(const tcu_cal *cal, tcu_state *s)
         int g = s->engaged_gear[sh];
         int plausible_fail = NOT_EVALUATED;
         if (!invalid && g) {
-            double expect = s->n_out[g <= 4 ? 0 : 1] * cal->gear_ratio[g - 1];
+            double expect = tcu_gear_input_rpm(cal, s, g);
             plausible_fail = fabs(n - expect) >
                              py_max(cal->speed_tolerance_rpm, cal->speed_tolerance_share * fabs(expect));
         }
@@ -215,7 +215,7 @@ void tcu_diag_monitor(const tcu_cal *cal, tcu_state *s)
         update(d, &d->pressure[sh], fail);
         /* slip of the clutch commanded closed */
         int slip_fail = NOT_EVALUATED;
-        if (s->phase == TCU_DRIVE && TCU_GEAR_SHAFT[s->gear] == sh && !speed_bad[sh] &&
+        if (s->phase == TCU_DRIVE && TCU_GEAR_SHAFT[tcu_gi(s->gear)] == sh && !speed_bad[sh] &&
             s->pressure_bar[sh] >= cal->clutch_lock_bar - 1e-9 && fail == 0)
             slip_fail = fabs(s->n_engine - n) > cal->slip_rpm;
         if (update(d, &d->slip[sh], slip_fail))
@@ -237,11 +237,11 @@ void tcu_diag_monitor(const tcu_cal *cal, tcu_state *s)
         if (d->release_s[sh] > 0.0) {
             d->release_s[sh] = py_max(d->release_s[sh] - dt, 0.0);
             d->engage_wait_s[sh] = 0.0;
-        } else if (want && want != g) {
+        } else if (want > 0 && want != g) {       /* R is not monitored */
             d->engage_wait_s[sh] += dt;
         } else {
             d->engage_wait_s[sh] = 0.0;
-            if (want)
+            if (want > 0)
                 d->engage_failed &= ~(1 << (want - 1));   /* engaged: a retry again next time */
         }
     }

@@ -139,6 +139,10 @@ typedef struct {
     double launch_lock_slip_rpm;
     double lock_ramp_bar_per_s;
     double open_below_input_rpm;
+    /* reverse and the selector lever */
+    double reverse_overall_ratio;
+    double reverse_max_kmh;
+    double neutral_resume_kmh;
     /* creep and hill start */
     double creep_nm;
     double creep_hold_nm;
@@ -311,6 +315,7 @@ typedef struct {                  /* logic.TcuLogic */
     double hill_nm;               /* holding torque of the grade the brake does not hold */
     double kiss_bar[2];           /* adapted kiss points of K1, K2 */
     double oil_degc;              /* transmission oil temperature as last read */
+    int32_t selector;             /* selector lever as last read: 0 P, 1 R, 2 N, 3 D */
     double adapt_t_s;             /* time stopped on the brake (the adaptation's sequence) */
     double te_filt_nm;            /* EngineTorque low-pass */
     double n_filt_rpm;            /* engine speed low-pass */
@@ -353,6 +358,7 @@ double tcu_clutch_current(const tcu_cal *cal, tcu_clutch_loop *loop, double targ
 void tcu_clutch_reset(tcu_clutch_loop *loop);
 double tcu_torque_to_bar(const tcu_cal *cal, const tcu_state *s, int clutch, double torque_nm);
 double tcu_nm_per_bar(const tcu_cal *cal, const tcu_state *s, int clutch);
+double tcu_gear_input_rpm(const tcu_cal *cal, const tcu_state *s, int gear);
 void tcu_diag_reset(const tcu_cal *cal, tcu_diag *d);
 void tcu_diag_messages(const tcu_cal *cal, tcu_diag *d, double t_s);
 void tcu_diag_monitor(const tcu_cal *cal, tcu_state *s);

@@ -99,6 +99,7 @@ void tcu_reset(const tcu_cal *cal, tcu_state *s)
     s->kiss_bar[0] = cal->clutch_kiss_bar[0];
     s->kiss_bar[1] = cal->clutch_kiss_bar[1];
     s->oil_degc = cal->oil_default_degc;
+    s->selector = TCU_SELECTOR_D;
     for (int i = 0; i < 2; i++)
         tcu_clutch_reset(&s->loops[i]);
     tcu_diag_reset(cal, &s->diag);
@@ -118,12 +119,26 @@ static int sleeve_neutral(const tcu_cal *cal, const tcu_state *s, int sleeve)
 /* _engaged_on: the gear engaged on an input shaft (0: none) */
 static int engaged_on(const tcu_cal *cal, const tcu_state *s, int shaft)
 {
-    for (int i = 0; i < 3; i++) {
+    for (int i = 0; i < 4; i++) {
         int g = TCU_SHAFT_GEARS[shaft][i];
-        if (sleeve_engaged(cal, s, TCU_GEAR_SLEEVE[g], TCU_GEAR_SIDE[g]))
+        if (g && sleeve_engaged(cal, s, TCU_GEAR_SLEEVE[tcu_gi(g)], TCU_GEAR_SIDE[tcu_gi(g)]))
             return g;
     }
     return 0;
+}
+
+/* TcuLogic.gear_input_rpm: the input shaft speed the output shafts give through gear g */
+double tcu_gear_input_rpm(const tcu_cal *cal, const tcu_state *s, int g)
+{
+    if (g == TCU_REVERSE)
+        return -s->n_out[1] * (cal->reverse_overall_ratio / cal->final_drive[1]);
+    return s->n_out[g <= 4 ? 0 : 1] * cal->gear_ratio[g - 1];
+}
+
+/* logic._overall_ratio */
+static double overall_ratio(const tcu_cal *cal, int gear)
+{
+    return gear == TCU_REVERSE ? cal->reverse_overall_ratio : cal->gear_overall_ratio[gear - 1];
 }
 
 static double substitute(const tcu_cal *cal, const tcu_state *s, int shaft, double n)
@@ -132,7 +147,7 @@ static double substitute(const tcu_cal *cal, const tcu_state *s, int shaft, doub
         return n;
     int g = s->engaged_gear[shaft];
     if (g)
-        return s->n_out[g <= 4 ? 0 : 1] * cal->gear_ratio[g - 1];
+        return tcu_gear_input_rpm(cal, s, g);
     return s->n_shaft[shaft];
 }
 
@@ -151,6 +166,7 @@ static void read_sensors(const tcu_cal *cal, tcu_state *s, const double *x)
     s->v_kmh = x[TCU_S_VEHICLE_SPEED];
     s->grade_pct = x[TCU_S_ROAD_GRADE];
     s->oil_degc = x[TCU_S_TRANS_OIL_TEMP];
+    s->selector = (int)nearbyint(x[TCU_S_SELECTOR_LEVER]);
     /* the schedule runs on the output shaft speed (driven wheels), as the gearbox sees it */
     s->v_sched_kmh = s->n_out[0] / cal->final_drive[0] / cal->rpm_per_kmh;
     s->p_meas[0] = x[TCU_S_CLUTCH_PRESSURE1];
@@ -177,8 +193,8 @@ static void read_sensors(const tcu_cal *cal, tcu_state *s, const double *x)
 /* gear_ready: gear engaged and the other sleeve of its shaft in neutral */
 static int gear_ready(const tcu_cal *cal, const tcu_state *s, int gear)
 {
-    int shaft = TCU_GEAR_SHAFT[gear], sleeve = TCU_GEAR_SLEEVE[gear];
-    if (!sleeve_engaged(cal, s, sleeve, TCU_GEAR_SIDE[gear]))
+    int shaft = TCU_GEAR_SHAFT[tcu_gi(gear)], sleeve = TCU_GEAR_SLEEVE[tcu_gi(gear)];
+    if (!sleeve_engaged(cal, s, sleeve, TCU_GEAR_SIDE[tcu_gi(gear)]))
         return 0;
     for (int i = 0; i < 2; i++) {
         int k = TCU_SHAFT_SLEEVES[shaft][i];
@@ -197,7 +213,7 @@ static void want_gears(tcu_state *s, int g1, int g2)
         s->sleeve_side[k] = 0;
     for (int i = 0; i < 2; i++)
         if (gears[i])
-            s->sleeve_side[TCU_GEAR_SLEEVE[gears[i]]] = TCU_GEAR_SIDE[gears[i]];
+            s->sleeve_side[TCU_GEAR_SLEEVE[tcu_gi(gears[i])]] = TCU_GEAR_SIDE[tcu_gi(gears[i])];
 }
 
 /* _neutral_force: position loop to neutral, without overshooting onto the other cone */
@@ -214,9 +230,9 @@ int tcu_requested_gear(const tcu_state *s, int shaft)
 {
     if (s->phase == TCU_SAFE || s->phase == TCU_STALE)
         return 0;
-    for (int i = 0; i < 3; i++) {
+    for (int i = 0; i < 4; i++) {
         int g = TCU_SHAFT_GEARS[shaft][i];
-        if (s->sleeve_side[TCU_GEAR_SLEEVE[g]] == TCU_GEAR_SIDE[g])
+        if (g && s->sleeve_side[TCU_GEAR_SLEEVE[tcu_gi(g)]] == TCU_GEAR_SIDE[tcu_gi(g)])
             return g;
     }
     return 0;
@@ -284,7 +300,7 @@ static int scheduled_gear(const tcu_cal *cal, const tcu_state *s)
 
 static int allowed(const tcu_state *s, int gear)
 {
-    return !((s->diag.inhibited >> (gear - 1)) & 1);
+    return gear < 0 || !((s->diag.inhibited >> (gear - 1)) & 1);
 }
 
 /* _next_allowed: the next allowed gear from g in direction step, on shaft (-1: any); 0: none */
@@ -292,7 +308,7 @@ static int next_allowed(const tcu_state *s, int g, int step, int shaft)
 {
     int n = g + step;
     while (1 <= n && n <= TCU_TOP_GEAR) {
-        if (allowed(s, n) && (shaft < 0 || TCU_GEAR_SHAFT[n] == shaft))
+        if (allowed(s, n) && (shaft < 0 || TCU_GEAR_SHAFT[tcu_gi(n)] == shaft))
             return n;
         n += step;
     }
@@ -301,7 +317,7 @@ static int next_allowed(const tcu_state *s, int g, int step, int shaft)
 
 static int restricted_preselection(const tcu_cal *cal, const tcu_state *s, int g, int rising)
 {
-    int other = 1 - TCU_GEAR_SHAFT[g];
+    int other = 1 - TCU_GEAR_SHAFT[tcu_gi(g)];
     int up = next_allowed(s, g, 1, other);
     int down = next_allowed(s, g, -1, other);
     if (down && !rising && gear_rpm(cal, down, s->v_sched_kmh) < cal->preselect_max_rpm)
@@ -316,6 +332,8 @@ static int restricted_preselection(const tcu_cal *cal, const tcu_state *s, int g
 static int preselection(const tcu_cal *cal, const tcu_state *s)
 {
     int g = s->gear;
+    if (g == TCU_REVERSE)
+        return 2;
     if (s->target_gear != g)
         return s->target_gear;
     int rising = s->pedal > cal->pedal_on_pct && s->brake < cal->brake_on_pct;
@@ -408,7 +426,7 @@ static void leave_gear(const tcu_cal *cal, tcu_state *s)
 static void shift_open(const tcu_cal *cal, tcu_state *s)
 {
     int target = s->target_gear;
-    int shaft = TCU_GEAR_SHAFT[target];
+    int shaft = TCU_GEAR_SHAFT[tcu_gi(target)];
     int other = 1 - shaft;
     want_gears(s, target, 0);
     s->pressure_bar[0] = s->pressure_bar[1] = 0.0;
@@ -447,12 +465,12 @@ static void shift_open(const tcu_cal *cal, tcu_state *s)
 }
 
 /* _hill_hold_nm: clutch torque that holds the car on the grade, the brake's share taken off */
-static double hill_hold_nm(const tcu_cal *cal, const tcu_state *s, int gear)
+static double hill_hold_nm(const tcu_cal *cal, const tcu_state *s, int gear, double v)
 {
-    double grade = s->grade_pct;
-    if (grade < cal->hill_min_pct || s->v_sched_kmh >= cal->creep_max_kmh)
+    double grade = gear == TCU_REVERSE ? -s->grade_pct : s->grade_pct;
+    if (grade < cal->hill_min_pct || v >= cal->creep_max_kmh)
         return 0.0;
-    double ratio = cal->gear_overall_ratio[gear - 1];
+    double ratio = overall_ratio(cal, gear);
     double force_n = cal->vehicle_weight_n * grade / sqrt(10000.0 + grade * grade);
     double need = cal->hill_margin * force_n * cal->tyre_radius_m / ratio;
     double hold = py_max(need - cal->brake_nm_per_pct * s->brake / ratio, 0.0);
@@ -464,21 +482,21 @@ static double hill_hold_nm(const tcu_cal *cal, const tcu_state *s, int gear)
 /* _creep: the launch clutch's least torque at low speed (creep ramped, the grade's hold at once) */
 static double creep(const tcu_cal *cal, tcu_state *s, int gear)
 {
+    double v = gear == TCU_REVERSE ? -s->v_sched_kmh : s->v_sched_kmh;   /* in the gear's direction */
     double target;
     if (s->brake >= cal->brake_on_pct)
         target = cal->creep_hold_nm;
     else
-        target = cal->creep_nm *
-                 py_min(py_max((cal->creep_max_kmh - s->v_sched_kmh) / cal->creep_fade_kmh, 0.0), 1.0);
+        target = cal->creep_nm * py_min(py_max((cal->creep_max_kmh - v) / cal->creep_fade_kmh, 0.0), 1.0);
     s->creep_nm = ramp(s->creep_nm, target, cal->creep_ramp_nm_per_s, cal->period_s);
-    s->hill_nm = hill_hold_nm(cal, s, gear);
+    s->hill_nm = hill_hold_nm(cal, s, gear, v);
     return py_max(s->creep_nm, s->hill_nm);
 }
 
 /* _adapt_kiss: kiss point adaptation of gear's clutch stopped on the brake; 1 while it is held open */
 static int adapt_kiss(const tcu_cal *cal, tcu_state *s, int gear)
 {
-    int shaft = TCU_GEAR_SHAFT[gear];
+    int shaft = TCU_GEAR_SHAFT[tcu_gi(gear)];
     s->te_filt_nm += cal->period_s / cal->adapt_torque_tau_s * (s->t_engine - s->te_filt_nm);
     s->n_filt_rpm += cal->period_s / cal->adapt_speed_tau_s * (s->n_engine - s->n_filt_rpm);
     int stopped = s->brake >= cal->brake_on_pct && s->pedal <= cal->pedal_on_pct &&
@@ -517,14 +535,63 @@ static int hold_request(const tcu_cal *cal, const tcu_state *s, double *request_
     return 1;
 }
 
+/* _recover (the D again while rolling path): re-engage by slip control in the gear for the speed */
+static void recover(const tcu_cal *cal, tcu_state *s)
+{
+    for (int i = 0; i < 2; i++)
+        tcu_clutch_reset(&s->loops[i]);
+    s->has_request = 0;
+    if (s->v_kmh < 5.0) {
+        s->phase = TCU_STANDSTILL;
+        return;
+    }
+    int g;
+    if (s->diag.inhibited) {
+        g = gear_for_speed(cal, s);
+        if (!g) {
+            s->phase = TCU_STANDSTILL;
+            return;
+        }
+    } else {
+        g = 1;
+        while (g < TCU_TOP_GEAR &&
+               gear_rpm(cal, g, s->v_sched_kmh) > interp(s->pedal, cal->upshift_rpm, cal->upshift_n))
+            g += 1;
+    }
+    s->gear = s->target_gear = g;
+    s->phase = TCU_LAUNCH;
+    want_gears(s, g, preselection(cal, s));
+}
+
 static void standstill(const tcu_cal *cal, tcu_state *s)
 {
-    int first = 1;
-    if (s->diag.inhibited) {      /* launch in the lowest allowed gear */
+    int sel = s->selector;
+    if (sel == TCU_SELECTOR_D && s->v_sched_kmh > cal->neutral_resume_kmh) {
+        recover(cal, s);          /* D again while rolling: the gear for the speed, by slip */
+        return;
+    }
+    if (sel != TCU_SELECTOR_D && (sel != TCU_SELECTOR_R || s->v_sched_kmh > cal->reverse_max_kmh)) {
+        /* P, N, or R refused while rolling forward: both clutches open, no torque request */
+        if (sel == TCU_SELECTOR_R)
+            want_gears(s, 0, 0);  /* neutral until slow enough for R */
+        else if (s->gear == TCU_REVERSE)
+            want_gears(s, TCU_REVERSE, 2);
+        else
+            want_gears(s, 1, 2);
+        s->target_gear = 0;
+        s->pressure_bar[0] = s->pressure_bar[1] = 0.0;
+        s->has_request = 0;
+        s->creep_nm = 0.0;
+        return;
+    }
+    int first = sel == TCU_SELECTOR_R ? TCU_REVERSE : 1;
+    if (sel == TCU_SELECTOR_R) {
+        want_gears(s, TCU_REVERSE, 2);
+    } else if (s->diag.inhibited) {      /* launch in the lowest allowed gear */
         first = next_allowed(s, 0, 1, -1);
         if (!first)
             return;
-        want_gears(s, first, next_allowed(s, first, 1, 1 - TCU_GEAR_SHAFT[first]));
+        want_gears(s, first, next_allowed(s, first, 1, 1 - TCU_GEAR_SHAFT[tcu_gi(first)]));
     } else {
         want_gears(s, 1, 2);
     }
@@ -534,7 +601,7 @@ static void standstill(const tcu_cal *cal, tcu_state *s)
         floor = 0.0;              /* K1 open: the engine's idle load */
     double bars[2] = {0.0, 0.0};
     if (floor > 0.0 && gear_ready(cal, s, first)) {
-        int shaft = TCU_GEAR_SHAFT[first];
+        int shaft = TCU_GEAR_SHAFT[tcu_gi(first)];
         bars[shaft] = tcu_torque_to_bar(cal, s, shaft, floor);
     }
     s->pressure_bar[0] = bars[0];
@@ -548,15 +615,29 @@ static void standstill(const tcu_cal *cal, tcu_state *s)
 
 static double traction_clutch_nm(const tcu_cal *cal, const tcu_state *s, int gear)
 {
-    double ratio = cal->gear_overall_ratio[gear - 1];
+    double ratio = overall_ratio(cal, gear);
     return cal->traction_force_n * cal->tyre_radius_m / (ratio * cal->mesh_efficiency) +
            s->asr_trim_nm + s->asr_cut_nm;
 }
 
 /* _launch: slip the clutch of gear, holding the engine at a speed that rises with the pedal */
+/* _selector_away: the lever left the gear's direction: both clutches open, standstill; 1 then */
+static int selector_away(tcu_state *s)
+{
+    if ((s->selector == TCU_SELECTOR_D && s->gear != TCU_REVERSE) ||
+        (s->selector == TCU_SELECTOR_R && s->gear == TCU_REVERSE))
+        return 0;
+    s->phase = TCU_STANDSTILL;
+    s->pressure_bar[0] = s->pressure_bar[1] = 0.0;
+    s->has_request = 0;
+    return 1;
+}
+
 static void launch(const tcu_cal *cal, tcu_state *s)
 {
-    int shaft = TCU_GEAR_SHAFT[s->gear];
+    if (selector_away(s))
+        return;
+    int shaft = TCU_GEAR_SHAFT[tcu_gi(s->gear)];
     want_gears(s, s->gear, preselection(cal, s));
     if (s->pedal <= cal->pedal_on_pct && s->n_shaft[shaft] < cal->open_below_input_rpm) {
         s->phase = TCU_STANDSTILL;
@@ -598,13 +679,22 @@ static void start_shift(tcu_state *s)
 
 static void drive(const tcu_cal *cal, tcu_state *s)
 {
-    int shaft = TCU_GEAR_SHAFT[s->gear];
+    if (selector_away(s))
+        return;
+    int shaft = TCU_GEAR_SHAFT[tcu_gi(s->gear)];
     int other = 1 - shaft;
     double lock = s->diag.boost[shaft] ? cal->clutch_max_bar : cal->clutch_lock_bar;
     double bars[2] = {0.0, 0.0};
     bars[shaft] = ramp(s->pressure_bar[shaft], lock, cal->lock_ramp_bar_per_s, cal->period_s);
     s->pressure_bar[0] = bars[0];
     s->pressure_bar[1] = bars[1];
+    if (s->gear == TCU_REVERSE) { /* R: no schedule, back to standstill when released */
+        s->target_gear = TCU_REVERSE;
+        want_gears(s, TCU_REVERSE, 2);
+        if (s->pedal <= cal->pedal_on_pct && s->n_shaft[shaft] < cal->open_below_input_rpm)
+            s->phase = TCU_STANDSTILL;
+        return;
+    }
     if (s->gear == 1 && s->pedal <= cal->pedal_on_pct && s->n_shaft[shaft] < cal->open_below_input_rpm) {
         s->phase = TCU_STANDSTILL;
         return;
@@ -616,13 +706,13 @@ static void drive(const tcu_cal *cal, tcu_state *s)
     int target;
     if (s->diag.inhibited) {
         target = restricted_schedule(cal, s, s->gear);
-        if (target != s->gear && TCU_GEAR_SHAFT[target] != other) {
+        if (target != s->gear && TCU_GEAR_SHAFT[tcu_gi(target)] != other) {
             start_open_shift(s, target);   /* a gear of the same half: an interrupted shift */
             return;
         }
     } else {
         target = scheduled_gear(cal, s);
-        if (target != s->gear && TCU_GEAR_SHAFT[target] != other)
+        if (target != s->gear && TCU_GEAR_SHAFT[tcu_gi(target)] != other)
             /* kick-down over two steps lands on the same shaft: go one step now */
             target = target < s->gear ? s->gear - 1 : s->gear + 1;
     }
@@ -634,7 +724,7 @@ static void drive(const tcu_cal *cal, tcu_state *s)
 
 static void upshift_torque(const tcu_cal *cal, tcu_state *s)
 {
-    int off = TCU_GEAR_SHAFT[s->shift_from], on = TCU_GEAR_SHAFT[s->target_gear];
+    int off = TCU_GEAR_SHAFT[tcu_gi(s->shift_from)], on = TCU_GEAR_SHAFT[tcu_gi(s->target_gear)];
     want_gears(s, s->shift_from, s->target_gear);
     double t_e = py_max(s->t_engine, 0.0);
     double frac = py_min((s->t_s - s->shift_t0) / cal->torque_phase_s, 1.0);
@@ -665,7 +755,7 @@ static void finish_shift(tcu_state *s)
 /* pull the engine to the new shaft: on-coming holds the drive torque, the engine gives less */
 static void upshift_inertia(const tcu_cal *cal, tcu_state *s)
 {
-    int on = TCU_GEAR_SHAFT[s->target_gear];
+    int on = TCU_GEAR_SHAFT[tcu_gi(s->target_gear)];
     want_gears(s, s->target_gear, s->shift_from);
     double slip = s->n_engine - s->n_shaft[on];
     double t_clutch = cal->torque_margin * s->latched_torque_nm + cal->torque_margin_nm;
@@ -686,7 +776,7 @@ static void upshift_inertia(const tcu_cal *cal, tcu_state *s)
    power, or both open and a torque request blips the engine up when coasting */
 static void downshift_inertia(const tcu_cal *cal, tcu_state *s)
 {
-    int off = TCU_GEAR_SHAFT[s->shift_from], on = TCU_GEAR_SHAFT[s->target_gear];
+    int off = TCU_GEAR_SHAFT[tcu_gi(s->shift_from)], on = TCU_GEAR_SHAFT[tcu_gi(s->target_gear)];
     want_gears(s, s->shift_from, s->target_gear);
     double t_e = py_max(s->t_engine, 0.0);
     double bars[2] = {0.0, 0.0};
@@ -713,7 +803,7 @@ static void downshift_inertia(const tcu_cal *cal, tcu_state *s)
 
 static void downshift_torque(const tcu_cal *cal, tcu_state *s)
 {
-    int off = TCU_GEAR_SHAFT[s->shift_from], on = TCU_GEAR_SHAFT[s->target_gear];
+    int off = TCU_GEAR_SHAFT[tcu_gi(s->shift_from)], on = TCU_GEAR_SHAFT[tcu_gi(s->target_gear)];
     want_gears(s, s->target_gear, s->shift_from);
     double t_e = py_max(s->t_engine, 0.0);
     double frac = py_min((s->t_s - s->shift_t0) / cal->torque_phase_s, 1.0);
@@ -750,7 +840,7 @@ static int traction_limit(const tcu_cal *cal, tcu_state *s, double *limit_nm)
         return 0;
     }
     update_slip_trim(cal, s);
-    double ratio = cal->gear_overall_ratio[s->gear - 1];
+    double ratio = overall_ratio(cal, s->gear);
     double limit = traction_clutch_nm(cal, s, s->gear);
     if (s->phase == TCU_DRIVE)    /* the engine also accelerates its own inertia */
         limit += cal->engine_inertia_kgm2 * cal->traction_accel_mps2 * ratio / cal->tyre_radius_m;
@@ -845,10 +935,10 @@ void tcu_step(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensor
 
 int tcu_gear_layout(int gear, int32_t *shaft, int32_t *sleeve, int32_t *side)
 {
-    if (gear < 1 || gear > TCU_TOP_GEAR)
+    if ((gear < 1 || gear > TCU_TOP_GEAR) && gear != TCU_REVERSE)
         return -1;
-    *shaft = TCU_GEAR_SHAFT[gear];
-    *sleeve = TCU_GEAR_SLEEVE[gear];
-    *side = TCU_GEAR_SIDE[gear];
+    *shaft = TCU_GEAR_SHAFT[tcu_gi(gear)];
+    *sleeve = TCU_GEAR_SLEEVE[tcu_gi(gear)];
+    *side = TCU_GEAR_SIDE[tcu_gi(gear)];
     return 0;
 }
