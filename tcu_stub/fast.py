@@ -486,6 +486,7 @@ def load_state(c, tcu):
                  "idle_load_nm", "t_s"):
         setattr(c, name, getattr(tcu, name))
     c.kiss_bar = list(tcu.kiss_bar)
+    c.adapt_shaft = tcu.adapt_shaft
     c.oil_degc = tcu.oil_degc
     c.selector = tcu.selector
     c.held = list(tcu.held)
@@ -545,6 +546,7 @@ def store_state(c, tcu, shifts, diag_events, sensors=None):
                  "idle_load_nm", "t_s"):
         setattr(tcu, name, float(getattr(c, name)))
     tcu.kiss_bar = [float(x) for x in c.kiss_bar]
+    tcu.adapt_shaft = int(c.adapt_shaft)
     tcu.oil_degc = float(c.oil_degc)
     tcu.selector = int(c.selector)
     tcu.held = tuple(float(x) for x in c.held)

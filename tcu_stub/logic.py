@@ -167,8 +167,8 @@ HILL_STALL_RPM = 600.0              # the holding torque at most the engine's to
 BRAKE_NM_PER_PCT = 25.0             # wheel brake torque per brake pedal %, as the TCU estimates it (below the car's
                                     # 31 Nm/%: the clutch takes over before the brake lets go)
 
-# ------------------------------------------------------------ kiss point adaptation (K1, stopped on the brake)
-ADAPT_OPEN_S = 1.0                  # K1 held open this long once stopped on the brake: the engine's torque is its idle load
+# ------------------------------------------------------------ kiss point adaptation (stopped on the brake: K1 and K2 in turn)
+ADAPT_OPEN_S = 1.0                  # the clutch held open this long once stopped on the brake: the engine's torque is its idle load
 ADAPT_SETTLE_S = 1.0                # then CREEP_HOLD_NM this long before learning (fill, pressure loop, idle governor)
 ADAPT_MAX_KMH = 1.0                 # stopped: VehicleSpeed below this (not the output shaft: it rings as K1 closes)
 ADAPT_TORQUE_TAU_S = 0.1            # low-pass of EngineTorque (a 10 ms signal in 0.1 Nm steps)
@@ -356,6 +356,7 @@ class TcuLogic:
         self.oil_degc = OIL_DEFAULT_DEGC    # transmission oil temperature as last read, degC
         self.selector = SELECTOR_D    # selector lever as last read
         self.adapt_t_s = 0.0          # time stopped on the brake (the adaptation's sequence), s
+        self.adapt_shaft = 0          # the clutch the next stop learns (0: K1 in 1st, 1: K2 in 2nd)
         self.te_filt_nm = 0.0         # EngineTorque low-pass, Nm
         self.n_filt_rpm = 0.0         # engine speed low-pass, rpm
         self.idle_load_nm = 0.0       # the engine's torque with K1 open at the stop, Nm
@@ -696,11 +697,14 @@ class TcuLogic:
             self._want_gears(1, 2)
         self.gear = self.target_gear = first
         floor = self._creep(first)
-        if self._adapt_kiss(first):
-            floor = 0.0                         # K1 open: the engine's idle load
+        # every other stop on the brake in D learns K2's kiss point in the pre-selected 2nd
+        learn = 2 if first == 1 and sel == SELECTOR_D and self.adapt_shaft == 1 and self.allowed(2) else first
+        if self._adapt_kiss(learn):
+            floor = 0.0                         # the clutch open: the engine's idle load
+        hold = learn if self.adapt_t_s > 0.0 else first
         bars = [0.0, 0.0]
-        if floor > 0.0 and self.gear_ready(first):
-            shaft = GEAR_LAYOUT[first][0]
+        if floor > 0.0 and self.gear_ready(hold):
+            shaft = GEAR_LAYOUT[hold][0]
             bars[shaft] = self.torque_to_bar(shaft, floor)
         self.pressure_bar = bars
         self.torque_request_nm = self._hold_request_nm() if bars != [0.0, 0.0] else None
@@ -741,6 +745,8 @@ class TcuLogic:
         stopped = self.brake >= BRAKE_ON_PCT and self.pedal <= PEDAL_ON_PCT and \
             abs(self.v_kmh) < ADAPT_MAX_KMH and self.hill_nm <= 0.0 and self.gear_ready(gear)
         if not stopped:
+            if self.adapt_t_s >= ADAPT_OPEN_S + ADAPT_SETTLE_S:
+                self.adapt_shaft = 1 - self.adapt_shaft     # the other clutch at the next stop
             self.adapt_t_s = 0.0
             return False
         self.adapt_t_s += PERIOD_S

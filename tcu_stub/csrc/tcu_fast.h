@@ -317,6 +317,7 @@ typedef struct {                  /* logic.TcuLogic */
     double oil_degc;              /* transmission oil temperature as last read */
     int32_t selector;             /* selector lever as last read: 0 P, 1 R, 2 N, 3 D */
     double adapt_t_s;             /* time stopped on the brake (the adaptation's sequence) */
+    int32_t adapt_shaft;          /* the clutch the next stop learns: 0 K1 (1st), 1 K2 (2nd) */
     double te_filt_nm;            /* EngineTorque low-pass */
     double n_filt_rpm;            /* engine speed low-pass */
     double idle_load_nm;          /* the engine's torque with K1 open at the stop */

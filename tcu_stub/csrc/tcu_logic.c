@@ -502,6 +502,8 @@ static int adapt_kiss(const tcu_cal *cal, tcu_state *s, int gear)
     int stopped = s->brake >= cal->brake_on_pct && s->pedal <= cal->pedal_on_pct &&
                   fabs(s->v_kmh) < cal->adapt_max_kmh && s->hill_nm <= 0.0 && gear_ready(cal, s, gear);
     if (!stopped) {
+        if (s->adapt_t_s >= cal->adapt_open_s + cal->adapt_settle_s)
+            s->adapt_shaft = 1 - s->adapt_shaft;   /* the other clutch at the next stop */
         s->adapt_t_s = 0.0;
         return 0;
     }
@@ -597,11 +599,14 @@ static void standstill(const tcu_cal *cal, tcu_state *s)
     }
     s->gear = s->target_gear = first;
     double floor = creep(cal, s, first);
-    if (adapt_kiss(cal, s, first))
-        floor = 0.0;              /* K1 open: the engine's idle load */
+    /* every other stop on the brake in D learns K2's kiss point in the pre-selected 2nd */
+    int learn = first == 1 && sel == TCU_SELECTOR_D && s->adapt_shaft == 1 && allowed(s, 2) ? 2 : first;
+    if (adapt_kiss(cal, s, learn))
+        floor = 0.0;              /* the clutch open: the engine's idle load */
+    int hold = s->adapt_t_s > 0.0 ? learn : first;
     double bars[2] = {0.0, 0.0};
-    if (floor > 0.0 && gear_ready(cal, s, first)) {
-        int shaft = TCU_GEAR_SHAFT[tcu_gi(first)];
+    if (floor > 0.0 && gear_ready(cal, s, hold)) {
+        int shaft = TCU_GEAR_SHAFT[tcu_gi(hold)];
         bars[shaft] = tcu_torque_to_bar(cal, s, shaft, floor);
     }
     s->pressure_bar[0] = bars[0];
