@@ -4,8 +4,7 @@ in C (tcu_stub/csrc/tcu_driver.c) and in Python to the bit, the closed-loop figu
 within their bands, and the maneuvers through `dct-hil simulate`.
 
 The closed-loop bands, with the reference TCU (tcu_stub/logic.py): creep 3-8 km/h on level
-ground, at most 0.1 m of rollback on a 20 % grade, 2-6 m backwards in R (an expected
-failure until the TCU's reverse logic is there).
+ground, 2-6 m backwards in R, at most 0.1 m of rollback on a 20 % grade.
 """
 
 import math
@@ -272,12 +271,6 @@ def test_the_c_loop_plays_the_selector_and_grade_as_the_python_driver(name):
 # closed loop: the figures within their bands
 # ---------------------------------------------------------------------------
 
-#: reverse needs the reference TCU's reverse logic (tcu_stub/logic.py and its C port: R through
-#: the 5-R sleeve on the selector's R, creeping backwards); until then it creeps forward in 1st
-WAITS_FOR_REVERSE = pytest.mark.xfail(strict=False, reason="waits for the reference TCU's reverse "
-                                      "logic (R on SelectorLever, tcu_stub/logic.py, issue 17)")
-
-
 @pytest.fixture(scope="module")
 def runs():
     out = {}
@@ -298,7 +291,6 @@ def test_creep_rolls_at_a_few_kmh_and_holds_on_the_brake(runs):
     assert rec["gear_clashes"][-1] == 0 and not rec["shifts"]
 
 
-@WAITS_FOR_REVERSE
 def test_reverse_park_reverses_a_few_metres_in_r_and_parks(runs):
     rec, fig = runs["reverse-park"]
     assert fig["reverse_engaged_s"] is not None, fig                  # gear R, seen by the plant
