@@ -806,7 +806,9 @@ def _store_driver(d, driver_fn):
 
 
 # ------------------------------------------------------------------ the loop
-TCU_COLUMNS = ("tcu_target_gear", "tcu_gear", "tcu_phase", "tcu_active_faults", "tcu_limp_home")
+TCU_COLUMNS = ("tcu_target_gear", "tcu_gear", "tcu_phase", "tcu_active_faults", "tcu_limp_home",
+               "tcu_kiss1_bar", "tcu_kiss2_bar")
+TCU_FLOAT_COLUMNS = ("tcu_kiss1_bar", "tcu_kiss2_bar")     # the others are integers (phase: a name)
 CHUNK_PERIODS = 500          # one C call: 1 s of plant time (Ctrl-C is seen between calls)
 
 
@@ -990,7 +992,7 @@ class FastLoop:
         row[1:1 + len(self._rec_index)] = self.plant.output_values[self._rec_index]
         s = self.tcu.state
         row[1 + len(self._rec_index):] = (s.target_gear, s.gear, s.phase, s.diag.active_bits,
-                                          1 if s.diag.limp_home else 0)
+                                          1 if s.diag.limp_home else 0, s.kiss_bar[0], s.kiss_bar[1])
         self.run.rec_n = n + 1
 
     def traced(self):
@@ -1021,7 +1023,8 @@ def run_offline_c(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, c
         result[name] = rec[name]
     for name in TCU_COLUMNS:             # the Python loop's types: ints, phase names
         result[name] = ([phases[int(p)] for p in rec[name]] if name == "tcu_phase"
-                        else rec[name].astype(np.int64) if len(rec[name]) else rec[name])
+                        else rec[name] if name in TCU_FLOAT_COLUMNS or not len(rec[name])
+                        else rec[name].astype(np.int64))
     result["shifts"] = loop.shifts
     return result
 

@@ -119,7 +119,10 @@ class ContractLink:
 RECORDED = ("vehicle_speed_kmh", "vehicle_accel_mps2", "engine_speed_rpm", "input_shaft1_speed_rpm",
             "input_shaft2_speed_rpm", "clutch1_pressure_bar", "clutch2_pressure_bar",
             "solenoid_current1_a", "solenoid_current2_a", "engine_torque_nm", "accel_pedal_pct",
-            "brake_pedal_pct", "gear_clashes", "fuel_l", "distance_m", "gear")
+            "brake_pedal_pct", "gear_clashes", "fuel_l", "distance_m", "gear",
+            "coolant_temp_degc", "trans_oil_temp_degc", "clutch1_friction_coeff",
+            "clutch2_friction_coeff", "clutch1_drag_torque_nm", "clutch2_drag_torque_nm",
+            "clutch1_kiss_pressure_bar", "clutch2_kiss_pressure_bar")
 
 
 TCU_IMPLS = ("auto", "c", "python")
@@ -156,7 +159,8 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
     matrix described by a mapping file). Returns a
     dict of arrays (``time_s``, the names in
     ``RECORDED``, ``tcu_target_gear``, ``tcu_gear``, ``tcu_phase``,
-    ``tcu_active_faults``, ``tcu_limp_home``) and ``shifts``: a list of
+    ``tcu_active_faults``, ``tcu_limp_home``, the adapted kiss points ``tcu_kiss1_bar``,
+    ``tcu_kiss2_bar``) and ``shifts``: a list of
     (time_s, from_gear, to_gear).
 
     ``calibration``: TCU calibration values for this run
@@ -192,7 +196,8 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
     tcu_per_record = max(1, int(round(record_every_s / PERIOD_S)))
     n = int(round(duration_s / PERIOD_S))
     rec = {k: [] for k in ("time_s",) + RECORDED + ("tcu_target_gear", "tcu_gear", "tcu_phase",
-                                                   "tcu_active_faults", "tcu_limp_home")}
+                                                   "tcu_active_faults", "tcu_limp_home",
+                                                   "tcu_kiss1_bar", "tcu_kiss2_bar")}
     t0 = plant.time_s
     link = ContractLink() if link is None else link
     for k in range(n):
@@ -230,6 +235,8 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
             rec["tcu_phase"].append(tcu.phase)
             rec["tcu_active_faults"].append(tcu.diag.active_bits)
             rec["tcu_limp_home"].append(1 if tcu.diag.limp_home else 0)
+            rec["tcu_kiss1_bar"].append(tcu.kiss_bar[0])
+            rec["tcu_kiss2_bar"].append(tcu.kiss_bar[1])
         plant.step(steps_per_tcu)
     result = {k: (np.array(v) if k != "tcu_phase" else v) for k, v in rec.items()}
     result["shifts"] = list(tcu.events)

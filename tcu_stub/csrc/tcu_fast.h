@@ -467,8 +467,9 @@ void tcu_plant_layout(int64_t *out);
 /* ------------------------------------------------------------------ */
 /* The closed loop (tcu_run.c): offline.run_offline in one call        */
 /* ------------------------------------------------------------------ */
-/* recorded after the outputs: target gear, gear, phase, active faults, limp home */
-#define TCU_RUN_N_TCU_COLUMNS 5
+/* recorded after the outputs: target gear, gear, phase, active faults, limp home,
+ * the adapted kiss points of K1 and K2 */
+#define TCU_RUN_N_TCU_COLUMNS 7
 #define TCU_RUN_ERR_RECORD -100   /* the record buffer is full */
 
 typedef struct {

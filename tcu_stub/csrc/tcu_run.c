@@ -36,6 +36,8 @@ static int record(tcu_run *r, double t)
     tcu[2] = r->tcu->phase;
     tcu[3] = r->tcu->diag.active_bits;
     tcu[4] = r->tcu->diag.limp_home ? 1 : 0;
+    tcu[5] = r->tcu->kiss_bar[0];
+    tcu[6] = r->tcu->kiss_bar[1];
     r->rec_n++;
     return DCT_OK;
 }
