@@ -8,8 +8,10 @@ acceleration RMS error (paper-cycle)  <= 2 % of its peak
 synchronizer coupling-time error      <= 3 %
 C step median                         <= 2 us
 C step against the Python step        >= 50x faster
-0-100 km/h                            within 10 % of 6.9 s
-top speed (full run only)             within 5 % of 235 km/h
+0-100 km/h                            within 5 % of 6.9 s
+top speed (full run only)             within 3 % of 235 km/h
+NEDC from a cold start (full run)     within 10 % of the published figure
+low-speed maneuvers                   creep 3-8 km/h, rollback <= 0.1 m, ...
 ====================================  ==========================
 
 ``--quick`` runs the same comparisons shorter (the first seconds of
@@ -44,6 +46,8 @@ REPO = Path(__file__).resolve().parents[1]
 HYDRAULICS = {"hydraulics": {"pressure_commanded": 0}}
 PUBLISHED_0_100_S = 6.9
 PUBLISHED_TOP_KMH = 235.0
+PUBLISHED_NEDC_L100 = 7.9          # combined, DSG: the parameter file's header names the source
+PUBLISHED_NEDC_SOURCE = "VW's type-approval data for the Golf Mk5 GTI DSG"
 
 
 @dataclass
@@ -411,12 +415,12 @@ def vehicle(quick: bool, plots: Path, doc_dir: Path) -> Section:
         "|---|---|---|",
         f"| 0-100 km/h | {t100:.2f} s | {PUBLISHED_0_100_S} s |",
     ]
-    sec.checks.append(_check_within("0-100 km/h", t100, PUBLISHED_0_100_S, 0.10, "s"))
+    sec.checks.append(_check_within("0-100 km/h", t100, PUBLISHED_0_100_S, 0.05, "s"))
     if not quick:
         gear = int(rec["gear"][-1])
         sec.lines.append(f"| top speed | {top:.1f} km/h in gear {gear} | {PUBLISHED_TOP_KMH:g} "
                          "km/h in 5th |")
-        sec.checks.append(_check_within("top speed", top, PUBLISHED_TOP_KMH, 0.05, "km/h"))
+        sec.checks.append(_check_within("top speed", top, PUBLISHED_TOP_KMH, 0.03, "km/h"))
 
     # coastdown in neutral against the road-load law of the published car data
     p = plant.params
@@ -480,7 +484,161 @@ def vehicle(quick: bool, plots: Path, doc_dir: Path) -> Section:
 
 
 # --------------------------------------------------------------------------
-# 5. speed
+# 5. fuel from hot and cold starts, the oil temperature's effects
+# --------------------------------------------------------------------------
+
+COLD_START_DEGC = 23.0          # the type approval's cold start (NEDC: 20-30 degC, WLTP: 23 degC)
+
+
+def _cycle_run(name: str, cold: bool, duration_s: float | None = None):
+    """The cycle with the reference TCU (C loop) from a warm or a 23 degC start, in a
+    23 degC cell; the recording at 0.1 s."""
+    from plant.maneuvers import get_maneuver
+    from plant.model import Plant
+    from tcu_stub.offline import run_offline
+
+    m = get_maneuver(name)
+    plant = Plant(overrides={**HYDRAULICS, "thermal": {"ambient_temp_degc": COLD_START_DEGC}})
+    m.start(plant)
+    if cold:
+        plant.reset(**m.reset_kwargs, coolant_temp_degc=COLD_START_DEGC,
+                    engine_oil_temp_degc=COLD_START_DEGC, trans_oil_temp_degc=COLD_START_DEGC)
+    dur = m.duration_s if duration_s is None else min(duration_s, m.duration_s)
+    return run_offline(plant, m.driver, dur, record_every_s=0.1)
+
+
+def fuel_temperature(quick: bool, plots: Path, doc_dir: Path) -> Section:
+    from plant.maneuvers import fuel_l_per_100km
+
+    sec = Section("5. Fuel from warm and cold starts, and what the oil temperature moves")
+    # quick: the first urban part of the NEDC and the WLTC's low phase
+    durations = {"nedc": 195.0 if quick else None, "wltc": 589.0 if quick else None}
+    sec.lines += [
+        "The drive cycles with the reference TCU (`tcu_stub`, the C loop) in a "
+        f"{COLD_START_DEGC:g} degC cell, from a warm start (the parameter file's "
+        "`thermal.initial_*`) and from a cold start (coolant, engine oil and transmission oil at "
+        f"{COLD_START_DEGC:g} degC). Published: the manufacturer's combined NEDC figure, "
+        f"{PUBLISHED_NEDC_L100:g} l/100 km ({PUBLISHED_NEDC_SOURCE}), measured from a cold start.",
+        "",
+        "| cycle | start | fuel | distance | coolant at the end | transmission oil at the end |",
+        "|---|---|---|---|---|---|",
+    ]
+    recs = {}
+    for cycle in ("nedc", "wltc"):
+        for cold in (False, True):
+            rec = recs[cycle, cold] = _cycle_run(cycle, cold, durations[cycle])
+            fuel = fuel_l_per_100km(rec)
+            sec.lines.append(
+                f"| {cycle.upper()}{' (part)' if quick else ''} | {'cold' if cold else 'warm'} | "
+                f"{fuel:.2f} l/100 km | {rec['distance_m'][-1] / 1000.0:.2f} km | "
+                f"{rec['coolant_temp_degc'][-1]:.0f} degC | "
+                f"{rec['trans_oil_temp_degc'][-1]:.0f} degC |")
+            if cycle == "nedc" and cold and not quick:
+                sec.checks.append(_check_within("NEDC from a cold start", fuel,
+                                                PUBLISHED_NEDC_L100, 0.10, "l/100 km"))
+    # the cold WLTC: what the transmission oil's temperature moves, and the TCU's kiss points
+    rec = recs["wltc", True]
+    t = np.asarray(rec["time_s"])
+    fig, axes = plt.subplots(2, 2, figsize=(12, 7), sharex=True, constrained_layout=True)
+    ax = axes[0, 0]
+    ax.plot(t, rec["coolant_temp_degc"], label="coolant")
+    ax.plot(t, rec["trans_oil_temp_degc"], label="transmission oil")
+    ax.set_ylabel("temperature [degC]")
+    ax.legend()
+    ax = axes[0, 1]
+    for k in (1, 2):
+        ax.plot(t, rec[f"clutch{k}_friction_coeff"], label=f"K{k}")
+    ax.set_ylabel("kinetic friction coefficient [-]")
+    ax.legend()
+    ax = axes[1, 0]
+    for k in (1, 2):
+        ax.plot(t, rec[f"clutch{k}_drag_torque_nm"], lw=0.6, label=f"K{k} open-pack drag")
+    ax.set_ylabel("drag torque [N m]")
+    ax.set_xlabel("time [s]")
+    ax.legend()
+    ax = axes[1, 1]
+    for k in (1, 2):
+        line, = ax.plot(t, rec[f"clutch{k}_kiss_pressure_bar"], label=f"K{k} plant")
+        ax.plot(t, rec[f"tcu_kiss{k}_bar"], "--", color=line.get_color(),
+                label=f"K{k} the TCU's adapted kiss point")
+    ax.set_ylabel("kiss point [bar]")
+    ax.set_xlabel("time [s]")
+    ax.legend()
+    fig.suptitle(f"cold WLTC{' (low phase)' if quick else ''} from {COLD_START_DEGC:g} degC")
+    mu = np.asarray(rec["clutch1_friction_coeff"])
+    kiss, tcu_kiss = np.asarray(rec["clutch1_kiss_pressure_bar"]), np.asarray(rec["tcu_kiss1_bar"])
+    sec.lines += [
+        "",
+        f"Over the cold WLTC the transmission oil goes from {rec['trans_oil_temp_degc'][0]:.0f} "
+        f"to {rec['trans_oil_temp_degc'][-1]:.0f} degC: K1's friction coefficient from "
+        f"{mu[0]:.4f} to {mu[-1]:.4f}, its kiss point in the plant from {kiss[0]:.3f} to "
+        f"{kiss[-1]:.3f} bar; the TCU's adapted K1 kiss point from {tcu_kiss[0]:.3f} to "
+        f"{tcu_kiss[-1]:.3f} bar.",
+    ]
+    _save(fig, axes.ravel(), sec, plots, doc_dir, "cold_wltc")
+    return sec
+
+
+# --------------------------------------------------------------------------
+# 6. low-speed maneuvers
+# --------------------------------------------------------------------------
+
+LOW_SPEED_BOUNDS = {                    # figure: (at least, at most, unit)
+    "creep_speed_kmh": (3.0, 8.0, "km/h"),
+    "hold_speed_max_kmh": (None, 0.5, "km/h"),
+    "creep_again_speed_kmh": (3.0, 8.0, "km/h"),
+    "reverse_distance_m": (2.0, 6.0, "m"),
+    "park_creep_m": (None, 0.05, "m"),
+    "rollback_m": (None, 0.1, "m"),
+}
+
+
+def _figure_unit(key: str) -> str:
+    if key in LOW_SPEED_BOUNDS:
+        return LOW_SPEED_BOUNDS[key][2]
+    return "s" if key.endswith("_s") else "km/h" if key.endswith("_kmh") else "m"
+
+
+def low_speed(quick: bool, plots: Path, doc_dir: Path) -> Section:
+    from plant.maneuvers import get_maneuver, report
+    from plant.model import Plant
+    from tcu_stub.offline import run_offline
+
+    sec = Section("6. Creep, reverse and hill start")
+    sec.lines += [
+        "The low-speed maneuvers with the reference TCU (`dct-hil simulate --scenario "
+        "creep|reverse-park|hill-start`).",
+        "",
+        "| maneuver | figure | value |",
+        "|---|---|---|",
+    ]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
+    for ax, name in zip(axes, ("creep", "reverse-park", "hill-start")):
+        m = get_maneuver(name)
+        plant = Plant(overrides=HYDRAULICS)
+        m.start(plant)
+        rec = run_offline(plant, m.driver, m.duration_s, record_every_s=0.01)
+        for key, value in report(m, rec).items():
+            unit = _figure_unit(key)
+            sec.lines.append(f"| {name} | {key} | "
+                             f"{'n/a' if value is None else f'{value:.3g} {unit}'} |")
+            lo, hi, _ = LOW_SPEED_BOUNDS.get(key, (None, None, ""))
+            if lo is not None:
+                sec.checks.append(_check_ge(f"{name}: {key}", value, lo, unit))
+            if hi is not None:
+                sec.checks.append(_check_le(f"{name}: {key}", value, hi, unit))
+        ax.plot(rec["time_s"], rec["distance_m"], label="distance [m]")
+        ax.plot(rec["time_s"], rec["vehicle_speed_kmh"], label="speed [km/h]")
+        ax.plot(rec["time_s"], rec["gear"], ":", label="gear")
+        ax.set_title(name)
+        ax.set_xlabel("time [s]")
+        ax.legend(fontsize=7)
+    _save(fig, axes, sec, plots, doc_dir, "low_speed")
+    return sec
+
+
+# --------------------------------------------------------------------------
+# 7. speed
 # --------------------------------------------------------------------------
 
 def speed(quick: bool, plots: Path, doc_dir: Path) -> Section:
@@ -488,7 +646,7 @@ def speed(quick: bool, plots: Path, doc_dir: Path) -> Section:
     from plant.scenario import load_scenario
     from plant.simulate import bench as c_bench
 
-    sec = Section("5. Speed")
+    sec = Section("7. Speed")
     plant = Plant(overrides=HYDRAULICS)
     scen = load_scenario("launch-1st")
     steps = 50_000 if quick else 200_000
@@ -583,13 +741,13 @@ def _loop_table(rep: dict) -> list:
 
 
 # --------------------------------------------------------------------------
-# 6. model size
+# 8. model size
 # --------------------------------------------------------------------------
 
 def model_size(quick: bool, plots: Path, doc_dir: Path) -> Section:
     from plant.model import Plant
 
-    sec = Section("6. Model size and step cost per component")
+    sec = Section("8. Model size and step cost per component")
     plant = Plant(overrides=HYDRAULICS)
     kinds = ("continuous", "discrete", "bookkeeping")
     counts = plant.state_counts()
@@ -632,7 +790,8 @@ def model_size(quick: bool, plots: Path, doc_dir: Path) -> Section:
 # the document
 # --------------------------------------------------------------------------
 
-SECTIONS = (fixed_step, synchronizer, valve, vehicle, speed, model_size)
+SECTIONS = (fixed_step, synchronizer, valve, vehicle, fuel_temperature, low_speed, speed,
+            model_size)
 
 
 def _git_commit() -> str:
