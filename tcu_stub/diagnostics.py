@@ -131,7 +131,7 @@ PERIOD_FIRST_S = 0.002              # the first period's time (no earlier period
 LIMP_GEAR = (3, 2)
 #: plant messages whose loss the TCU rides out (their signals are these only)
 ENGINE_MESSAGES = ("VEH_Driver",)
-ENGINE_SIGNALS = ("AccelPedal", "BrakePedal", "EngineTorque")
+ENGINE_SIGNALS = ("AccelPedal", "BrakePedal", "EngineTorque", "SelectorLever")   # the driver's, with the engine's torque
 
 # gear -> input shaft 0/1 (as logic.GEAR_LAYOUT)
 _GEAR_SHAFT = {1: 0, 2: 1, 3: 0, 4: 1, 5: 0, 6: 1}
