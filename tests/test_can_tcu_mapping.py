@@ -37,6 +37,7 @@ STANDSTILL = {
     "clutch2_pressure_bar": 0.0, "line_pressure_bar": 20.0, "fork1_position_mm": 0.0,
     "fork2_position_mm": 0.0, "fork3_position_mm": 0.0, "fork4_position_mm": 0.0,
     "sync1_state": 0.0, "sync2_state": 0.0, "sync3_state": 0.0, "sync4_state": 0.0,
+    "selector_lever": 3.0, "trans_oil_temp_degc": 80.0,        # in D (the plant's default), warm oil
 }
 TCU_SENDS = ("pt:TCU_TorqueReq", "pt:TCU_Gear", "pt:TCU_Info", "io:TCU_ValveCurrents", "io:TCU_ForkForces")
 NEEDED = ("pt:ECM_Torque", "pt:ECM_Speed", "pt:ESP_Motion", "pt:ESP_Accel", "pt:GW_Selector",
