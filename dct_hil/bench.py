@@ -133,7 +133,7 @@ class Bench:
             if not can_netdev_up(chan):
                 raise BenchError(f"{chan} is not a CAN network interface that is up (ip link add "
                                  f"dev {chan} type vcan && ip link set up {chan})")
-        driver = None
+        driver, maneuver_inputs = None, None
         if maneuver is not None:
             from plant.maneuvers import MANEUVERS, get_maneuver  # noqa: PLC0415
 
@@ -145,6 +145,7 @@ class Bench:
             if driver is None or not hasattr(driver, "table"):
                 raise BenchError(f"maneuver {maneuver!r} is not a scripted pedal table the loop "
                                  f"can play (known: {', '.join(MANEUVERS)})")
+            maneuver_inputs = dict(m.inputs) or None        # the hill-start's grade
         if record is not None:
             record = os.fspath(record)
             folder = os.path.dirname(os.path.abspath(record))
@@ -156,7 +157,8 @@ class Bench:
             tcu_clock = "wall" if float(time_scale) >= 1.0 else "bus"
         try:
             server = Server(chan, interface=interface, priority=priority, driver=driver,
-                            maneuver_start="tcu", record_path=record,
+                            maneuver_start="tcu", maneuver_inputs=maneuver_inputs,
+                            record_path=record,
                             record_every_s=record_every_s, params_path=params, mapping=mapping,
                             time_scale=time_scale, faults_path=faults, control_path=control,
                             log_path=log)

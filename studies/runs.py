@@ -140,8 +140,7 @@ def simulate(case: Case, overrides: dict | None = None, calibration: dict | None
 
         def setup():
             plant = Plant(None, overrides or None)
-            if m.reset_kwargs:
-                plant.reset(**m.reset_kwargs)
+            m.start(plant)                      # its reset and fixed inputs (a hill's grade)
             return plant, m.driver
 
         return _closed_loop(setup, duration, record_every_s, calibration)

@@ -185,3 +185,19 @@ def test_plugin_keeps_recordings_when_asked(pytester):
                                            "--bench-keep-recordings", "-p", "no:cacheprovider")
     result.assert_outcomes(passed=1)
     assert [p.name for p in recordings.iterdir()] == ["test_ok.mf4"]
+
+
+def test_a_maneuver_with_a_grade_plays_on_it(tmp_path):
+    """hill-start fixes the road grade: the bench's loop plays the maneuver on its 20 %
+    from the TCU's first frame, held by the reference TCU (no rollback)."""
+    from plant.maneuvers import get_maneuver
+
+    grade = get_maneuver("hill-start").inputs["road_grade_pct"]
+    b = Bench.start(maneuver="hill-start")
+    try:
+        assert b.read("road_grade_pct") == grade
+        b.wait_until("maneuver_time_s > 4.0", timeout_s=30.0)        # the brake let go at 3 s
+        assert b.read("road_grade_pct") == grade
+        assert b.read("distance_m") > -0.1
+    finally:
+        b.stop()
