@@ -70,6 +70,7 @@ class Section:
     checks: list = field(default_factory=list)
     plots: list = field(default_factory=list)
     wall_s: float = 0.0
+    figures: list = field(default_factory=list)    # rows of the README's figures table
 
 
 def _check_le(name, value, bound, unit=""):
@@ -416,11 +417,15 @@ def vehicle(quick: bool, plots: Path, doc_dir: Path) -> Section:
         f"| 0-100 km/h | {t100:.2f} s | {PUBLISHED_0_100_S} s |",
     ]
     sec.checks.append(_check_within("0-100 km/h", t100, PUBLISHED_0_100_S, 0.05, "s"))
+    sec.figures.append(("`0-100`", "0-100 km/h", f"{t100:.2f} s",
+                        f"{PUBLISHED_0_100_S} s (press data), bound 5 %"))
     if not quick:
         gear = int(rec["gear"][-1])
         sec.lines.append(f"| top speed | {top:.1f} km/h in gear {gear} | {PUBLISHED_TOP_KMH:g} "
                          "km/h in 5th |")
         sec.checks.append(_check_within("top speed", top, PUBLISHED_TOP_KMH, 0.03, "km/h"))
+        sec.figures.append(("`0-100`", "top speed", f"{top:.1f} km/h, in gear {gear}",
+                            f"{PUBLISHED_TOP_KMH:g} km/h, in 5th (press data), bound 3 %"))
 
     # coastdown in neutral against the road-load law of the published car data
     p = plant.params
@@ -508,7 +513,7 @@ def _cycle_run(name: str, cold: bool, duration_s: float | None = None):
 
 
 def fuel_temperature(quick: bool, plots: Path, doc_dir: Path) -> Section:
-    from plant.maneuvers import fuel_l_per_100km
+    from plant.maneuvers import fuel_l_per_100km, get_maneuver, rms_speed_error_kmh
 
     sec = Section("5. Fuel from warm and cold starts, and what the oil temperature moves")
     # quick: the first urban part of the NEDC and the WLTC's low phase
@@ -528,6 +533,13 @@ def fuel_temperature(quick: bool, plots: Path, doc_dir: Path) -> Section:
         for cold in (False, True):
             rec = recs[cycle, cold] = _cycle_run(cycle, cold, durations[cycle])
             fuel = fuel_l_per_100km(rec)
+            rms = rms_speed_error_kmh(rec, get_maneuver(cycle).driver)
+            published = "-" if cycle == "wltc" else (
+                f"{PUBLISHED_NEDC_L100:g} l/100 km combined (type approval, cold), bound 10 %"
+                if cold else "-")
+            sec.figures.append((f"`{cycle}`", f"fuel, {'23 degC cold' if cold else 'warm'} start",
+                                f"{fuel:.2f} l/100 km (RMS speed error {rms:.2f} km/h, "
+                                f"{len(rec['shifts'])} shifts)", published))
             sec.lines.append(
                 f"| {cycle.upper()}{' (part)' if quick else ''} | {'cold' if cold else 'warm'} | "
                 f"{fuel:.2f} l/100 km | {rec['distance_m'][-1] / 1000.0:.2f} km | "
@@ -620,8 +632,9 @@ def low_speed(quick: bool, plots: Path, doc_dir: Path) -> Section:
         rec = run_offline(plant, m.driver, m.duration_s, record_every_s=0.01)
         for key, value in report(m, rec).items():
             unit = _figure_unit(key)
-            sec.lines.append(f"| {name} | {key} | "
-                             f"{'n/a' if value is None else f'{value:.3g} {unit}'} |")
+            shown = 'n/a' if value is None else f'{value:.3g} {unit}'
+            sec.lines.append(f"| {name} | {key} | {shown} |")
+            sec.figures.append((f"`{name}`", key, shown, "-"))
             lo, hi, _ = LOW_SPEED_BOUNDS.get(key, (None, None, ""))
             if lo is not None:
                 sec.checks.append(_check_ge(f"{name}: {key}", value, lo, unit))
@@ -841,6 +854,26 @@ def write_document(path: Path, sections: list, quick: bool, wall_s: float) -> No
     path.write_text("\n".join(lines) + "\n")
 
 
+README_BEGIN = "<!-- figures: written by scripts/validate, do not edit by hand -->"
+README_END = "<!-- end of figures -->"
+
+
+def write_readme_figures(readme: Path, sections: list) -> bool:
+    """The README's figures table (between README_BEGIN and README_END) from the
+    sections' figures; False when the README has no such block."""
+    text = readme.read_text()
+    a, b = text.find(README_BEGIN), text.find(README_END)
+    if a < 0 or b < a:
+        return False
+    rows = [r for s in sections for r in s.figures]
+    table = ["| maneuver | figure | model | published |", "|---|---|---|---|",
+             *[f"| {' | '.join(r)} |" for r in rows]]
+    indent = text[text.rfind("\n", 0, a) + 1:a]
+    block = README_BEGIN + "\n" + "".join(f"{indent}{line}\n" for line in table) + indent
+    readme.write_text(text[:a] + block + text[b:])
+    return True
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="scripts/validate",
                                  description="Regenerate the validation report; exit 1 when a "
@@ -874,6 +907,8 @@ def main(argv=None) -> int:
                   file=sys.stderr, flush=True)
     wall = time.perf_counter() - t_all
     write_document(doc, sections, args.quick, wall)
+    if not args.quick and not args.out and write_readme_figures(REPO / "README.md", sections):
+        print("validate: README.md's figures table written", file=sys.stderr)
     failed = [c for s in sections for c in s.checks if not c.ok]
     print(f"validate: wrote {doc} in {wall:.0f} s; "
           + (f"{len(failed)} figure(s) missed their bound" if failed else "every bound met"))
