@@ -634,6 +634,24 @@ def _sleeve_velocity(p, m, v, f, fc, h):
     return v1 - sign(v1) * dv
 
 
+SYNC_SETTLED_SHARE = 0.1
+
+
+def _cone_holds_load(p, s, inp, out, h):
+    """synchronizer.c cone_holds_load: a settled slip whose torque the chamfers can index against."""
+    ts = out.cone_torque_nm
+    t = out.torque_nm
+    t_prev = s.twist_rad * p.stiffness_nm_per_rad
+    if not (ts > 0.0) or t_prev == 0.0 or not (abs(t_prev) < ts):
+        return False
+    index = abs(inp.fork_force_n) * p.dog_radius_m / math.tan(p.ring_chamfer_angle_deg * (PI / 180.0))
+    if not (abs(t) < index):
+        return False
+    slip_prev = 0.5 * p.tanh_speed_rad_s * math.atanh(t_prev / ts)
+    j = inp.gear_inertia_pos_kgm2 if s.side > 0.0 else inp.gear_inertia_neg_kgm2
+    return abs(j * (out.slip_rad_s - slip_prev) / h) <= SYNC_SETTLED_SHARE * abs(t)
+
+
 def _engage(p, s, out):
     if abs(out.slip_rad_s) > p.clash_speed_rad_s:
         s.clashes += 1.0
@@ -653,7 +671,8 @@ def sync_advance(p, s, inp, out, h):
             s.phase = SYNC_DISENGAGED
             s.side = 0.0
             s.twist_rad = 0.0
-        elif abs(out.slip_rad_s) <= p.lock_speed_rad_s or abs(f) > p.blocker_force_max_n:
+        elif (abs(out.slip_rad_s) <= p.lock_speed_rad_s or abs(f) > p.blocker_force_max_n
+              or _cone_holds_load(p, s, inp, out, h)):
             _engage(p, s, out)
         else:
             s.twist_rad = out.torque_nm / p.stiffness_nm_per_rad

@@ -8,7 +8,9 @@
  *                  T_s = mu r_s / sin(alpha) F (eq. 6) acts through a tanh
  *                  friction law T = T_s tanh(2 w_r / w_0) (eq. 3); the
  *                  angular deformation follows theta_r = T / k
- *   engaged        the blocker has released (slip below the lock speed): the
+ *   engaged        the blocker has released (slip below the lock speed, or
+ *                  the cone holding a settled load below the chamfers'
+ *                  index torque: cone_holds_load): the
  *                  gear is locked through the dog teeth, a spring-damper of
  *                  the shaft and gear stiffness, T = k theta_r + b w_r (eq. 4),
  *                  theta_r carried over from the synchronizing phase; the
@@ -92,6 +94,37 @@ static double sleeve_velocity(const dct_sync_params *p, double m, double v, doub
     return v1 - dct_sign(v1) * dv;
 }
 
+/* The cone holds a load the blocker ring can be indexed against: the slip
+ * has settled (the cone torque holds a drag on the gear side rather than
+ * slowing its inertia: |J dw/dt| at most SETTLED_SHARE of it) and that torque
+ * is below the index torque the fork force gives on the ring's chamfers,
+ * F r_d / tan(beta). A real cone holding a load below its capacity sticks
+ * (Coulomb friction) and the chamfers then turn the ring and gear back; the
+ * tanh law of eq. 3 lets the cone creep instead, at the slip where
+ * T_s tanh(2 w / w_0) equals the load, above the lock speed once the load
+ * exceeds T_s tanh(2 lock / w_0) (0.38 T_s): by the lock speed alone a cold
+ * open clutch's drag would hold the blocker shut for ever. Frictionless
+ * chamfers. The previous step's slip comes from its torque (twist_rad = T / k,
+ * eq. 3) at this step's fork force. */
+#define SETTLED_SHARE 0.1 /* a slip settled to within a tenth of the cone torque: no inertial sync slows this little */
+
+static int cone_holds_load(const dct_sync_params *p, const dct_sync_state *s,
+                           const dct_sync_input *in, const dct_sync_output *out, double h)
+{
+    double ts = out->cone_torque_nm;
+    double t = out->torque_nm;
+    double t_prev = s->twist_rad * p->stiffness_nm_per_rad;
+    if (!(ts > 0.0) || t_prev == 0.0 || !(fabs(t_prev) < ts))
+        return 0; /* the first step on the cone, or the fork force dropped */
+    double index = fabs(in->fork_force_n) * p->dog_radius_m /
+                   tan(p->ring_chamfer_angle_deg * (DCT_PI / 180.0));
+    if (!(fabs(t) < index))
+        return 0;
+    double slip_prev = 0.5 * p->tanh_speed_rad_s * atanh(t_prev / ts);
+    double j = s->side > 0.0 ? in->gear_inertia_pos_kgm2 : in->gear_inertia_neg_kgm2;
+    return fabs(j * (out->slip_rad_s - slip_prev) / h) <= SETTLED_SHARE * fabs(t);
+}
+
 static void engage(const dct_sync_params *p, dct_sync_state *s, const dct_sync_output *out)
 {
     if (fabs(out->slip_rad_s) > p->clash_speed_rad_s)
@@ -116,7 +149,8 @@ void dct_sync_advance(const dct_sync_params *p, dct_sync_state *s,
             s->side = 0.0;
             s->twist_rad = 0.0;
         } else if (!(in->fork_jammed > 0.5) && (fabs(out->slip_rad_s) <= p->lock_speed_rad_s ||
-                                                 fabs(f) > p->blocker_force_max_n)) {
+                                                 fabs(f) > p->blocker_force_max_n ||
+                                                 cone_holds_load(p, s, in, out, h))) {
             /* (a jammed sleeve cannot move through the blocker) */
             engage(p, s, out);
         } else {
