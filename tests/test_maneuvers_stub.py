@@ -3,7 +3,7 @@
 - paper-cycle: up through the gears at full load, down to 1st while braking, twice;
   no stall, no clash, the car stops both times, no torque interruption in the
   full-load upshifts;
-- 0-100: within 10 % of the published 6.9 s, top speed within 5 % of 235 km/h;
+- 0-100: within 5 % of the published 6.9 s, top speed within 3 % of 235 km/h;
 - wltc: RMS speed-tracking error at most 2 km/h (the Low phase here, 589 s;
   the whole cycle in scripts/validate, about 5 min).
 """
@@ -40,6 +40,19 @@ def paper():
     return m, r
 
 
+def _moving(r, shifts):
+    """The shifts made while the car moves: at a stop on the brake the reference TCU
+    engages 2nd to learn K2's kiss point (the plant's gear reads 2 while K2 holds its
+    3 Nm), which is no shift of the drive."""
+    v = np.abs(r["vehicle_speed_kmh"])
+    return [s for s in shifts if v[np.searchsorted(r["time_s"], s[0])] > 1.0]
+
+
+def _standstill(r, shifts):
+    v = np.abs(r["vehicle_speed_kmh"])
+    return [s for s in shifts if v[np.searchsorted(r["time_s"], s[0])] <= 1.0]
+
+
 def _legs(shifts):
     """Split a shift list into runs of upshifts and runs of downshifts."""
     legs = []
@@ -54,8 +67,11 @@ def _legs(shifts):
 
 def test_paper_cycle_shifts_up_at_full_load_and_down_to_first_while_braking(paper):
     _, r = paper
-    legs = _legs(gear_shifts(r["time_s"], r["gear"]))
+    shifts = gear_shifts(r["time_s"], r["gear"])
+    legs = _legs(_moving(r, shifts))
     assert [kind for kind, _ in legs] == ["up", "down", "up", "down"], legs
+    # at the stops only K2's kiss point learning (1 -> 2 on the brake), and not at both
+    assert {(a, b) for _, a, b in _standstill(r, shifts)} <= {(1, 2), (2, 1)}
     for kind, steps in legs:                        # one gear at a time, never skipping
         assert all(abs(b - a) == 1 for a, b in steps), steps
     assert legs[0][1][0] == (1, 2) and legs[0][1][-1][1] >= 4      # WOT: 1 -> 4 or higher
@@ -119,17 +135,18 @@ def test_engaged_gear_holds_while_coasting_and_through_coast_downshifts(paper):
     runs = _runs(t[first:], new[first:])
     assert min(b - a for _, a, b in runs) >= SHIFT_MIN_HOLD_S
     shifts = gear_shifts(t, new)
-    assert len(shifts) == len(runs) - 1 == 14
+    assert len(shifts) == len(runs) - 1
+    assert len(_moving(r, shifts)) == 12                  # 1-2-3-4, down to 1st, 1-2-3-4, down to 1st
     assert [(a, b) for _, a, b in shifts] == [(int(g0), int(g1)) for (g0, _, _), (g1, _, _)
                                               in zip(runs, runs[1:])]
-    assert new[-1] == 1                                   # at standstill: 1st, ready to launch
+    assert r["tcu_gear"][-1] == 1                         # at standstill: 1st, ready to launch
 
 
 def test_0_100_and_top_speed_against_the_published_figures():
     m, r = run("0-100")
     figures = report(m, r)
-    assert figures["zero_to_100_s"] == pytest.approx(PUBLISHED_0_100_S, rel=0.10)
-    assert figures["top_speed_kmh"] == pytest.approx(PUBLISHED_TOP_KMH, rel=0.05)
+    assert figures["zero_to_100_s"] == pytest.approx(PUBLISHED_0_100_S, rel=0.05)
+    assert figures["top_speed_kmh"] == pytest.approx(PUBLISHED_TOP_KMH, rel=0.03)
     assert r["gear"][-1] == 5                          # top speed in 5th, as the press data say
     assert r["gear_clashes"][-1] == 0
 
