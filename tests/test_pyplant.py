@@ -145,6 +145,41 @@ def test_pressure_commanded_mode_agrees():
     np.testing.assert_allclose(py.output_values, c.output_values, rtol=REL_TOL, atol=1e-12)
 
 
+def test_cold_start_agrees(monkeypatch):
+    """23 degC: the cold open K1 drags input shaft 1 and the 1-3 cone creeps
+    above the lock speed; the blocker releases by the cone holding a settled
+    load below the chamfers' index torque (synchronizer.c cone_holds_load).
+    The cold oil's pack gap, drag and the cold engine's idle rise on the way."""
+    released = []
+    holds = pyplant._cone_holds_load
+
+    def spy(*args):
+        r = holds(*args)
+        released.append(r)
+        return r
+
+    monkeypatch.setattr(pyplant, "_cone_holds_load", spy)
+    c = Plant(overrides=HYDRAULICS)
+    c.reset(coolant_temp_degc=23.0, engine_oil_temp_degc=23.0, trans_oil_temp_degc=23.0)
+    py = PyPlant(c.params)
+    py.init_from(c)
+    c.inputs["fork_force1_n"] = py.inputs["fork_force1_n"] = 900.0  # pre-select 1st at a standstill
+    n = 1600
+    cs, ps = np.empty((n, len(STATE_NAMES))), np.empty((n, len(STATE_NAMES)))
+    co, po = np.empty((n, len(OUTPUT_NAMES))), np.empty((n, len(OUTPUT_NAMES)))
+    for k in range(n):
+        c.step(1)
+        py.step(1)
+        cs[k], ps[k] = c.state, py.state
+        co[k], po[k] = c.output_values, py.output_values
+    err, where = _worst(cs, ps, STATE_NAMES)
+    assert err <= REL_TOL, where
+    err, where = _worst(co, po, OUTPUT_NAMES)
+    assert err <= REL_TOL, where
+    assert any(released) and co[-1, OUTPUT_NAMES.index("sync1_gear")] == 1.0
+    assert co[-1, OUTPUT_NAMES.index("sync1_state")] == 2.0
+
+
 def test_reset_matches_the_c_reset():
     c = Plant(overrides=HYDRAULICS)
     py = PyPlant(c.params)
