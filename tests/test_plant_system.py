@@ -149,10 +149,18 @@ def test_synchronizing_time_follows_eq6_over_force(tmp_path, force_n):
 
 
 def test_synchronizing_time_scales_with_cone_angle(tmp_path):
-    """Eq. 6: the time scales with sin(alpha) at equal force."""
+    """Eq. 6: the time scales with sin(alpha) at equal force, for cones that still
+    block: the cone torque mu r_s F / sin(alpha) must exceed the index torque of the
+    ring's chamfers, F r_d / tan(beta) (10.4 N m at 400 N), or the ring indexes
+    before the speeds are equal. 8 degrees: 11.5 N m, blocks (9 degrees, 10.2 N m,
+    would not)."""
+    sync = pressure_plant().params["gearbox"]["sync"][1]
+    cone = sync["cone_mu"] * sync["cone_radius_m"] / math.sin(math.radians(8.0))
+    index = sync["dog_radius_m"] / math.tan(math.radians(sync["ring_chamfer_angle_deg"]))
+    assert cone > index
     t_65, _, _ = synchronizing_time(tmp_path, 400.0)
-    t_9, _, _ = synchronizing_time(tmp_path, 400.0, cone_angle_deg=9.0)
-    assert t_9 / t_65 == pytest.approx(math.sin(math.radians(9.0)) / math.sin(math.radians(6.5)),
+    t_8, _, _ = synchronizing_time(tmp_path, 400.0, cone_angle_deg=8.0)
+    assert t_8 / t_65 == pytest.approx(math.sin(math.radians(8.0)) / math.sin(math.radians(6.5)),
                                        rel=0.03)
 
 
