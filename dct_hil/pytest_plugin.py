@@ -15,13 +15,18 @@ Options: ``--bench-transport embedded|socketcan`` (default embedded:
 python-can's in-process bus, the reference TCU in a thread),
 ``--bench-channel NAME`` (SocketCAN: default vcan0), ``--bench-tcu
 reference|external`` (external: no reference TCU for any test),
-``--bench-time-scale X`` (slow motion, 0 < X <= 1), ``--bench-recordings
+``--bench-tcu-clock wall|bus`` (the reference TCU's task clock: a tick per
+2 ms of wall time, or per 2 ms plant frame, so its timers and reactions
+follow plant time even on a busy machine), ``--bench-time-scale X`` (slow
+motion, 0 < X <= 1), ``--bench-recordings
 DIR`` (one recording per test, ``DIR/<test name>.mf4``: kept when the test
 fails, deleted when it passes unless ``--bench-keep-recordings``).
 
 The marker ``bench(...)`` takes ``dct_hil.bench.Bench.start``'s keywords
 for one test (``transport``, ``channel``, ``maneuver``, ``record``,
-``params``, ``mapping``, ``time_scale``, ``faults``, ...). With
+``params``, ``mapping``, ``time_scale``, ``tcu_clock``, ``faults``, ...);
+markers on the module, the class and the test add up, the closest one
+winning a keyword they share. With
 ``--junitxml`` each test using the fixture carries the properties
 ``bench_recording`` (the recording's path, when kept) and
 ``bench_fault_events`` (the faults' starts and ends, JSON).
@@ -52,6 +57,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     group.addoption("--bench-tcu", choices=("reference", "external"), default="reference",
                     help="reference: the bench starts the reference TCU (default); external: the "
                          "TCU under test is on the bus")
+    group.addoption("--bench-tcu-clock", choices=("wall", "bus"), default=None,
+                    help="the reference TCU's task clock: wall (a tick per 2 ms of wall time, "
+                         "Bench.start's default in real time) or bus (a tick per 2 ms plant "
+                         "frame: its timers follow plant time on a busy machine)")
     group.addoption("--bench-time-scale", type=float, default=None, metavar="X",
                     help="run plant and reference TCU in slow motion (0 < X <= 1)")
     group.addoption("--bench-recordings", default=None, metavar="DIR",
@@ -87,6 +96,17 @@ def recording_path(folder: str, name: str) -> str:
     return os.path.join(folder, _SAFE.sub("_", name) + ".mf4")
 
 
+def marker_settings(item: pytest.Item) -> dict:
+    """The keywords of every ``bench(...)`` marker of ``item``: module, class, test, the
+    closest winning."""
+    kwargs: dict = {}
+    for marker in reversed(list(item.iter_markers("bench"))):     # farthest first
+        if marker.args:
+            raise pytest.UsageError(f"{item.nodeid}: bench(...) takes keywords only")
+        kwargs.update(marker.kwargs)
+    return kwargs
+
+
 def bench_settings(item: pytest.Item, config: pytest.Config) -> dict:
     """The keywords of ``Bench.start`` for one test: options, then its marker."""
     opt = config.option
@@ -95,11 +115,9 @@ def bench_settings(item: pytest.Item, config: pytest.Config) -> dict:
         kwargs["channel"] = opt.bench_channel
     if opt.bench_time_scale is not None:
         kwargs["time_scale"] = opt.bench_time_scale
-    marker = item.get_closest_marker("bench")
-    if marker is not None:
-        if marker.args:
-            raise pytest.UsageError(f"{item.nodeid}: bench(...) takes keywords only")
-        kwargs.update(marker.kwargs)
+    if opt.bench_tcu_clock is not None:
+        kwargs["tcu_clock"] = opt.bench_tcu_clock
+    kwargs.update(marker_settings(item))
     kwargs["tcu"] = not (item.get_closest_marker("tcu_under_test") is not None
                          or opt.bench_tcu == "external")
     if kwargs.get("record") is None and opt.bench_recordings:
@@ -115,8 +133,7 @@ def bench(request: pytest.FixtureRequest):
     item = request.node
     kwargs = bench_settings(item, request.config)
     record = kwargs.get("record")
-    explicit = item.get_closest_marker("bench") is not None and \
-        item.get_closest_marker("bench").kwargs.get("record") is not None
+    explicit = marker_settings(item).get("record") is not None
     try:
         b = Bench.start(**kwargs)
     except BenchError as e:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+import requires
 from can_dbc import mapping as can_mapping
 from rt_loop.channels import LoopChannels
 from rt_loop.xcp import a2l
@@ -382,7 +383,7 @@ def _compiled_with(*names):
     fields = dict(ffi.typeof("rt_loop").fields)
     missing = [n for n in names if n not in fields and not hasattr(lib, n)]
     if missing:
-        pytest.skip(f"the compiled module predates {', '.join(missing)}")
+        requires.missing(f"{', '.join(missing)} in the compiled extension", requires.REBUILD)
     return ffi, lib
 
 
@@ -644,7 +645,7 @@ def test_if_data_xcp(c):
 
 def test_if_data_matches_the_slave():
     """The defaults are what rt_loop/xcp/protocol.py declares."""
-    protocol = pytest.importorskip("rt_loop.xcp.protocol")
+    protocol = requires.module("rt_loop.xcp.protocol")
     from rt_loop._rt_loop import ffi, lib
 
     block = _if_data(a2l.generate(ffi, lib))

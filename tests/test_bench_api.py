@@ -160,6 +160,7 @@ def test_marked(bench):
 """
 
 
+@pytest.mark.slow
 def test_plugin_recordings_and_junit(pytester):
     pytester.makepyfile(test_plugin_run=PLUGIN_TESTS)
     recordings = pytester.path / "rec"
@@ -178,6 +179,7 @@ def test_plugin_recordings_and_junit(pytester):
     assert '"can.omit"' in props["test_passes"]["bench_fault_events"]
 
 
+@pytest.mark.slow
 def test_plugin_keeps_recordings_when_asked(pytester):
     pytester.makepyfile(test_keep="def test_ok(bench):\n    bench.sleep(0.02)\n")
     recordings = pytester.path / "rec"
@@ -187,6 +189,7 @@ def test_plugin_keeps_recordings_when_asked(pytester):
     assert [p.name for p in recordings.iterdir()] == ["test_ok.mf4"]
 
 
+@pytest.mark.slow
 def test_a_maneuver_with_a_grade_plays_on_it(tmp_path):
     """hill-start fixes the road grade: the bench's loop plays the maneuver on its 20 %
     from the TCU's first frame, held by the reference TCU (no rollback)."""

@@ -268,6 +268,7 @@ def bench_cmd(tmp_path, *extra):
             *extra]
 
 
+@pytest.mark.slow
 def test_a_short_run_writes_floor_and_loop_rounds(tmp_path):
     r = subprocess.run(bench_cmd(tmp_path, "--rounds", "1", "--round-s", "1"), cwd=REPO,
                        capture_output=True, text=True, timeout=180)
@@ -287,6 +288,7 @@ def test_a_short_run_writes_floor_and_loop_rounds(tmp_path):
     assert "median ratio" in r.stdout
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_the_round_in_progress_and_writes_what_was_measured(tmp_path):
     p = subprocess.Popen(bench_cmd(tmp_path, "--rounds", "3", "--round-s", "30", "--no-pm-qos"),
                          cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

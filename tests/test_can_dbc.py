@@ -10,6 +10,7 @@ import uuid
 
 import pytest
 
+import requires
 from can_dbc import codec
 
 # name -> (id, cycle ms, sender, {payload signal: (start bit, length, signed, scale, unit[, offset])})
@@ -271,7 +272,7 @@ def test_e2e_receiver_rules_and_counts():
 def served():
     """(mapping, CodecTable) of the default mapping: the tables the real-time
     loop serves the contract with (rt_loop/channels.py builds the same)."""
-    pytest.importorskip("rt_loop._rt_loop", reason="the C extension is built by scripts/setup")
+    requires.module("rt_loop._rt_loop")
     from can_dbc import mapping
     from can_dbc.table import CodecTable
 
@@ -548,6 +549,7 @@ def test_package_summary_runs(capsys):
     assert "worst-case bus load at 1 Mbit/s: 35.23 %" in out
 
 
+@pytest.mark.slow
 def test_these_tests_print_nothing_into_pytests_progress():
     """Run this module's other tests in a pytest of their own: its output is
     pytest's progress and summary only (the CLI's own lines stay in capsys)."""

@@ -21,13 +21,14 @@ import random
 import struct
 
 import pytest
+import requires
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from can_dbc import codec, table
 from can_dbc.protection import KINDS, P1_DATA_ID_MODES, Protection
 
-cantools = pytest.importorskip("cantools")
+cantools = requires.module("cantools")
 from cantools.database.can import Message, Signal  # noqa: E402
 from cantools.database.conversion import BaseConversion  # noqa: E402
 
@@ -360,6 +361,7 @@ def test_crcs_equal_the_bitwise_reference(c, data):
 # Random layouts: C against cantools
 # ---------------------------------------------------------------------------
 
+@pytest.mark.slow
 @SETTINGS
 @given(st.data())
 def test_encode_equals_cantools_on_random_layouts(c, data):
@@ -371,6 +373,7 @@ def test_encode_equals_cantools_on_random_layouts(c, data):
     assert got == ref_encode(msg, values), (msg.signals, values)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(st.data())
 def test_decode_equals_cantools_on_random_layouts(c, data):
@@ -397,6 +400,7 @@ def test_decode_equals_cantools_on_random_layouts(c, data):
             assert same_float(got[name], value), (name, got[name], value)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(st.data())
 def test_decode_of_encode_is_the_limited_raw_value(c, data):
@@ -592,6 +596,7 @@ def protected_setups(draw):
     return msg, prot, ref
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(protected_setups(), st.data())
 def test_protect_equals_the_reference(c, setup, data):
@@ -602,6 +607,7 @@ def test_protect_equals_the_reference(c, setup, data):
     assert t.protect(0, frame, counter) == ref.protect(frame, counter)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(protected_setups(), st.data())
 def test_check_equals_the_reference_over_a_sequence(c, setup, data):
@@ -769,6 +775,7 @@ def test_contract_decode_equals_codec_and_cantools(c, contract, loop_table, data
     assert set(served) == set(got) and all(same_float(served[k], got[k]) for k in got)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(st.data())
 def test_contract_check_accepts_and_rejects_as_codec(c, contract, loop_table, data):

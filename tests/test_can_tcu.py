@@ -298,6 +298,7 @@ def test_an_error_in_the_task_stops_it_with_safe_frames_and_a_one_line_error(cha
 
 
 # ------------------------------------------------------------------ closed loop with the server
+@pytest.mark.slow
 def test_closed_loop_with_the_plant_server_launches_the_car(channel):
     from rt_loop.server import Server
 
@@ -352,6 +353,7 @@ def test_cli_bus_that_cannot_open_is_one_line_exit_1():
     assert len(lines) == 1 and "no-such-interface" in lines[0] and "nowhere0" in lines[0], r.stderr
 
 
+@pytest.mark.slow
 def test_cli_runs_writes_the_report_and_stops_on_sigterm(tmp_path, channel):
     import signal
 

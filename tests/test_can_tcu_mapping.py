@@ -344,6 +344,7 @@ def test_a_bad_crc_a_counter_jump_and_unknown_ids_are_counted_per_message(vehicl
 
 
 # ------------------------------------------------------------------ stale and safe
+@pytest.mark.slow
 def test_a_silent_plant_makes_it_stale_and_it_ends_on_the_mappings_safe_values(tmp_path, channel):
     # ValveCurrentLine drives the line valve at twice its value, safe 0.8 A: the signal's safe
     # value is 0.4 A; ForkActuatorForce1 drives fork 1 at twice its value

@@ -224,6 +224,7 @@ def test_plant_error_is_a_user_error(capsys, tiny, tmp_path, monkeypatch):
     assert_user_error(code, err, "engine.speed_rad_s became nan", str(out_csv))
 
 
+@pytest.mark.slow
 def test_sigint_exits_130_with_a_partial_csv(tmp_path):
     # a real Ctrl-C on a real process: a long run, interrupted once it has started
     t0 = time.perf_counter()

@@ -180,6 +180,7 @@ def _cli(*args):
                           text=True, timeout=60)
 
 
+@pytest.mark.slow
 def test_cli_serve_bad_faults_file_and_control_path(tmp_path):
     faults = tmp_path / "f.toml"
     faults.write_text('[[fault]]\nkind = "can.omit"\nmessage = "NOPE"\n')

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+import requires
 from dct_hil import cli, demo
 from rt_loop import verdict as vd
 
@@ -56,6 +57,7 @@ def short_run(tmp_path_factory):
     return proc, out
 
 
+@pytest.mark.slow
 def test_a_short_demo_launches_shifts_and_writes_everything(short_run):
     proc, out = short_run
     assert proc.returncode == 0, proc.stderr
@@ -75,6 +77,7 @@ def test_a_short_demo_launches_shifts_and_writes_everything(short_run):
     assert stats["run"]["maneuver"] == "done" and stats["record"]["dropped"] == 0
 
 
+@pytest.mark.slow
 def test_a_short_demo_ends_with_its_verdict_and_exit_0_without_strict(short_run):
     """Whether this run's timing held depends on the machine: the test checks that the
     verdict is there, consistent, printed last and warned about, never what it is."""
@@ -94,6 +97,7 @@ def test_a_short_demo_ends_with_its_verdict_and_exit_0_without_strict(short_run)
     assert stats["rings"]["samples"] > 0
 
 
+@pytest.mark.slow
 def test_the_recording_starts_before_the_tcu_and_plays_the_pedals_from_its_first_frame(short_run):
     from rt_loop.recorder import read_recording
 
@@ -107,6 +111,7 @@ def test_the_recording_starts_before_the_tcu_and_plays_the_pedals_from_its_first
     assert rec["vehicle_speed_kmh"][-1] > 40
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_the_demo_with_everything_written(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "dct_hil.cli", "demo", "--out", str(tmp_path),
                              "--priority", "0", "--quiet"], cwd=REPO,
@@ -134,6 +139,7 @@ def test_ctrl_c_stops_the_demo_with_everything_written(tmp_path):
     (["--mapping", "vehicle", "--bus", "io"], "NAME=CHANNEL"),
     (["--mapping", "vehicle", "--dbc", "io=no_such.dbc"], "no_such.dbc"),
 ])
+@pytest.mark.slow
 def test_bad_options_are_one_line_errors(tmp_path, args, words):
     proc = run_cli(*args, "--out", str(tmp_path), "--priority", "0", timeout=60)
     assert proc.returncode == 2
@@ -141,6 +147,7 @@ def test_bad_options_are_one_line_errors(tmp_path, args, words):
     assert len(lines) == 1 and words in lines[0], proc.stderr
 
 
+@pytest.mark.slow
 def test_slow_motion_with_the_bus_clock_gives_the_offline_shifts_within_30_ms(tmp_path):
     """Half speed, the TCU ticking on the plant's 2 ms frames: the first shifts of
     paper-cycle land where the in-process run puts them. Over the bus the full-load
@@ -173,6 +180,7 @@ PAUSE_AT_S = 4.0      # TCU time: the 1-2 upshift of paper-cycle is under way (o
 PAUSE_S = 0.5
 
 
+@pytest.mark.slow
 def test_a_demo_with_a_starved_tcu_is_invalid_names_why_and_strict_exits_3(
         tmp_path, monkeypatch, capsys):
     """The TCU thread starves for 0.5 s in the middle of the first upshift: the server
@@ -230,6 +238,7 @@ def test_a_tcu_pause_outside_0_to_60_s_is_refused(seconds):
         tcu.close()
 
 
+@pytest.mark.slow
 def test_over_the_vehicle_matrix_the_demo_shifts_as_the_offline_run_of_the_contract(tmp_path):
     """The plant and the TCU stub (a CAN node) over the example vehicle matrix, two
     buses on the embedded transport, half speed with the bus clock: every message
@@ -266,8 +275,9 @@ def test_over_the_vehicle_matrix_the_demo_shifts_as_the_offline_run_of_the_contr
     assert max(abs(d) for d in diffs) <= 0.030, diffs
 
 
+@pytest.mark.slow
 def test_a_demo_recorded_to_mf4_opens_in_asammdf_with_units_and_decoded_can(tmp_path):
-    asammdf = pytest.importorskip("asammdf")
+    asammdf = requires.module("asammdf")
     from can_dbc import codec
 
     proc = run_cli("--mf4", "--duration", "6", "--out", str(tmp_path), "--priority", "0",

@@ -179,6 +179,7 @@ def test_sent_signal_faults_change_the_value_on_the_bus(kind, params, check):
     assert abs(line_pressures(after[-5:]).mean() - line_pressures(before[-5:]).mean()) < 0.5
 
 
+@pytest.mark.slow
 def test_noise_is_seeded_gaussian_and_reproducible():
     runs = []
     for _ in range(2):
@@ -353,6 +354,7 @@ def test_engine_torque_limit_caps_the_engine_at_full_pedal():
         loop.c.plant.inputs.accel_pedal_pct = 0.0
 
 
+@pytest.mark.slow
 def test_every_fault_at_once_keeps_the_plant_finite():
     specs = [p[0] for p in PHYSICAL] + [
         {"kind": "clutch.friction_fade", "clutch": 2, "loss": 1.0},

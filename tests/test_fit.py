@@ -36,6 +36,7 @@ def _csv(path, rec, names=None):
     return path
 
 
+@pytest.mark.slow
 def test_coastdown_and_launch_recover_mass_drag_and_rolling_resistance(tmp_path, capsys):
     """The brief's case: a coastdown (plant/scenarios/coastdown.csv) and a full-throttle
     launch (0-100, 10 s) together, speed with 0.1 km/h noise: mass, Cd and rolling
@@ -67,6 +68,7 @@ def test_coastdown_and_launch_recover_mass_drag_and_rolling_resistance(tmp_path,
     assert params["vehicle"]["mass_kg"] == pytest.approx(got["vehicle.mass_kg"]["value"])
 
 
+@pytest.mark.slow
 def test_clutch_friction_and_turbo_lag_from_an_mf4(tmp_path, engine):
     """launch-1st recorded as MF4 (engine speed with 5 rpm noise): K1's kinetic friction
     and the turbo lag from 0.12 / 0.35 s back to 0.105 / 0.5 s within 2 %."""
@@ -89,6 +91,7 @@ def test_clutch_friction_and_turbo_lag_from_an_mf4(tmp_path, engine):
     assert list(res.rms.values())[0] == pytest.approx(5.0, rel=0.2)
 
 
+@pytest.mark.slow
 def test_a_cars_signals_named_in_a_mapping(tmp_path, engine):
     """A car's log: its own names and units (speed in m/s), no case given: its pedals
     are replayed with the reference TCU in the loop; the mass comes back within 2 %."""

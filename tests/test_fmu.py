@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-fmpy = pytest.importorskip("fmpy")
+import requires
+fmpy = requires.module("fmpy")
 from fmpy import extract, read_model_description, simulate_fmu  # noqa: E402
 from fmpy.fmi2 import FMU2Slave  # noqa: E402
 from fmpy.fmi3 import FMU3Slave  # noqa: E402
@@ -49,6 +50,7 @@ def unzipped(fmus, tmp_path_factory):
 
 # ------------------------------------------------------------------ validity
 
+@pytest.mark.slow
 @pytest.mark.parametrize("version", VERSIONS)
 def test_fmpy_finds_no_problem(fmus, version):
     assert validate_fmu(fmus[version]) == []
@@ -117,6 +119,7 @@ def _compile_from_sources(unzipdir, version, out_so):
     subprocess.run(cmd, check=True, capture_output=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("version", VERSIONS)
 def test_compiles_from_its_sources_and_computes_the_same(fmus, version, tmp_path):
     unz = extract(fmus[version], str(tmp_path / "u"))
@@ -392,6 +395,7 @@ def _cli(*args):
                           capture_output=True, text=True, cwd=ROOT)
 
 
+@pytest.mark.slow
 def test_command_line_bad_input_is_one_line(tmp_path):
     r = _cli(str(tmp_path / "x.fmu"), "--fmi", "4")
     assert r.returncode == 2 and "unknown FMI version '4'" in r.stderr
@@ -405,6 +409,7 @@ def test_command_line_bad_input_is_one_line(tmp_path):
     assert r.returncode == 1 and "does not exist" in r.stderr
 
 
+@pytest.mark.slow
 def test_params_bake_another_car_in(tmp_path):
     car = tmp_path / "heavy.toml"
     car.write_text("[vehicle]\nmass_kg = 1900.0\n")
@@ -421,6 +426,7 @@ def test_params_bake_another_car_in(tmp_path):
     assert np.array_equal(_at(res, offline.data[:, 0])["vehicle_speed_kmh"], offline.data[:, k])
 
 
+@pytest.mark.slow
 def test_speed_benchmark_runs_the_same_inputs_three_ways(tmp_path):
     from plant.fmu import bench
     out = io.StringIO()

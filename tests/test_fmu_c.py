@@ -17,7 +17,6 @@ plant.model.Plant and plant.simulate.
 import ctypes
 import math
 import re
-import shutil
 import struct
 import subprocess
 from ctypes import (CFUNCTYPE, POINTER, Structure, byref, c_bool, c_char, c_char_p, c_double,
@@ -27,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import requires
 from plant import simulate
 from plant._dct_plant import ffi
 from plant.fmu import scenario as fmu_scenario
@@ -79,9 +79,7 @@ def model():
 @pytest.fixture(scope="module")
 def built(tmp_path_factory, model):
     """{version: path of the .so}, compiled as the brief of fmi2.c/fmi3.c says."""
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        pytest.skip("gcc is not installed")
+    gcc = requires.c_compiler()
     d = tmp_path_factory.mktemp("fmu_c")
     table = d / "fmu_variables.c"
     table.write_text(variables.generate_c(model=model), encoding="utf-8")
@@ -341,10 +339,9 @@ def _output_names(model):
 
 # -- the library ------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_libraries_export_the_fmi_functions_and_nothing_else(built):
-    nm = shutil.which("nm")
-    if nm is None:
-        pytest.skip("nm is not installed")
+    nm = requires.tool("nm", "apt-get install binutils (it comes with gcc)")
     for v, so in built.items():
         out = subprocess.run([nm, "-D", "--defined-only", str(so)], capture_output=True,
                              text=True, check=True).stdout

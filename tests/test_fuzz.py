@@ -14,6 +14,7 @@ from waiting import wait_until
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+@pytest.mark.slow
 def test_a_short_fuzz_run_explains_every_frame_and_writes_its_table(tmp_path):
     out = tmp_path / "fuzz.json"
     p = subprocess.run([os.path.join(REPO, "scripts", "fuzz"), "--seconds", "8",

@@ -12,6 +12,8 @@ The same test passes with the TCU as it is (the suite runs in CI).
 
 from pathlib import Path
 
+import pytest
+
 pytest_plugins = ["pytester"]
 
 SUITE = Path(__file__).resolve().parent / "hil" / "test_reference_tcu.py"
@@ -27,6 +29,7 @@ def broken_line_pressure_monitor(monkeypatch):
 '''
 
 
+@pytest.mark.slow
 def test_breaking_the_line_pressure_diagnostic_fails_its_hil_test(pytester):
     pytester.makeconftest(BREAK_LINE_MONITOR)
     pytester.makepyfile(test_suite=SUITE.read_text())

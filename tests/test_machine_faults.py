@@ -30,9 +30,10 @@ import time
 
 import pytest
 
+import requires
 from waiting import wait_until
 
-pytest.importorskip("msgpack", reason="python-can's udp_multicast needs msgpack")
+requires.module("msgpack")
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DCT_HIL = [sys.executable, "-m", "dct_hil.cli"]
@@ -118,6 +119,7 @@ def _mf4_samples(path):
     return len(t), float(t[-1]) if len(t) else None
 
 
+@pytest.mark.slow
 def test_a_tcu_killed_mid_run_times_out_and_a_new_one_is_taken_again(bench):
     tcu = bench.tcu()
     assert wait_until(lambda: _accepted(bench) > 500, WAIT_S), (
@@ -143,6 +145,7 @@ def test_a_tcu_killed_mid_run_times_out_and_a_new_one_is_taken_again(bench):
     assert n > 100 and last > 0
 
 
+@pytest.mark.slow
 def test_a_server_stopped_for_2_s_goes_on_counts_the_late_tick_and_says_so(bench):
     bench.tcu()
     assert wait_until(lambda: _accepted(bench) > 500, WAIT_S), bench.err_path.read_text()

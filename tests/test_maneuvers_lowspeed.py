@@ -231,6 +231,7 @@ class _PythonDriver:
         return self.d.selector(t_s)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", LOW_SPEED)
 def test_the_c_loop_plays_the_selector_and_grade_as_the_python_driver(name):
     """The C driver against the Python driver between C calls, and the Python loop:
@@ -334,6 +335,7 @@ def test_simulate_plays_them_with_the_grade_and_selector(name, tmp_path, capsys)
 # over CAN: the demo on the embedded transport
 # ---------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_the_demo_plays_reverse_park_over_can_with_the_selector(tmp_path):
     """The first 4 s of reverse-park: the loop's scripted driver moves the selector from D
     to R at 1 s, the plant sends it in VEH_Driver.SelectorLever and the TCU reads it."""

@@ -65,6 +65,7 @@ def _legs(shifts):
     return legs
 
 
+@pytest.mark.slow
 def test_paper_cycle_shifts_up_at_full_load_and_down_to_first_while_braking(paper):
     _, r = paper
     shifts = gear_shifts(r["time_s"], r["gear"])
@@ -80,6 +81,7 @@ def test_paper_cycle_shifts_up_at_full_load_and_down_to_first_while_braking(pape
     assert r["engine_speed_rpm"].min() > 500                       # no stall
 
 
+@pytest.mark.slow
 def test_paper_cycle_stops_twice_and_full_load_upshifts_keep_pulling(paper):
     m, r = paper
     v, t = r["vehicle_speed_kmh"], r["time_s"]
@@ -116,6 +118,7 @@ def _runs(t, g):
     return [(g[a], t[a], t[b - 1] + dt) for a, b in zip(starts, ends)]
 
 
+@pytest.mark.slow
 def test_engaged_gear_holds_while_coasting_and_through_coast_downshifts(paper):
     _, r = paper
     t, o = r["time_s"], r["outputs"]
@@ -151,6 +154,7 @@ def test_0_100_and_top_speed_against_the_published_figures():
     assert r["gear_clashes"][-1] == 0
 
 
+@pytest.mark.slow
 def test_wltc_low_phase_is_tracked_within_2_kmh_rms():
     m, r = run("wltc", WLTC_LOW_PHASE_S)
     figures = report(m, r)

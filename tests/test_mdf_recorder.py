@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-asammdf = pytest.importorskip("asammdf")
+import requires
+asammdf = requires.module("asammdf")
 
 from can_dbc import mapping as can_mapping  # noqa: E402
 from plant.params import fill_params, load_params  # noqa: E402
@@ -218,6 +219,7 @@ def recorded(run, tmp_path_factory):
 # channels
 # --------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_every_csv_column_is_a_channel_with_its_unit_and_a_comment(recorded):
     mdf, csv, _ = recorded
     assert mdf.version == "4.10"
@@ -239,6 +241,7 @@ def test_every_csv_column_is_a_channel_with_its_unit_and_a_comment(recorded):
     assert mdf.get("tick").samples.dtype == np.uint64
 
 
+@pytest.mark.slow
 def test_values_equal_the_csv_recorders_for_the_same_run(run, recorded):
     mdf, csv, _ = recorded
     time_s = mdf.get("time_s")
@@ -273,6 +276,7 @@ def test_values_equal_the_csv_recorders_for_the_same_run(run, recorded):
 # CAN traffic
 # --------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_can_frames_are_the_logged_ones_and_decode_with_the_dbc(run, recorded):
     mdf, _, rec = recorded
     e = run.entries

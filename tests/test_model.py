@@ -143,6 +143,7 @@ def test_energy_and_params(plant):
     assert plant.params["solver"]["step_s"] == plant.step_s
 
 
+@pytest.mark.slow
 def test_a_long_stalled_plant_has_no_subnormal_state_and_the_callers_mode_is_kept():
     """A stalled engine's speeds and torques decay towards zero; after some
     minutes they reached subnormal magnitudes, where every operation takes

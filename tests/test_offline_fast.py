@@ -166,15 +166,25 @@ def wltc_c():
     return maneuver_run("wltc", tcu_impl="c")
 
 
-def test_lockstep_wltc_python_driver_same_commands_every_period_and_same_run_as_the_c_driver(wltc_c):
-    rec, n = lockstep("wltc", python_driver=True)
-    assert n == 900_000
-    # the Python driver (called every 10 ms) and the C driver give the same closed loop
-    for k in ("time_s", "vehicle_speed_kmh", "fuel_l", "gear", "accel_pedal_pct", "brake_pedal_pct"):
-        assert np.array_equal(rec[k], wltc_c[k]), k
-    assert np.array_equal(rec["tcu_target_gear"], wltc_c["tcu_target_gear"])
+# the first 300 s (urban phase and the start of the next: 150 k periods, about a
+# sixth of the time) in scripts/test; the whole cycle (900 k periods) in scripts/test-long
+@pytest.mark.slow
+@pytest.mark.parametrize("duration_s", [pytest.param(300.0, id="first-300-s"),
+                                        pytest.param(None, id="whole", marks=pytest.mark.long)])
+def test_lockstep_wltc_python_driver_same_commands_every_period_and_same_run_as_the_c_driver(
+        wltc_c, duration_s):
+    rec, n = lockstep("wltc", duration_s, python_driver=True)
+    assert n == (150_000 if duration_s else 900_000)
+    # the Python driver (called every 10 ms) and the C driver give the same closed loop: the
+    # section's recording is the start of the whole cycle's
+    size = len(rec["time_s"])
+    assert size > 0 and (duration_s or size == len(wltc_c["time_s"]))
+    for k in ("time_s", "vehicle_speed_kmh", "fuel_l", "gear", "accel_pedal_pct", "brake_pedal_pct",
+              "tcu_target_gear"):
+        assert np.array_equal(rec[k], wltc_c[k][:size]), k
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["paper-cycle", "0-100"])
 def test_lockstep_paper_cycle_and_0_100_same_commands_every_period(name):
     rec, n = lockstep(name)
@@ -221,6 +231,7 @@ def _stop_and_go(t_s, outputs):
 COLD = {"coolant_temp_degc": 5.0, "engine_oil_temp_degc": 5.0, "trans_oil_temp_degc": 5.0}
 
 
+@pytest.mark.slow
 def test_lockstep_kiss_adaptation_from_a_cold_start_same_commands_every_period():
     kiss = (logic.CLUTCH_KISS_BAR[0] + 0.4, logic.CLUTCH_KISS_BAR[1])
     rec, _ = lockstep("kiss-adaptation", 48.0, driver=_stop_and_go, reset=COLD,
@@ -319,6 +330,7 @@ def test_link_gives_the_dbc_codec_values_at_each_message_cycle_and_phase():
 # ---------------------------------------------------------------------------
 
 # the whole paper-cycle; 0-100 past 100 km/h; the start of the WLTC (the whole cycles: lockstep)
+@pytest.mark.slow
 @pytest.mark.parametrize("name, duration_s", [("paper-cycle", None), ("0-100", 20.0), ("wltc", 60.0)])
 def test_closed_loop_c_equals_python_with_the_same_figures(name, duration_s):
     c = maneuver_run(name, duration_s, tcu_impl="c")
@@ -329,6 +341,7 @@ def test_closed_loop_c_equals_python_with_the_same_figures(name, duration_s):
     assert len(c["shifts"]) == len(py["shifts"]) > 0
 
 
+@pytest.mark.slow
 def test_wltc_figures_of_the_c_loop(wltc_c):
     # equal to the Python loop by the lockstep test above; here what they are
     m = get_maneuver("wltc")
@@ -339,6 +352,7 @@ def test_wltc_figures_of_the_c_loop(wltc_c):
     assert not wltc_c["tcu_active_faults"].any()
 
 
+@pytest.mark.slow
 def test_plant_fault_set_while_running_same_in_both_loops():
     def run(impl):
         m = get_maneuver("paper-cycle")
@@ -367,6 +381,7 @@ def test_plant_fault_set_while_running_same_in_both_loops():
     assert_same_state(c_tcu, py_tcu)
 
 
+@pytest.mark.slow
 def test_a_tcu_passed_in_ends_as_the_python_loop_leaves_it_and_runs_on_in_either_loop():
     m1, m2 = get_maneuver("paper-cycle"), get_maneuver("paper-cycle")
     p1, p2 = Plant(), Plant()
@@ -383,6 +398,7 @@ def test_a_tcu_passed_in_ends_as_the_python_loop_leaves_it_and_runs_on_in_either
     assert len(t1.events) >= 5 and t1.t_s == pytest.approx(10.0 - logic.PERIOD_S)   # run time
 
 
+@pytest.mark.slow
 def test_a_python_driver_runs_between_c_calls_with_the_same_result():
     def driver(t_s, outputs):
         return (80.0, 0.0) if t_s < 9.0 else (0.0, 35.0)
@@ -391,6 +407,7 @@ def test_a_python_driver_runs_between_c_calls_with_the_same_result():
                     run_offline(Plant(), driver, 14.0, tcu_impl="python"))
 
 
+@pytest.mark.slow
 def test_a_speed_tracking_driver_goes_on_from_where_the_c_loop_left_it():
     m1, m2 = get_maneuver("wltc"), get_maneuver("wltc")
     run_offline(Plant(), m1.driver, 12.0, tcu_impl="c")
@@ -430,6 +447,7 @@ CAL = {"LAUNCH_RPM_MIN": 1400.0, "UPSHIFT_RPM": ((0, 1700), (25, 1900), (50, 240
        "GEAR_OVERALL_RATIO": {1: 14.0, 2: 8.6, 3: 5.353, 4: 3.714, 5: 2.781, 6: 2.301}}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("form", ["dict", "dataclass"])
 def test_a_calibration_changes_both_loops_alike(form):
     cal = CAL if form == "dict" else fast.TcuCalibration(**{k.lower(): v for k, v in CAL.items()})
@@ -441,6 +459,7 @@ def test_a_calibration_changes_both_loops_alike(form):
     assert logic.LAUNCH_RPM_MIN == 1100.0 and logic.UPSHIFT_RPM[-1] == (100.0, 6300.0)   # untouched
 
 
+@pytest.mark.slow
 def test_a_private_copy_of_the_logic_runs_in_c_with_its_constants():
     tcu = fast.python_tcu({"PEDAL_ON_PCT": 5.0, "LOCK_RAMP_BAR_PER_S": 40.0})
     assert type(tcu) is not TcuLogic and fast.c_compatible(tcu) is None
@@ -450,6 +469,7 @@ def test_a_private_copy_of_the_logic_runs_in_c_with_its_constants():
     assert_same_state(tcu, py_tcu)
 
 
+@pytest.mark.slow
 def test_a_module_constant_changed_counts_in_both_loops(monkeypatch):
     monkeypatch.setattr(logic, "KICKDOWN_PCT", 101.0)
     monkeypatch.setattr(logic, "UPSHIFT_RPM", ((0.0, 1500.0), (100.0, 5000.0)))
@@ -503,6 +523,7 @@ def test_a_plant_error_in_the_c_loop_raises_and_keeps_the_rows_and_the_tcu_state
     assert tcu.t_s == pytest.approx(1000 * logic.PERIOD_S)
 
 
+@pytest.mark.slow
 def test_simulate_c_and_python_write_the_same_csv(tmp_path, capsys):
     from dct_hil import cli
 

@@ -234,6 +234,7 @@ def test_blocker_failed_engages_without_synchronizing():
     assert engaged - on_cone <= 1 and abs(slip_rpm) > 10 * clash_rpm and clashes == 1
 
 
+@pytest.mark.slow
 def test_engine_torque_limited_at_full_pedal_and_on_request():
     peak = {}
     for limited in (0, 1):
@@ -347,6 +348,7 @@ FAULT_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", FAULT_CASES)
 def test_no_fault_makes_the_state_nan(case):
     """The reference TCU launches at full throttle through the gears; the

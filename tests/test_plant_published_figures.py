@@ -50,6 +50,7 @@ def test_top_speed_within_3_percent_in_5th(full_throttle):
     assert int(rec["gear"][-1]) == 5
 
 
+@pytest.mark.slow
 def test_cold_nedc_fuel_within_10_percent():
     figures, _ = _run("nedc", cold=True)
     assert figures["fuel_l_per_100km"] == pytest.approx(PUBLISHED_NEDC_L_PER_100KM, rel=0.10)

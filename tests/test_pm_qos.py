@@ -164,6 +164,7 @@ def test_kernel_limit_is_in_force_while_serving_and_released_after():
         assert after is None or after > want
 
 
+@pytest.mark.slow
 def test_cli_options(tmp_path):
     base = [sys.executable, "-m", "dct_hil.cli", "serve", "--channel", "x", "--priority", "0",
             "--duration", "0.2", "--quiet", "--stats", str(tmp_path / "s.json")]

@@ -94,18 +94,21 @@ def test_layout_matches_the_c_structs():
     assert list(pyplant.OUTPUT_NAMES) == OUTPUT_NAMES
 
 
+@pytest.mark.slow
 def test_every_state_agrees_after_every_step(runs):
     cs, ps, _, _ = runs
     err, where = _worst(cs, ps, STATE_NAMES)
     assert err <= REL_TOL, where
 
 
+@pytest.mark.slow
 def test_every_output_agrees_after_every_step(runs):
     _, _, co, po = runs
     err, where = _worst(co, po, OUTPUT_NAMES)
     assert err <= REL_TOL, where
 
 
+@pytest.mark.slow
 def test_the_run_exercises_every_component(runs):
     cs, _, co, _ = runs
     col = {name: co[:, i] for i, name in enumerate(OUTPUT_NAMES)}

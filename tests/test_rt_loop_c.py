@@ -629,6 +629,7 @@ def can_bytes(fid, length, data):
     return CAN_FRAME.pack(fid, length, data[:8].ljust(8, b"\0"))
 
 
+@pytest.mark.slow
 def test_socket_transport_exchanges_frames_and_never_blocks():
     ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
     with ours, peer:

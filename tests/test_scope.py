@@ -123,6 +123,7 @@ def test_a_bad_configuration_is_refused_and_counted(bench):
     scope.remove(["gear"])
 
 
+@pytest.mark.slow
 def test_a_ring_nobody_drains_counts_its_drops():
     b = Bench.start(tcu=False)
     try:

@@ -12,7 +12,8 @@ import uuid
 import numpy as np
 import pytest
 
-pytest.importorskip("asammdf")
+import requires
+requires.module("asammdf")
 
 from asammdf import MDF  # noqa: E402
 
@@ -22,6 +23,7 @@ from tcu_stub.can_tcu import CanTcu  # noqa: E402
 from waiting import wait_until  # noqa: E402
 
 
+@pytest.mark.slow
 def test_an_mf4_recording_with_the_can_traffic_and_a_stimulus_step(tmp_path):
     stim = tmp_path / "grade.csv"
     stim.write_text("time_s,road_grade_pct\n0.0,0.0\n1.0,6.0\n")

@@ -14,7 +14,8 @@ import uuid
 
 import pytest
 
-pytest.importorskip("pyxcp")
+import requires
+requires.module("pyxcp")
 
 import logging  # noqa: E402
 
@@ -74,6 +75,7 @@ def daq_list():
                    measurements=meas, priority=0, prescaler=1)
 
 
+@pytest.mark.slow
 def test_pyxcp_measures_20_signals_at_2_khz_and_calibrates_the_grade(server):
     x_srv = server.xcp
     assert x_srv is not None and x_srv.address[0] == "127.0.0.1"
@@ -121,6 +123,7 @@ def test_pyxcp_measures_20_signals_at_2_khz_and_calibrates_the_grade(server):
     assert c["protocol"]["errors"].get("ERR_OUT_OF_RANGE") == 1
 
 
+@pytest.mark.slow
 def test_a_master_that_leaves_in_the_middle_of_a_daq_leaves_the_loop_running(server):
     policy = measured(server.xcp, [daq_list()])
     with pyxcp_master(server.xcp, policy=policy) as x:
@@ -170,6 +173,7 @@ def test_a_taken_port_is_one_line_and_nothing_is_left_running():
         first.stop()
 
 
+@pytest.mark.slow
 def test_the_xcp_benchmark_writes_its_figures(tmp_path):
     """python -m rt_loop.xcp.bench in its shortest form: the figures are there (never judged)."""
     import json

@@ -85,6 +85,7 @@ def all_delivered(srv, peer):
 
 
 # ------------------------------------------------------------------ plant -> TCU
+@pytest.mark.slow
 def test_plant_messages_arrive_with_valid_e2e_at_their_relative_rates(server, tcu):
     assert tcu.wait_for(lambda p: p.counts("SIM_Status")["accepted"] >= 12, timeout=WAIT_S)
     server.stop()
@@ -331,6 +332,7 @@ def run_cli(capsys, *argv):
     return code, out, err
 
 
+@pytest.mark.slow
 def test_serve_writes_the_json_stats(capsys, tmp_path, channel):
     stats = tmp_path / "serve.json"
     log = tmp_path / "serve.log"
@@ -386,6 +388,7 @@ def stop_with(proc, sig):
     return proc.returncode, out, err
 
 
+@pytest.mark.slow
 def test_sigterm_stops_serve_cleanly_with_the_stats_written(tmp_path):
     proc, stats = serve_process(tmp_path, "--priority", "0", "--log", "t.log")
     code, out, err = stop_with(proc, signal.SIGTERM)
@@ -397,6 +400,7 @@ def test_sigterm_stops_serve_cleanly_with_the_stats_written(tmp_path):
     assert written > 0 and len((tmp_path / "t.log").read_text().splitlines()) == written
 
 
+@pytest.mark.slow
 def test_sigint_stops_serve_with_exit_130_and_the_stats_written(tmp_path):
     proc, stats = serve_process(tmp_path, "--priority", "0")
     code, out, err = stop_with(proc, signal.SIGINT)
@@ -404,6 +408,7 @@ def test_sigint_stops_serve_with_exit_130_and_the_stats_written(tmp_path):
     assert json.loads(stats.read_text())["run"]["state"] == "stopped"
 
 
+@pytest.mark.slow
 def test_serve_without_real_time_rights_runs_and_warns(tmp_path):
     prefix = ()
     if os.geteuid() == 0:

@@ -23,6 +23,7 @@ def pedal(srv):
     return float(srv._l.plant.inputs.accel_pedal_pct)
 
 
+@pytest.mark.slow
 def test_a_maneuver_starts_and_stops_while_running(bench):
     srv = bench.server
     assert set(srv.loop_maneuvers()) == {"paper-cycle", "0-100", "creep", "reverse-park", "hill-start"}

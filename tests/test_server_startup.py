@@ -52,6 +52,7 @@ def test_a_slow_start_is_waited_for_and_named(slow_entry):
         srv.stop()
 
 
+@pytest.mark.slow
 def test_start_can_be_cancelled_while_waiting(slow_entry):
     srv = new_server()
     cancel = threading.Event()
@@ -94,6 +95,7 @@ def test_the_loop_reports_it_is_ready_once_running():
         srv.stop()
 
 
+@pytest.mark.slow
 def test_serve_cancelled_during_start_exits_130(slow_entry, tmp_path, capsys):
     """Ctrl-C while the loop is still setting up: the start is abandoned,
     nothing is left running, exit 130."""

@@ -75,6 +75,7 @@ def test_0_100_reports_the_time_and_writes_the_tcu_columns(capsys, tmp_path):
     assert rec["gear"].max() >= 2 and rec["tcu_target_gear"].max() >= 2
 
 
+@pytest.mark.slow
 def test_paper_cycle_plots_no_clashes_and_two_stops(capsys, tmp_path):
     out_csv = tmp_path / "paper" / "paper-cycle.csv"
     code, out, err = run_cli(capsys, "simulate", "--scenario", "paper-cycle", "--plot",

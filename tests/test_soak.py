@@ -1,12 +1,14 @@
-"""scripts/soak: the verdict on memory and descriptors, and a 3-minute run
-(the CI's share of the soak: server + reference TCU, paper-cycle repeated,
-MF4 recording, a row every 5 s)."""
+"""scripts/soak: the verdict on memory and descriptors, and a run of one paper
+cycle (the suite's share of the soak: server + reference TCU, paper-cycle,
+MF4 recording, a row every 5 s). The hour's soak is in scripts/test-long."""
 
 import argparse
 import csv
 import json
 import os
 import subprocess
+
+import pytest
 
 from rt_loop import soak
 
@@ -49,11 +51,13 @@ def test_slope_per_hour():
     assert soak.slope_per_hour([0, 1], [1.0, 2.0]) is None
 
 
-def test_a_3_minute_soak_passes_and_writes_csv_json_plot_and_mf4(tmp_path):
+@pytest.mark.slow
+def test_a_soak_of_one_paper_cycle_passes_and_writes_csv_json_plot_and_mf4(tmp_path):
     from asammdf import MDF
 
     out = tmp_path / "soak"
-    p = subprocess.run([os.path.join(REPO, "scripts", "soak"), "--minutes", "3", "--sample-s",
+    # half a minute asked for: the cycle started within it is played to its end (65 s)
+    p = subprocess.run([os.path.join(REPO, "scripts", "soak"), "--minutes", "0.5", "--sample-s",
                         "5", "--floor-s", "2", "--priority", "0", "--quiet", "--out", str(out)],
                        cwd=REPO, capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
@@ -62,17 +66,17 @@ def test_a_3_minute_soak_passes_and_writes_csv_json_plot_and_mf4(tmp_path):
     assert not doc["partial"]
     v = doc["verdict"]
     assert v["passed"] and v["findings"] == []
-    assert doc["run"]["cycles_completed"] >= 2
+    assert doc["run"]["cycles_completed"] == 1 and doc["run"]["cycles_incomplete"] == 0
     assert doc["run"]["error"] is None
     rows = list(csv.DictReader((out / "soak.csv").open()))
-    assert len(rows) >= 30
+    assert len(rows) >= 12
     for key in ("rss_mb", "fds", "threads", "ring_rx_fill", "ring_tx_fill", "ring_log_fill",
                 "ring_rec_fill", "overruns", "rx_accepted", "record_written", "mf4_mb"):
         assert key in rows[0], key
     assert (out / "soak.png").stat().st_size > 10_000
     with MDF(str(out / "soak.mf4")) as mdf:
         t = mdf.get("vehicle_speed_kmh").timestamps
-    assert t[-1] - t[0] > 150.0
+    assert t[-1] - t[0] > 60.0
     assert json.loads((out / "serve-stats.json").read_text())["run"]["error"] is None
 
 

@@ -19,13 +19,13 @@ import cffi
 import numpy as np
 import pytest
 
+import requires
 from rt_loop._rt_loop import ffi, lib
 from rt_loop.stimulus import (PLANT_INPUT_RANGES, Stimulus, StimulusError, StimulusPlayer,
                               load_stimulus, plant_inputs_writable)
 from waiting import WAIT_S, wait_until
 
 WRITABLE = plant_inputs_writable(ffi)
-HAS_STIM = hasattr(lib, "rt_write_push_many")
 
 
 def write(tmp_path, name, text):
@@ -81,7 +81,7 @@ def _mf4(path, signals):
 
 
 def test_an_mf4_stimulus_takes_its_writable_channels_each_on_its_time_base(tmp_path):
-    pytest.importorskip("asammdf")
+    requires.module("asammdf")
     path = _mf4(tmp_path / "s.mf4", [
         [("road_grade_pct", [0, 1, 2], [0, 5, 5]), ("engine_speed_rpm", [0, 1, 2], [8, 9, 9])],
         [("accel_pedal_pct", [0.25, 0.75], [10, 0])]])
@@ -95,7 +95,7 @@ def test_an_mf4_stimulus_takes_its_writable_channels_each_on_its_time_base(tmp_p
 
 
 def test_a_recording_of_the_mdf_recorder_plays_its_pedals_and_grade(tmp_path):
-    pytest.importorskip("asammdf")
+    requires.module("asammdf")
     from rt_loop.mdf_recorder import MdfRecorder
 
     loop = ffi.new("rt_loop *")
@@ -167,7 +167,7 @@ _BAD = [
 def test_every_bad_input_is_one_line_naming_the_file_channel_and_cause(tmp_path, name, content,
                                                                        channels, words):
     if name.endswith(".mf4"):
-        pytest.importorskip("asammdf")
+        requires.module("asammdf")
     path = tmp_path / name
     if content is not None:
         path.write_text(content)
@@ -180,7 +180,7 @@ def test_every_bad_input_is_one_line_naming_the_file_channel_and_cause(tmp_path,
 
 
 def test_bad_mf4_channels_are_one_line_too(tmp_path):
-    pytest.importorskip("asammdf")
+    requires.module("asammdf")
     none = _mf4(tmp_path / "none.mf4", [[("engine_speed_rpm", [0, 1], [800, 900])]])
     nan = _mf4(tmp_path / "nan.mf4", [[("road_grade_pct", [0, 1], [0, math.nan])]])
     high = _mf4(tmp_path / "high.mf4", [[("accel_pedal_pct", [0, 1], [0, 100.5])]])
@@ -441,9 +441,9 @@ def test_stop_ends_the_thread_with_writes_left(tmp_path):
 # playing into the real loop
 # --------------------------------------------------------------------------
 
-@pytest.mark.skipif(not HAS_STIM, reason="the built loop has no stim ring yet "
-                                          "(rt_write_push_many): rebuild with scripts/setup")
+@pytest.mark.slow
 def test_a_grade_step_reaches_the_plant_at_its_plant_time(tmp_path):
+    requires.built_with(lib, "rt_write_push_many")
     from can_dbc import mapping as can_mapping
     from plant.params import fill_params, load_params
     from rt_loop.channels import LoopChannels

@@ -49,6 +49,7 @@ def _write(tmp_path, text, name="spec.toml"):
     return p
 
 
+@pytest.mark.slow
 def test_sweep_of_32_runs_on_the_local_cluster_then_resumed(tmp_path, engine):
     spec = load_spec(_write(tmp_path, SPEC_32))
     out = tmp_path / "out"
@@ -97,6 +98,7 @@ def test_sweep_of_32_runs_on_the_local_cluster_then_resumed(tmp_path, engine):
     assert (res4.runs, res4.computed, res4.skipped) == (12, 4, 8)
 
 
+@pytest.mark.slow
 def test_a_failed_run_is_recorded_with_its_error(tmp_path, engine):
     spec = load_spec(_write(tmp_path, """\
         [sweep]
@@ -125,6 +127,7 @@ def test_a_failed_run_is_recorded_with_its_error(tmp_path, engine):
     assert (again.computed, again.failed) == (2, 2)
 
 
+@pytest.mark.slow
 def test_tcu_calibration_and_maneuver_in_a_sweep(tmp_path, engine):
     """A TCU calibration value reaches the TCU: a lower full-pedal upshift speed makes
     the 0-100 slower; the shipped shift-map example runs (few points, cut short) and
@@ -171,6 +174,7 @@ def _stop(proc):
             proc.wait(10)
 
 
+@pytest.mark.slow
 def test_the_same_sweep_on_a_separate_scheduler_and_worker(tmp_path):
     """As a user with a cluster: `dask scheduler` and `dask worker` started on their own
     (loopback), `dct-hil sweep --scheduler` sends them the 32 runs."""
@@ -218,6 +222,7 @@ def _error(capsys, argv):
     return lines[0]
 
 
+@pytest.mark.slow
 def test_bad_sweep_input_is_one_line(tmp_path, capsys):
     spec = _write(tmp_path, SPEC_32.replace('key = "vehicle.mass_kg"', 'key = "vehicle.mass_kgs"'))
     line = _error(capsys, ["sweep", str(spec), "--out", str(tmp_path / "o")])

@@ -221,6 +221,7 @@ def test_turn_back_term_meets_the_bound_in_the_replica():
         assert abs(row["error_turn_back_pct"]) < abs(row["error_pct"])
 
 
+@pytest.mark.slow
 def test_plant_hybrid_meets_the_3_percent_bound():
     # the paper's check: the plant's hybrid synchronizer (the C component, with
     # the ring turn-back term) within 3 % of the detailed model's coupling time

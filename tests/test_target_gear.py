@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from plant.plots import _plot
 from rt_loop.recorder import read_recording
@@ -14,6 +15,7 @@ from rt_loop.recorder import read_recording
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_the_demo_records_the_tcus_target_gear_ahead_of_the_engaged_gear(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "dct_hil.cli", "demo", "--duration", "5",
                            "--out", str(tmp_path), "--priority", "0", "--quiet"],

@@ -41,6 +41,7 @@ def run(offset_bar, duration_s, reset=None, clutch=0):
     return history, loop.recorded(), tcu
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("clutch, offset_bar", [(0, 0.5), (0, -0.5), (1, 0.5), (1, -0.5)])
 def test_the_kiss_point_started_half_a_bar_off_converges_to_the_plants(clutch, offset_bar):
     # the stops learn K1 (in 1st) and K2 (in the pre-selected 2nd) in turn

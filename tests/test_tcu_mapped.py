@@ -46,11 +46,13 @@ def test_the_reference_run_has_the_shifts_of_the_first_launch(reference):
     assert [(a, b) for _, a, b in reference] == [(1, 2), (2, 3), (3, 4), (4, 3), (3, 2), (2, 1)]
 
 
+@pytest.mark.slow
 def test_the_default_mapping_is_the_hard_wired_contract(reference):
     link = MappedLink(mapping.load(mapping.DEFAULT_MAPPING))
     assert shifts(link) == reference
 
 
+@pytest.mark.slow
 def test_the_vehicle_matrix_gives_the_same_shifts(reference):
     link = MappedLink(mapping.load(mapping.find_mapping("vehicle")))
     got = shifts(link)

@@ -82,6 +82,7 @@ def test_ui_beyond_loopback_needs_a_token():
     assert not ui.token_ok(None)
 
 
+@pytest.mark.slow
 def test_a_port_in_use_is_refused_and_nothing_is_left_running():
     from rt_loop.server import Server
 
@@ -140,6 +141,7 @@ def test_demo_ui_errors_exit_2(capsys, tmp_path):
     assert args.ui == "127.0.0.1:5006"
 
 
+@pytest.mark.slow
 def test_serve_ui_runs_with_the_server_and_stops_first(capsys, tmp_path):
     """serve --ui: the page is up while the loop runs and gone when serve returns."""
     import urllib.request
@@ -358,6 +360,7 @@ def test_bad_control_input_from_the_page_is_refused_and_changes_nothing(served_u
     assert ui.hub.request({"op": "clear_all"})["error"].startswith("the loop has stopped")
 
 
+@pytest.mark.slow
 def test_stopping_the_ui_finalises_its_recording(served_ui, tmp_path):
     """Ctrl-C, SIGTERM or the end of the run stop the page first: a recording
     started on it is stopped and its file complete."""

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 SAMPLE = """\
@@ -25,6 +27,7 @@ def test_fails(run):
 """
 
 
+@pytest.mark.slow
 def test_guest_tests_print_a_line_with_the_wall_time_per_test(tmp_path):
     shutil.copy(REPO / "tests" / "vcan" / "conftest.py", tmp_path / "conftest.py")
     (tmp_path / "test_sample.py").write_text(SAMPLE)

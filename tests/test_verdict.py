@@ -411,6 +411,7 @@ def run_serve(tmp_path, *extra):
     return r, json.loads(stats.read_text())
 
 
+@pytest.mark.slow
 def test_serve_with_no_tcu_says_so_and_strict_exits_3(tmp_path):
     r, report = run_serve(tmp_path, "--strict")
     assert r.returncode == 3, r.stderr
@@ -424,6 +425,7 @@ def test_serve_with_no_tcu_says_so_and_strict_exits_3(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+@pytest.mark.slow
 def test_serve_without_strict_keeps_exit_0_and_warns(tmp_path):
     r, report = run_serve(tmp_path)
     assert r.returncode == 0, r.stderr
@@ -431,6 +433,7 @@ def test_serve_without_strict_keeps_exit_0_and_warns(tmp_path):
     assert r.stderr.strip().splitlines()[-1].startswith("dct-hil: warning: timing INVALID - ")
 
 
+@pytest.mark.slow
 def test_help_names_strict_and_the_exit_codes():
     for command in ("serve", "demo"):
         r = subprocess.run([sys.executable, "-m", "dct_hil.cli", command, "--help"],

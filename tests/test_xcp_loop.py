@@ -15,13 +15,11 @@ import time
 
 import pytest
 
+from requires import built_with, module
 from rt_loop._rt_loop import ffi, lib
 
-if not hasattr(lib, "rt_daq_pop_many"):
-    pytest.skip("the extension predates rt_loop.h's XCP block: rebuild it (scripts/setup)",
-                allow_module_level=True)
-
-pytest.importorskip("pyxcp", reason="the XCP tests need pyxcp (pip install -e '.[test]')")
+built_with(lib, "rt_daq_pop_many")
+module("pyxcp")
 
 from can_dbc import mapping as can_mapping  # noqa: E402
 from plant.params import fill_params, load_params  # noqa: E402

@@ -23,7 +23,9 @@ from collections import deque
 
 import pytest
 
-pytest.importorskip("pyxcp", reason="the XCP tests need pyxcp (pip install -e '.[test]')")
+import requires
+
+requires.module("pyxcp")
 
 from pyxcp.config import create_application_from_config, reset_application, set_application  # noqa: E402
 from pyxcp.daq_stim import DaqList, DaqOnlinePolicy  # noqa: E402

@@ -7,7 +7,10 @@ the bus) and drives it in plant time: ``bench.set`` for the pedals,
 ``bench.wait_until`` for a condition checked by the loop every tick (it
 returns the plant time the condition first held), ``bench.inject`` for a
 fault. Times below are plant seconds; on the embedded transport the loop runs
-in real time, so each test takes a few seconds.
+in real time, so each test takes a few seconds. The reference TCU ticks on
+the plant's frames (``bench(tcu_clock="bus")``): its timers and so every
+reaction bound are plant time, also on a machine busy with other work (on
+the wall clock a starved Python TCU skips ticks and its reactions come late).
 
 To test another TCU: copy this file, put your TCU on the bus (``pytest
 --bench-transport socketcan --bench-channel can0 --bench-tcu external``) and
@@ -25,7 +28,7 @@ import pytest
 import tcu_stub.diagnostics as diagnostics
 from dct_hil.bench import BenchTimeout
 
-pytestmark = pytest.mark.hil
+pytestmark = [pytest.mark.hil, pytest.mark.slow, pytest.mark.bench(tcu_clock="bus")]
 
 # ---------------------------------------------------------------- the TCU's specification
 LAUNCH_MOVE_S = 1.5          # pedal 30 % at standstill -> the car moves (> 2 km/h) within

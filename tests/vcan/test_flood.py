@@ -1,7 +1,8 @@
 """Floods and fuzzing on real SocketCAN (vcan0).
 
-- A second node floods vcan0 for 60 s (``cangen -g 0``: frames back to back,
-  as fast as the kernel takes them, more than a 1 Mbit/s bus carries), then
+- A second node floods vcan0 for 12 s (``cangen -g 0``: frames back to back,
+  as fast as the kernel takes them, more than a 1 Mbit/s bus carries; the
+  server's socket buffer overflows within the first second), then
   sends a burst larger than every buffer (the server's socket buffer and
   the kernel's backlog); a TCU that was silent meanwhile sends one frame of
   each of its messages. The loop goes on through it (ticks advance during
@@ -31,7 +32,7 @@ from can_dbc import codec
 pytestmark = pytest.mark.vcan
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-FLOOD_S = 60
+FLOOD_S = 12                    # six samples of the loop during the flood, 2 s apart
 FLOOD_ID = 0x7A1
 WAIT_S = 300.0
 
@@ -167,7 +168,7 @@ def flood(vcan0, tmp_path_factory):
     return r
 
 
-def test_the_loop_goes_on_through_a_60_s_flood(flood):
+def test_the_loop_goes_on_through_a_flood(flood):
     s = flood["samples"]
     assert len(s) >= 3
     ticks = [x[1] for x in s]
