@@ -309,12 +309,14 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
             tcu = _TcuThread(chan, time_scale, paths["tcu_report"], tcu_clock, tcu_mapping,
                              server.bus_channels)
         started = time.monotonic()
+        # a machine slow enough for slow motion starts the TCU's process as slowly
+        tcu_start_timeout_s = _TCU_START_TIMEOUT_S / min(1.0, time_scale)
         last = 0.0
         while not stop.is_set() and server.running:
             snap = server.snapshot()
-            if snap["maneuver_time_s"] is None and time.monotonic() - started > _TCU_START_TIMEOUT_S:
+            if snap["maneuver_time_s"] is None and time.monotonic() - started > tcu_start_timeout_s:
                 raise DemoError(f"the TCU stub sent no valid frame within "
-                                f"{_TCU_START_TIMEOUT_S:g} s ({tcu.status_line() or 'no reason known'})")
+                                f"{tcu_start_timeout_s:g} s ({tcu.status_line() or 'no reason known'})")
             if not tcu.alive():
                 raise DemoError(f"the TCU stub stopped: {tcu.status_line()}; see "
                                 f"{folder / 'tcu.out'}")

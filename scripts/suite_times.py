@@ -1,18 +1,20 @@
 """The test suite's own figures: each stage's wall time and the slowest tests.
 
-    python scripts/suite_times.py OUT.json TIER STAGE=STATUS:WALL_S[:JUNIT.xml[:FIGURES]] ...
+    python scripts/suite_times.py [--elapsed S] OUT.json TIER STAGE=STATUS:WALL_S[:JUNIT.xml[:FIGURES]] ...
 
 Called by scripts/test and scripts/test-long at their end (also after a
 failed stage): reads the JUnit XML each pytest stage wrote (the time of a
 test case there is its setup, call and teardown together), prints a table of
 the stages and the slowest tests, and writes OUT.json:
 
-    {"tier": "quick|full|long", "finished": ISO time, "total_s": ...,
+    {"tier": "quick|full|long", "finished": ISO time, "total_s": ..., "elapsed_s": ...,
      "stages": [{"name", "status", "wall_s", "tests", "failed", "skipped", "figures"}],
      "slowest": [{"test", "stage", "time_s"}]}         (the 20 slowest)
 
 FIGURES is the path of a stage's own figures (the soak's JSON, the fuzz
-table), given in its entry with "figures_found". A stage that does not
+table), given in its entry with "figures_found". total_s is the sum of the stages' wall times; elapsed_s (--elapsed, the
+run's own clock) is less when stages ran side by side (the guest beside the
+host tests). A stage that does not
 exist in a run (the guest stage of --quick) is simply not named. Exit status 0; a missing or unreadable XML is reported in the
 stage's entry ("junit": "missing"), never fatal: the figures must not hide
 the tests' own result.
@@ -43,6 +45,9 @@ def _cases(path, stage):
 
 
 def main(argv):
+    elapsed = None
+    if argv[:1] == ["--elapsed"] and len(argv) > 1:
+        elapsed, argv = round(float(argv[1]), 1), argv[2:]
     if len(argv) < 3:
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         return 2
@@ -69,7 +74,8 @@ def main(argv):
     total = round(sum(s["wall_s"] for s in stages), 1)
     report = {"tier": tier,
               "finished": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-              "total_s": total, "stages": stages,
+              "total_s": total, "elapsed_s": elapsed if elapsed is not None else total,
+              "stages": stages,
               "slowest": [dict(c, time_s=round(c["time_s"], 2)) for c in cases[:SLOWEST]]}
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     with open(out, "w", encoding="utf-8") as f:
@@ -81,6 +87,8 @@ def main(argv):
         tests = s.get("tests", "")
         print(f"{s['name']:<10}{s['status']:>8}{s['wall_s']:>9.1f}s{tests!s:>8}")
     print(f"{'total':<10}{'':>8}{total:>9.1f}s   ({total / 60:.1f} min, tier {tier})")
+    if elapsed is not None and elapsed < total - 1.0:
+        print(f"{'elapsed':<10}{'':>8}{elapsed:>9.1f}s   ({elapsed / 60:.1f} min: stages side by side)")
     if cases:
         print(f"slowest tests (setup + call + teardown):")
         for c in cases[:10]:

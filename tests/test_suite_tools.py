@@ -116,7 +116,8 @@ def test_suite_times_writes_stages_and_the_slowest_tests(tmp_path):
                   ("test_b", "test_skipped", 0.0, "<skipped/>")])
     _junit(guest, [("vcan.test_c", f"test_{i}", float(i), "") for i in range(30)])
     out = tmp_path / "out" / "test-times.json"
-    r = subprocess.run([sys.executable, str(SCRIPTS / "suite_times.py"), str(out), "full",
+    r = subprocess.run([sys.executable, str(SCRIPTS / "suite_times.py"), "--elapsed", "320.04",
+                        str(out), "full",
                         "setup=ok:1.25", "c=ok:10", f"host=failed:60.5:{host}",
                         f"guest=ok:300:{guest}", f"absent=ok:1:{tmp_path / 'none.xml'}"],
                        capture_output=True, text=True, timeout=60)
@@ -124,6 +125,7 @@ def test_suite_times_writes_stages_and_the_slowest_tests(tmp_path):
     doc = json.loads(out.read_text())
     assert doc["tier"] == "full" and doc["total_s"] == pytest.approx(1.2 + 10 + 60.5 + 300 + 1,
                                                                       abs=0.2)
+    assert doc["elapsed_s"] == 320.0          # the guest ran beside the host: less than the sum
     stages = {s["name"]: s for s in doc["stages"]}
     assert stages["host"] == {"name": "host", "status": "failed", "wall_s": 60.5, "tests": 3,
                               "failed": 1, "skipped": 1}
@@ -133,4 +135,4 @@ def test_suite_times_writes_stages_and_the_slowest_tests(tmp_path):
     assert len(slowest) == 20 and slowest[0] == {"test": "tests.vcan.test_c::test_29",
                                                  "stage": "guest", "time_s": 29.0}
     assert [s["time_s"] for s in slowest] == sorted((s["time_s"] for s in slowest), reverse=True)
-    assert "host" in r.stdout and "figures in" in r.stdout
+    assert "host" in r.stdout and "figures in" in r.stdout and "side by side" in r.stdout
