@@ -1,12 +1,14 @@
 """Real SocketCAN tests (marker ``vcan``): they need a Linux kernel with vcan0 up
 and can-utils. The host kernel of the development machines has no CAN, so
-``scripts/vcan-vm`` boots a real kernel under QEMU and runs them there;
+``scripts/vcan-vm`` starts a Linux kernel with vcan beside it (User-mode Linux,
+or QEMU with VCAN_VM=qemu) and runs them there;
 ``scripts/test`` runs the host tests with ``-m "not vcan"`` and then it.
 
 Run by hand where vcan0 is missing, they fail (never skip) and say so.
 
-In the emulated guest these tests take a quarter of an hour, most of it in the
-module fixtures (one server run, one demo in slow motion). ``scripts/vcan-vm``
+In the guest these tests take about 5 minutes under User-mode Linux (a quarter
+of an hour emulated under QEMU), most of it in the module fixtures (one server
+run, one demo in slow motion). ``scripts/vcan-vm``
 runs pytest verbose and unbuffered so each test's name shows when it starts;
 the result word here carries the test's wall time, its setup (where a module
 fixture runs) included, e.g. ``PASSED (812 s)``.
@@ -48,8 +50,8 @@ def pytest_sessionfinish(session):
 def vcan0():
     """The name of the vcan interface, after checking it and the tools exist."""
     if not os.path.exists("/sys/class/net/vcan0"):
-        pytest.fail("no vcan0 on this kernel: run scripts/vcan-vm (it boots a kernel with vcan "
-                    "under QEMU), or create it: modprobe vcan && ip link add dev vcan0 type vcan "
+        pytest.fail("no vcan0 on this kernel: run scripts/vcan-vm (it starts a kernel with vcan "
+                    "as User-mode Linux), or create it: modprobe vcan && ip link add dev vcan0 type vcan "
                     "&& ip link set up vcan0", pytrace=False)
     missing = [t for t in TOOLS if shutil.which(t) is None]
     if missing:

@@ -16,7 +16,7 @@
   raised to 72 for the test): every frame accounted for, the table written
   to the run folder.
 
-In the emulated guest time means nothing: ticks per second and how many
+In the guest time means nothing: ticks per second and how many
 ticks the TCU's first frame waited are written to ``flood.json``, not judged.
 """
 

@@ -1,6 +1,6 @@
 """``dct-hil serve`` with its default real-time options starts on a slow machine.
 
-The emulated guest is such a machine: locking a Python process's memory
+The guest (User-mode Linux or emulated) is such a machine: locking a Python process's memory
 (mlockall) takes seconds there, which a fixed start-up bound once refused
 (`the loop did not start within 5 s`). Here the server runs with the
 defaults a user gets (SCHED_FIFO 80, mlockall, PM QoS 0, the early wake-up

@@ -21,7 +21,7 @@ waiting for what it needs to see on the bus rather than for a time:
 
 ``candump -L`` records the whole bus. The tests then compare the bus, the
 server's statistics and its log: every frame accounted for, and the rejects
-counted by reason. Timing inside the emulated guest means nothing (Python
+counted by reason. Timing inside the guest means nothing (Python
 runs about 20x slower than on the host), so nothing here asserts a time;
 the loop runs with priority 0.
 """
@@ -49,7 +49,7 @@ TCU_MESSAGES = ("TCU_ClutchCmd", "TCU_ShiftCmd", "TCU_EngineCmd")
 BURST_FRAMES = 10_000
 BURST_ID = 0x7A0
 END_ID = 0x7EE           # sent once the server is gone, to see candump caught up
-WAIT_S = 300.0          # limit on every wait: the emulated guest is slow, nothing is timed
+WAIT_S = 300.0          # limit on every wait: the guest is slow, nothing is timed
 CURRENT_A = 0.6         # a solenoid current that gives about 12 bar
 HIGH_BAR = 5.0
 LOW_BAR = 1.0
