@@ -43,5 +43,9 @@ def test_vcan_vm_runs_the_guest_pytest_verbose_and_unbuffered():
     text = (REPO / "scripts" / "vcan-vm").read_text()
     cmd = re.search(r"^pytest_cmd=\((.*?)\)", text, re.M | re.S).group(1).split()
     assert "-v" in cmd and "-q" not in cmd
-    guest = re.search(r"^guest_cmd=(.*)$", text, re.M).group(1)
-    assert "PYTHONUNBUFFERED=1 $inner" in guest
+    inner = re.search(r'^inner="(.*)"$', text, re.M).group(1)
+    assert inner.startswith("PYTHONUNBUFFERED=1 ") and inner.endswith("$inner")
+    # both guests run it: QEMU's command and User-mode Linux's init
+    assert "$inner;" in re.search(r"^guest_cmd=(.*)$", text, re.M).group(1)
+    init = re.search(r'^    cat > "\$init" <<EOF\n(.*?)^EOF$', text, re.M | re.S).group(1)
+    assert re.search(r"^\$inner$", init, re.M)
