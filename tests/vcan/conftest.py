@@ -6,7 +6,7 @@ or QEMU with VCAN_VM=qemu) and runs them there;
 
 Run by hand where vcan0 is missing, they fail (never skip) and say so.
 
-In the guest these tests take about 5 minutes under User-mode Linux (a quarter
+In the guest these tests take about 9 minutes under User-mode Linux (a quarter
 of an hour emulated under QEMU), most of it in the module fixtures (one server
 run, one demo in slow motion). ``scripts/vcan-vm``
 runs pytest verbose and unbuffered so each test's name shows when it starts;

@@ -15,8 +15,7 @@ full-load upshifts come up to 21-23 ms early on the embedded transport and
 
 The test kernel is User-mode Linux (a system call costs tens of
 microseconds) or emulated under QEMU: too slow for real time, so the whole
-HiL runs in slow motion (``--time-scale``: DCT_VCAN_TIME_SCALE, which
-scripts/vcan-vm sets to 0.25 under UML and 0.1 under QEMU; 0.1 when unset),
+HiL runs in slow motion (``--time-scale``: DCT_VCAN_TIME_SCALE, default 0.1),
 and the TCU ticks on the plant's 2 ms frames (the demo's bus clock in slow
 motion), so plant and TCU stay in step even where the guest cannot keep the
 slowed pace and the loop skips deadlines. The loop's own timing figures mean nothing here.

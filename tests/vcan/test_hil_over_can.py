@@ -3,7 +3,7 @@ reference TCU as a second process on vcan0, as a HiL test of a TCU on the bus
 runs (``dct_hil.bench.Bench`` with transport "socketcan").
 
 The guest kernel is slow (User-mode Linux or emulated), so the whole HiL runs
-in slow motion (DCT_VCAN_TIME_SCALE, 0.1 when unset; scripts/vcan-vm sets it) and the TCU ticks on the plant's frames;
+in slow motion (DCT_VCAN_TIME_SCALE, default 0.1) and the TCU ticks on the plant's frames;
 the limits are plant time, as on the embedded transport.
 """
 
