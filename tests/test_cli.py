@@ -227,18 +227,28 @@ def test_plant_error_is_a_user_error(capsys, tiny, tmp_path, monkeypatch):
 @pytest.mark.slow
 def test_sigint_exits_130_with_a_partial_csv(tmp_path):
     # a real Ctrl-C on a real process: a long run, interrupted once it has started
+    from plant.model import Plant
+    from plant.scenario import load_scenario
+    from plant.simulate import run
+
     t0 = time.perf_counter()
     subprocess.run([sys.executable, "-c", "import dct_hil.cli, plant.model, plant.simulate"],
                    check=True, timeout=120)
     startup_s = time.perf_counter() - t0
+    wait_s = 1.0 + 3 * startup_s          # the signal comes once the run has started
+    # long enough that this machine, at its speed now, is still running when the
+    # signal comes (a fixed 3600 s of plant ran to its end first on a loaded machine
+    # whose start-up was slow: the wait grew, the plant's speed did not shrink alike)
+    speed = run(Plant(), load_scenario("coastdown"), duration_s=20.0).real_time_factor
+    duration_s = max(3600.0, 1.5 * speed * (wait_s + 5.0))
     out_csv = tmp_path / "long.csv"
     proc = subprocess.Popen(
         [sys.executable, "-m", "dct_hil.cli", "simulate", "--scenario", "coastdown",
-         "--duration", "3600", "--out", str(out_csv)],
+         "--duration", f"{duration_s:.0f}", "--out", str(out_csv)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
-        time.sleep(1.0 + 3 * startup_s)
+        time.sleep(wait_s)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     finally:
