@@ -104,7 +104,7 @@ def load_database(path):
         raise ValueError(f"bad DBC {path}: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def database():
     """The cantools database of can_dbc/dct_hil.dbc (loaded once)."""
     return load_database(DBC_PATH)

@@ -93,9 +93,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
-from . import codec
 from plant.describe import SUFFIX_UNITS
 
+from . import codec
 from .protection import Protection, ProtectionError, parse_protection
 
 __all__ = [

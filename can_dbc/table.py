@@ -42,7 +42,7 @@ class TableError(ValueError):
 
 
 def _c():
-    from rt_loop._rt_loop import ffi, lib  # built by scripts/setup
+    from can_dbc._can_table import ffi, lib  # built by scripts/setup
     return ffi, lib
 
 
@@ -294,7 +294,7 @@ def _check_layout(msg):
     # multiplexers: each chain ends at an unmultiplexed signal
     runs = []
     chains = []
-    for i, s in enumerate(sigs):
+    for s in sigs:
         where = f"{msg.name}.{s.name}"
         if s.multiplexer_signal is None:
             runs.append([])
@@ -724,7 +724,7 @@ def _schedule_figure(m, buses, iterations, repeat):
 def bench_report(mappings=BENCH_MAPPINGS, iterations=200_000, repeat=5) -> dict:
     """bench() of each mapping, with the machine and the definition: what
     ``--bench`` writes as JSON."""
-    from rt_loop.stats import machine_info
+    from plant.machine import machine_info
     results = [bench(iterations, repeat, m) for m in mappings]
     return {
         "what": "codec cost per tick (can_dbc/csrc/can_table.c, timed in C by ct_bench_tick)",

@@ -1,3 +1,5 @@
 """dct-hil: hardware-in-the-loop plant server for the VW DSG 02E dual clutch transmission."""
 
-__version__ = "0.1.0"
+from plant import __version__
+
+__all__ = ["__version__"]

@@ -118,9 +118,9 @@ class Bench:
         ``priority`` (0: normal scheduling), ``faults`` (a [[fault]] TOML
         file), ``control`` (also serve a control socket), ``log`` (the CAN
         traffic) as ``rt_loop.server.Server`` takes them."""
-        from dct_hil.demo import can_netdev_up  # noqa: PLC0415
-        from rt_loop.server import Server, ServerError  # noqa: PLC0415
-        from rt_loop.transport import TransportError  # noqa: PLC0415
+        from dct_hil.demo import can_netdev_up
+        from rt_loop.server import Server, ServerError
+        from rt_loop.transport import TransportError
 
         if transport not in TRANSPORTS:
             raise BenchError(f"transport {transport!r}: choose " + " or ".join(TRANSPORTS))
@@ -135,7 +135,7 @@ class Bench:
                                  f"dev {chan} type vcan && ip link set up {chan})")
         driver, maneuver_inputs = None, None
         if maneuver is not None:
-            from plant.maneuvers import MANEUVERS, get_maneuver  # noqa: PLC0415
+            from plant.maneuvers import MANEUVERS, get_maneuver
 
             try:
                 m = get_maneuver(maneuver)
@@ -164,7 +164,7 @@ class Bench:
                             log_path=log)
         except (ServerError, TransportError, OSError, ValueError) as e:
             raise BenchError(_one_line(e)) from None
-        from rt_loop.control import ControlServer  # noqa: PLC0415
+        from rt_loop.control import ControlServer
 
         handler = server.control if server.control is not None else None
         bench = None
@@ -192,7 +192,7 @@ class Bench:
     @classmethod
     def attach(cls, socket_path: str | os.PathLike, timeout_s: float = 30.0) -> Bench:
         """Drives a running ``dct-hil serve --control PATH`` through its socket."""
-        from rt_loop.control import ControlClient, ControlError  # noqa: PLC0415
+        from rt_loop.control import ControlClient, ControlError
 
         try:
             client = ControlClient(socket_path, timeout_s=timeout_s)
@@ -367,7 +367,7 @@ class Bench:
             raise BenchError("tcu_status: no TCU_Status frame received (the TCU on the bus "
                              "sends no status)")
         if self._status_signals is None:
-            from can_dbc import codec  # noqa: PLC0415
+            from can_dbc import codec
 
             msg = next((m for m in codec.messages("TCU") if m.name == "TCU_Status"), None)
             sigs = ([s.name for s in msg.signals if s.name not in ("CRC", "AliveCounter")]
@@ -385,7 +385,7 @@ class Bench:
     def recording(self) -> dict:
         """The run's recording read back ({column: array}); complete after stop(),
         up to the last flush while running."""
-        from rt_loop.recorder import read_recording  # noqa: PLC0415
+        from rt_loop.recorder import read_recording
 
         if not self.record_path:
             raise BenchError("recording: this bench records nothing (start it with record=PATH)")
@@ -419,7 +419,7 @@ class Bench:
         return self._report or {}
 
     def _teardown(self) -> None:
-        from rt_loop.server import ServerError  # noqa: PLC0415
+        from rt_loop.server import ServerError
 
         self._stopped = True
         errors = []
@@ -427,7 +427,7 @@ class Bench:
             try:
                 self._tcu.stop()
                 self.tcu_report = self._tcu.report()
-            except Exception as e:  # noqa: BLE001 (the server still stops)
+            except Exception as e:
                 errors.append(e)
             self._tcu = None
         try:
@@ -460,7 +460,7 @@ def _local(handler: Any) -> Any:
 def _start_tcu(interface: str, channel: str, server: Any, mapping: Any, clock: str,
                folder: str) -> Any:
     """The reference TCU: a thread on the in-process bus, else a second process."""
-    from dct_hil.demo import _TcuProcess, _TcuThread  # noqa: PLC0415
+    from dct_hil.demo import _TcuProcess, _TcuThread
 
     tcu_mapping = None if mapping is None else server.mapping
     report = Path(folder) / "tcu-report.json"
@@ -474,7 +474,7 @@ def _start_tcu(interface: str, channel: str, server: Any, mapping: Any, clock: s
 def _dtc_decoder() -> Any:
     """ActiveFaults bits -> DTC names, from ``tcu_stub.diagnostics`` when it is there."""
     try:
-        from tcu_stub import diagnostics  # noqa: PLC0415
+        from tcu_stub import diagnostics
     except ImportError:
         return None
     for name in ("decode_active_faults", "decode", "dtc_names", "active_dtcs"):

@@ -10,15 +10,13 @@ INVALID (``rt_loop.verdict``).
 """
 
 import argparse
-import datetime
 import json
 import math
 import os
-import platform
-import subprocess
 import sys
 
-from dct_hil import __version__, argtypes
+from dct_hil import __version__
+from plant import argtypes
 
 TARGET_MEDIAN_US = 2.0   # step-cost target of the real-time loop (0.5 ms step)
 MAX_BENCH_STEPS = 100_000_000
@@ -407,8 +405,14 @@ def _add_ui_options(parser, demo):
 def _ui_settings(args):
     """(host, port, token) of --ui, --ui-token and --ui-token-file, checked
     (the address parsed, the host resolved, a token beyond loopback), or None."""
-    from dct_hil.ui.server import UiError, check_token, is_loopback, parse_address, \
-        read_token_file, resolve
+    from dct_hil.ui.server import (
+        UiError,
+        check_token,
+        is_loopback,
+        parse_address,
+        read_token_file,
+        resolve,
+    )
 
     if args.ui is None:
         if args.ui_token is not None or args.ui_token_file is not None:
@@ -672,7 +676,7 @@ def _stub_link(args):
 
 
 def _simulate_maneuver(args):
-    from plant.maneuvers import get_maneuver, report, format_report
+    from plant.maneuvers import format_report, get_maneuver, report
     from plant.model import Plant
 
     if args.tcu == "none":
@@ -794,36 +798,8 @@ def bench_figures(step_ns, step_s):
     }
 
 
-def _git(*args):
-    here = os.path.dirname(os.path.abspath(__file__))
-    try:
-        r = subprocess.run(["git", "-C", here, *args], capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return r.stdout.strip() if r.returncode == 0 else None
-
-
-def machine_info():
-    from plant.model import build_info
-    from rt_loop.stats import cpu_model
-
-    compiler, _, flags = build_info().partition("; ")
-    commit = _git("rev-parse", "HEAD")
-    dirty = _git("status", "--porcelain", "--untracked-files=no") if commit else None
-    return {
-        "cpu": cpu_model(),
-        "nproc": os.cpu_count(),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "compiler": compiler,
-        "compiler_flags": flags,
-        "git_commit": commit,
-        "git_dirty": bool(dirty) if commit else None,
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-    }
-
-
 def cmd_bench(args):
+    from plant.machine import machine_info
     from plant.model import Plant
     from plant.scenario import load_scenario
     from plant.simulate import bench
@@ -845,7 +821,7 @@ def cmd_bench(args):
         "best_run": best + 1,
         "runs": runs,
         "target_median_us": TARGET_MEDIAN_US,
-        "machine": machine_info(),
+        "machine": machine_info(build=True),
     }
     with open(args.json, "w", encoding="utf-8") as f:
         json.dump(report, f, indent=2)
@@ -1110,7 +1086,8 @@ def cmd_doctor(args):
 
 
 def cmd_sweep(args):
-    from studies import StudyError, cli as studies_cli
+    from studies import StudyError
+    from studies import cli as studies_cli
 
     try:
         return studies_cli.sweep(args)
@@ -1119,7 +1096,8 @@ def cmd_sweep(args):
 
 
 def cmd_fit(args):
-    from studies import StudyError, cli as studies_cli
+    from studies import StudyError
+    from studies import cli as studies_cli
 
     try:
         return studies_cli.fit(args)

@@ -89,7 +89,7 @@ def choose_transport(channel: str | None, interface: str | None) -> tuple[str, s
 
 
 def _driver_for(name: str):
-    from plant.maneuvers import get_maneuver  # noqa: PLC0415
+    from plant.maneuvers import get_maneuver
 
     if name not in SCRIPTED_MANEUVERS:
         raise DemoError(f"maneuver {name!r}: the demo plays the scripted maneuvers "
@@ -105,9 +105,9 @@ def offline_shifts(maneuver: str, duration_s: float) -> list[tuple[float, int, i
     recorded every 2 ms as in the demo and read by ``plant.maneuvers.gear_shifts``.
     A few seconds of CPU for the whole paper-cycle; kept in memory for the rest of
     the process."""
-    from plant.maneuvers import gear_shifts, get_maneuver  # noqa: PLC0415
-    from plant.model import Plant  # noqa: PLC0415
-    from tcu_stub.offline import run_offline  # noqa: PLC0415
+    from plant.maneuvers import gear_shifts, get_maneuver
+    from plant.model import Plant
+    from tcu_stub.offline import run_offline
 
     key = (maneuver, round(float(duration_s), 6))
     if key not in _OFFLINE_SHIFTS:
@@ -136,7 +136,7 @@ class _TcuProcess:
             for name, ch in (bus_channels or {}).items():
                 if ch != channel:
                     cmd += ["--bus", f"{name}={ch}"]
-        self._log = open(log, "w", encoding="utf-8")  # noqa: SIM115
+        self._log = open(log, "w", encoding="utf-8")
         self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT,
                                      start_new_session=True)
 
@@ -169,7 +169,7 @@ class _TcuThread:
 
     def __init__(self, channel: str, time_scale: float, report: Path, clock: str,
                  mapping=None, bus_channels=None) -> None:
-        from tcu_stub.can_tcu import CanTcu  # noqa: PLC0415
+        from tcu_stub.can_tcu import CanTcu
 
         self.report_path = report
         self.tcu = CanTcu.open("virtual", channel, time_scale=time_scale, clock=clock,
@@ -233,11 +233,11 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     runs; when the maneuver is over the page keeps the run's last figures
     (writes refused) until Ctrl-C or SIGTERM, then the demo exits with its
     own status."""
-    from plant import maneuvers as mv  # noqa: PLC0415
-    from plant.plots import write_plots  # noqa: PLC0415
-    from rt_loop.recorder import read_recording  # noqa: PLC0415
-    from rt_loop import verdict as vd  # noqa: PLC0415
-    from rt_loop.server import Server, StopSignals  # noqa: PLC0415
+    from plant import maneuvers as mv
+    from plant.plots import write_plots
+    from rt_loop import verdict as vd
+    from rt_loop.recorder import read_recording
+    from rt_loop.server import Server, StopSignals
 
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
@@ -264,7 +264,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     tcu_mapping = None if mapping is None else server.mapping
     view = None
     if ui is not None:
-        from dct_hil.ui.server import UiError, UiServer  # noqa: PLC0415
+        from dct_hil.ui.server import UiError, UiServer
 
         host, port, token = ui
         try:
@@ -373,7 +373,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
             offline = offline_shifts(maneuver, end_s)
         except KeyboardInterrupt:
             not_compared, interrupted = "interrupted while computing the offline run", True
-        except Exception as e:  # noqa: BLE001 (the verdict says why; the run's files stand)
+        except Exception as e:
             not_compared = f"the offline run failed: {type(e).__name__}: {' '.join(str(e).split())}"
     verdict = vd.demo_verdict(report, tcu_report, shifts, offline, not_compared)
     summary = {
@@ -438,7 +438,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
 def _keep_serving(view, stopped: bool, out) -> None:
     """After the run: the page keeps its last figures until Ctrl-C or SIGTERM
     (at once when the run itself was stopped that way)."""
-    from rt_loop.server import StopSignals  # noqa: PLC0415
+    from rt_loop.server import StopSignals
 
     try:
         if not stopped:

@@ -128,7 +128,7 @@ def bench_settings(item: pytest.Item, config: pytest.Config) -> dict:
 @pytest.fixture
 def bench(request: pytest.FixtureRequest):
     """A fresh ``dct_hil.bench.Bench`` for this test, stopped after it."""
-    from dct_hil.bench import Bench, BenchError  # noqa: PLC0415
+    from dct_hil.bench import Bench, BenchError
 
     item = request.node
     kwargs = bench_settings(item, request.config)

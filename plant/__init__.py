@@ -4,9 +4,14 @@
 views; ``load_params`` reads the TOML parameter sets. The names are loaded on
 first use, so ``plant.params`` and ``plant.scenario`` import without the
 compiled extension.
+
+``__version__`` is the dct-hil distribution's version, written only here
+(pyproject.toml reads it; every layer above imports it from here).
 """
 
-__all__ = ["Plant", "PlantError", "load_params", "ParamError"]
+__version__ = "0.1.0"
+
+__all__ = ["Plant", "PlantError", "load_params", "ParamError", "__version__"]
 
 _WHERE = {
     "Plant": "plant.model",

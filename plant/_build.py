@@ -16,7 +16,7 @@ from cffi import FFI
 _HERE = os.path.dirname(os.path.abspath(__file__))
 _CSRC = os.path.join(_HERE, "csrc")
 _HEADERS = ("dct_plant.h", "dct_bench.h")
-_COMPILE_ARGS = ["-O2", "-std=c11", "-fno-math-errno", "-Wall", "-Wextra"]
+COMPILE_ARGS = ["-O2", "-std=c11", "-fno-math-errno", "-Wall", "-Wextra"]
 
 _INT_DEFINE = re.compile(
     r"^\s*#\s*define\s+[A-Za-z_]\w*\s+-?(0[xX][0-9a-fA-F]+|\d+)[uUlL]*\s*(/\*.*\*/)?\s*$"
@@ -34,11 +34,13 @@ def cdef_text(path):
     return "".join(kept)
 
 
-def _rel(path):
-    # setuptools wants sources relative to the project root (the cwd when pip
-    # builds); absolute paths when the builder is loaded from elsewhere.
-    rel = os.path.relpath(path)
-    return path if rel.startswith(os.pardir) else rel
+def rel(path):
+    """``path`` as setuptools wants a source: relative to the project root (the
+    cwd when pip builds); absolute when the builder is loaded from elsewhere.
+    The builders of the extensions above (can_dbc, rt_loop, tcu_stub) use this
+    and ``cdef_text``, ``COMPILE_ARGS`` from here."""
+    relative = os.path.relpath(path)
+    return path if relative.startswith(os.pardir) else relative
 
 
 def make_builder():
@@ -47,11 +49,11 @@ def make_builder():
     ffi.set_source(
         "plant._dct_plant",
         '#include "dct_plant.h"\n#include "dct_bench.h"',
-        sources=[_rel(p) for p in sorted(glob.glob(os.path.join(_CSRC, "*.c")))],
-        include_dirs=[_rel(_CSRC)],
-        extra_compile_args=_COMPILE_ARGS,
+        sources=[rel(p) for p in sorted(glob.glob(os.path.join(_CSRC, "*.c")))],
+        include_dirs=[rel(_CSRC)],
+        extra_compile_args=COMPILE_ARGS,
         # recorded by dct_bench_build_info() for the benchmark report
-        define_macros=[("DCT_CFLAGS", '"%s"' % " ".join(_COMPILE_ARGS))],
+        define_macros=[("DCT_CFLAGS", '"' + " ".join(COMPILE_ARGS) + '"')],
         libraries=["m"],
     )
     return ffi

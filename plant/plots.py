@@ -16,10 +16,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from plant.maneuvers import as_arrays  # noqa: E402
+from plant.maneuvers import as_arrays
 
 REQUIRED = ("time_s", "vehicle_speed_kmh")
 #: columns that hold the TCU's target gear, the first one present is plotted

@@ -166,7 +166,7 @@ def load_scenario(name_or_path, input_names=None):
         if line.startswith("#"):
             body = line[1:].strip()
             if body.lower().startswith("initial:"):
-                _parse_initial(body[len("initial:"):], initial, lambda c: fail(lineno, c))
+                _parse_initial(body[len("initial:"):], initial, lambda c, n=lineno: fail(n, c))
             continue
         cells = [c.strip() for c in line.split(",")]
         if columns is None:

@@ -24,7 +24,7 @@ _LAZY = {
     "open_transport": "rt_loop.transport",
 }
 
-__all__ = sorted(_LAZY)
+__all__ = ["Server", "ServerError", "TransportError", "open_transport"]   # _LAZY's keys
 
 
 def __getattr__(name):

@@ -731,9 +731,9 @@ def round_warnings(report):
 
 def run_same_run(args, progress=sys.stderr, stop=None):
     """The loop and cyclictest at the same time; returns the report."""
-    from rt_loop.stats import hist_percentiles
-
     import numpy as np
+
+    from rt_loop.stats import hist_percentiles
 
     stop = stop or threading.Event()
     period_us = 1_000_000 // args.rate
@@ -846,7 +846,7 @@ def _load_average():
 
 
 def _machine():
-    from rt_loop.stats import machine_info
+    from plant.machine import machine_info
 
     info = machine_info()
     info["load_average_start"] = _load_average()

@@ -119,10 +119,10 @@ class ControlServer:
     """Serves a running ``rt_loop.server.Server`` on a Unix domain socket (one thread)."""
 
     def __init__(self, server: Any, path: str | os.PathLike | None) -> None:
-        from rt_loop.faults import FaultError  # noqa: PLC0415
-        from rt_loop.stats import StatsReader  # noqa: PLC0415
-        from rt_loop.stimulus import writable_of_regions  # noqa: PLC0415
-        from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
+        from rt_loop.faults import FaultError
+        from rt_loop.stats import StatsReader
+        from rt_loop.stimulus import writable_of_regions
+        from rt_loop.xcp import a2l as _a2l
 
         self.server = server
         self.path = None if path is None else os.fspath(path)   # None: in-process only
@@ -304,7 +304,7 @@ class ControlServer:
         except self._FaultError as e:
             self.counts["refused"] += 1
             return {"ok": False, "error": _one_line(e)}
-        except Exception as e:  # noqa: BLE001 (the channel keeps serving)
+        except Exception as e:
             self.counts["refused"] += 1
             return {"ok": False, "error": f"{type(e).__name__}: {_one_line(e)}"}
 
@@ -374,7 +374,7 @@ class ControlServer:
     def write_value(self, name: Any, value: Any) -> bool:
         """Queues one value into the cal ring (holding the server's cal_lock);
         True once the loop applied it, False when it is still queued."""
-        from rt_loop.xcp.loop_backend import push_writes  # noqa: PLC0415
+        from rt_loop.xcp.loop_backend import push_writes
 
         key, (offset, size, lo, hi) = self.target(name)
         if isinstance(value, bool) or not isinstance(value, (int, float)):

@@ -27,8 +27,9 @@ import re
 import shutil
 import subprocess
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 __all__ = [
     "DoctorError",
@@ -508,7 +509,7 @@ def check_rt_throttling(ctx: _Context) -> Item:
     except _Unreadable as e:
         return _unknown(key, title, e,
                         "sysctl kernel.sched_rt_runtime_us kernel.sched_rt_period_us")
-    from rt_loop.server import DEFAULT_SPIN_US  # noqa: PLC0415
+    from rt_loop.server import DEFAULT_SPIN_US
 
     spin_us = min(DEFAULT_SPIN_US, 0.6 * ctx.period_us) if ctx.priority > 0 else 0.0
     need = (spin_us + LOOP_TICK_WORK_US) / ctx.period_us
@@ -676,7 +677,7 @@ def check_governor(ctx: _Context) -> Item:
 
 
 def check_idle_states(ctx: _Context) -> Item:
-    from rt_loop.pm_qos import current_latency_us  # noqa: PLC0415
+    from rt_loop.pm_qos import current_latency_us
 
     key, title = "idle_states", "CPU idle states"
     qos_us = current_latency_us(ctx.tree.host("/dev/cpu_dma_latency"))
@@ -1007,7 +1008,7 @@ def check_sched_fifo(ctx: _Context) -> Item:
 
 def contract_bitrate() -> int | None:
     """The bit rate of the CAN contract (the DBC's "Baudrate" attribute)."""
-    import can_dbc  # noqa: PLC0415
+    import can_dbc
 
     path = os.path.join(os.path.dirname(os.path.abspath(can_dbc.__file__)), "dct_hil.dbc")
     try:
@@ -1204,10 +1205,9 @@ def check_floor(ctx: _Context, floor_s: float, measure: Callable[..., dict] | No
                 progress: Callable[[str], None] | None) -> Item:
     key, title = "floor", "wake-up floor"
     if measure is None:
-        from rt_loop.floor import measure_floor as measure  # noqa: PLC0415
-    from rt_loop.floor import FloorError  # noqa: PLC0415
-
-    from rt_loop.pm_qos import current_latency_us  # noqa: PLC0415
+        from rt_loop.floor import measure_floor as measure
+    from rt_loop.floor import FloorError
+    from rt_loop.pm_qos import current_latency_us
 
     held_before_us = current_latency_us(ctx.tree.host("/dev/cpu_dma_latency"))
     runs = {}
@@ -1384,7 +1384,7 @@ def run_doctor(root: str = "/", cpu: int | None = None, channel: str | None = No
     ``rt_loop.floor.measure_floor``), run twice for ``floor_s`` each unless
     ``floor`` is False. ``progress`` gets a line before each measurement.
     """
-    from rt_loop.server import MAX_RATE_HZ, MIN_RATE_HZ  # noqa: PLC0415
+    from rt_loop.server import MAX_RATE_HZ, MIN_RATE_HZ
 
     if isinstance(priority, bool) or not isinstance(priority, int) or not 0 <= priority <= 99:
         raise DoctorError(f"priority must be 0..99, got {priority!r}")
@@ -1413,7 +1413,7 @@ def run_doctor(root: str = "/", cpu: int | None = None, channel: str | None = No
                 item = fn(ctx, can)
             else:
                 item = fn(ctx)
-        except Exception as e:  # noqa: BLE001 (one odd file must not take the report down)
+        except Exception as e:
             item = _unknown(key, title, f"the check failed ({type(e).__name__}: {e})",
                             "run dct-hil doctor --json - and report the output")
         items.append(item)

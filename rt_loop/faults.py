@@ -148,7 +148,7 @@ EVENT_NAMES = {1: "start", 2: "end", 3: "cleared"}
 
 
 def _suggest(name: str, known: Any) -> str:
-    import difflib  # noqa: PLC0415
+    import difflib
 
     close = difflib.get_close_matches(str(name), list(known), n=3)
     return f" (did you mean {', '.join(close)}?)" if close else ""
@@ -438,7 +438,7 @@ def parse_fault(spec: Any, names: Names) -> Fault:
 def load_faults(path: str | os.PathLike, names: Names) -> list[Fault]:
     """The ``[[fault]]`` tables of a TOML file, each checked (the first bad
     one raises FaultError naming the file and its place)."""
-    import tomllib  # noqa: PLC0415
+    import tomllib
 
     path = os.fspath(path)
     try:

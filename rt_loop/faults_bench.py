@@ -102,7 +102,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not (args.pairs >= 1 and args.round_s > 0 and 0 <= args.priority <= 99):
         p.error("--pairs >= 1, --round-s > 0, --priority 0..99")
-    from rt_loop.stats import machine_info
+    from plant.machine import machine_info
 
     rounds = []
     for _ in range(args.pairs):

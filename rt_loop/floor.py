@@ -44,12 +44,12 @@ def measure_floor(duration_s: float = 10.0, rate_hz: float = 2000.0, priority: i
     memory_locked, affinity_ok, pm_qos, config, hist (sparse [[bin_us,
     count], ...]).
     """
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
-    from rt_loop.stats import hist_percentiles, sparse_hist  # noqa: PLC0415
+    from rt_loop.stats import hist_percentiles, sparse_hist
 
     try:
-        from rt_loop._rt_loop import ffi, lib  # noqa: PLC0415
+        from rt_loop._rt_loop import ffi, lib
     except ImportError as e:
         raise FloorError(f"the real-time loop is not built ({e}); run scripts/setup") from None
     if not (1.0 / 0.1 <= float(rate_hz) <= 1.0 / 50e-6):

@@ -79,7 +79,7 @@ import struct
 import sys
 import threading
 import time
-from typing import Any, Iterator
+from typing import Any
 
 __all__ = ["KINDS", "FuzzError", "main", "run_fuzz"]
 
@@ -129,7 +129,7 @@ class Generator:
     """The seeded stream of events; each event is a list of Frames (or a pause)."""
 
     def __init__(self, seed: int, transport: str, fd_allowed: bool) -> None:
-        from can_dbc import codec  # noqa: PLC0415
+        from can_dbc import codec
 
         self.rng = random.Random(seed)
         self.codec = codec
@@ -246,7 +246,7 @@ class Generator:
 
 class Sender:
     def __init__(self, transport: str, channel: str, fd: bool) -> None:
-        import can  # noqa: PLC0415
+        import can
 
         self.can = can
         kwargs: dict[str, Any] = {}
@@ -261,7 +261,7 @@ class Sender:
         try:
             self.bus = can.Bus(interface=iface, channel=channel, receive_own_messages=False,
                                **kwargs)
-        except Exception as e:  # noqa: BLE001 (python-can raises many kinds)
+        except Exception as e:
             raise FuzzError(f"cannot open the sender's {iface} bus on {channel}: "
                             f"{' '.join(str(e).split())}") from None
         self.send_errors = 0
@@ -288,11 +288,11 @@ class Sender:
                                dlc=len(f.data) if not f.remote else 0,
                                is_remote_frame=f.remote, is_error_frame=f.error, is_fd=f.fd,
                                check=False)
-        for attempt in range(200):
+        for _attempt in range(200):
             try:
                 self.bus.send(msg, timeout=0.05)
                 return True
-            except Exception as e:  # noqa: BLE001 (a full queue: ENOBUFS on SocketCAN)
+            except Exception as e:
                 self.last_error = " ".join(str(e).split())
                 if "No buffer space" in self.last_error or "ENOBUFS" in self.last_error \
                         or "Resource temporarily" in self.last_error:
@@ -307,7 +307,7 @@ class Sender:
         try:
             while self.bus.recv(timeout=0.0) is not None:
                 pass
-        except Exception:  # noqa: BLE001 (nothing of ours)
+        except Exception:
             pass
 
     def close(self) -> None:
@@ -321,7 +321,7 @@ class Sender:
 def fuzz_xcp(address: tuple, n: int, rng: random.Random, regions: list) -> dict:
     """Sends n malformed or random XCP datagrams (one frame each, or a cut
     header) from one socket; returns what was sent by kind."""
-    from rt_loop.xcp import protocol as P  # noqa: PLC0415
+    from rt_loop.xcp import protocol as P
 
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.settimeout(0.05)
@@ -340,7 +340,7 @@ def fuzz_xcp(address: tuple, n: int, rng: random.Random, regions: list) -> dict:
                 sock.recv(65536)
                 answers += 1
                 sock.settimeout(0.0)
-        except (BlockingIOError, socket.timeout, ConnectionRefusedError):
+        except (TimeoutError, BlockingIOError, ConnectionRefusedError):
             pass
         finally:
             sock.settimeout(0.02)
@@ -430,8 +430,8 @@ def _seen(c: dict) -> int:
 
 
 def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
-    from rt_loop.server import Server, ServerError  # noqa: PLC0415
-    from rt_loop.transport import TransportError  # noqa: PLC0415
+    from rt_loop.server import Server, ServerError
+    from rt_loop.transport import TransportError
 
     transport = args.transport
     channel = args.channel or {"embedded": EMBEDDED_CHANNEL, "udp_multicast": UDP_CHANNEL,
@@ -445,7 +445,7 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
                         time_scale=args.time_scale, xcp=xcp, pm_qos_us=None)
     except (ServerError, TransportError) as e:
         raise FuzzError(str(e)) from None
-    except Exception as e:  # noqa: BLE001 (the plant's parameters, the build: one line)
+    except Exception as e:
         raise FuzzError(f"the server cannot be set up: {type(e).__name__}: "
                         f"{' '.join(str(e).split())}") from None
     stop = threading.Event()
@@ -574,9 +574,9 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
         resumed = snap["rx"]["accepted"] - before == len(gen.msgs)
         timeouts_in_run = snap["timeouts"] - timeouts_at_start
         if args.xcp_packets > 0 and server.xcp is not None and not stop.is_set():
-            from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
+            from rt_loop.xcp import a2l as _a2l
 
-            regions = _a2l.calibration_regions(server._ffi, server._lib)  # noqa: SLF001
+            regions = _a2l.calibration_regions(server._ffi, server._lib)
             xcp_result = fuzz_xcp(tuple(server.xcp.address[:2]), args.xcp_packets,
                                   random.Random(args.seed + 1), regions)
             time.sleep(0.3)

@@ -107,7 +107,7 @@ _HEADER = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 
 def _asammdf() -> Any:
     try:
-        import asammdf  # noqa: PLC0415 (optional: only MF4 recordings need it)
+        import asammdf
     except ImportError as e:
         raise ImportError(f"MF4 recordings need the asammdf package ({one_line(e)}); "
                           "pip install asammdf") from None
@@ -162,8 +162,8 @@ class _Mf4File:
     def __init__(self, f: Any, mdf: Any, layouts: list[tuple[str, np.dtype]],
                  compression_level: int) -> None:
         asammdf = _asammdf()
-        from asammdf.blocks import v4_blocks  # noqa: PLC0415
-        from asammdf.blocks import v4_constants as v4c  # noqa: PLC0415
+        from asammdf.blocks import v4_blocks
+        from asammdf.blocks import v4_constants as v4c
 
         self._v4b, self._v4c, self._level = v4_blocks, v4c, compression_level
         buf = io.BytesIO()
@@ -322,7 +322,7 @@ class MdfRecorder(RingDrain):
         folder = os.path.dirname(os.path.abspath(self.path))
         try:
             os.makedirs(folder, exist_ok=True)
-            self._f = open(self.path, "w+b")  # noqa: SIM115 (closed by stop())
+            self._f = open(self.path, "w+b")
         except OSError as e:
             raise OSError(f"recording {self.path}: {e.strerror}") from None
 
@@ -335,9 +335,9 @@ class MdfRecorder(RingDrain):
         clock (time.time()) of the loop's start, the file's start time (now
         when None)."""
         asammdf = _asammdf()
-        from asammdf import Signal  # noqa: PLC0415
-        from asammdf.blocks.v4_blocks import SourceInformation  # noqa: PLC0415
-        from asammdf.blocks import v4_constants as v4c  # noqa: PLC0415
+        from asammdf import Signal
+        from asammdf.blocks import v4_constants as v4c
+        from asammdf.blocks.v4_blocks import SourceInformation
 
         lay = sample_layout(ffi, self.command_names)
         outputs, base_o, base_c, cmd_extra = lay.outputs, lay.base_o, lay.base_c, lay.cmd_extra
@@ -361,7 +361,7 @@ class MdfRecorder(RingDrain):
         self._time_scale = step / period
 
         mdf = asammdf.MDF(version=MDF_VERSION)
-        mdf.header.start_time = _dt.datetime.fromtimestamp(wall0, tz=_dt.timezone.utc)
+        mdf.header.start_time = _dt.datetime.fromtimestamp(wall0, tz=_dt.UTC)
         mdf.header.comment = ("dct-hil plant server recording: plant outputs each "
                               "record period of plant time, and the CAN traffic")
         empty_t = np.zeros(0, dtype="<f8")
@@ -463,7 +463,7 @@ class MdfRecorder(RingDrain):
         flags = e["flags"]
         fd = (flags & self._fd_flag) != 0
         kind = np.where(ident & _CAN_ERR_FLAG, 2, np.where(ident & _CAN_RTR_FLAG, 1, 0))
-        for index, (name, fields_) in enumerate(_BUS_GROUPS):
+        for index, (name, _fields) in enumerate(_BUS_GROUPS):
             sel = kind == index
             if not sel.any():
                 continue
@@ -507,7 +507,7 @@ class MdfRecorder(RingDrain):
                         or self._file.pending_bytes >= _MAX_PENDING_BYTES):
                     self._flush()
                     self._last_flush = now
-            except Exception as e:  # noqa: BLE001 (reported, not fatal to the loop)
+            except Exception as e:
                 self.error = f"{self.path}: {_cause(e)}"
         return n
 
@@ -569,7 +569,7 @@ _BITS = ("tick", "fault_mask")      # plant columns stored as the uint64 they ar
 
 
 def _fault_kinds() -> dict:
-    from rt_loop.faults import KINDS  # noqa: PLC0415
+    from rt_loop.faults import KINDS
 
     return KINDS
 

@@ -82,7 +82,7 @@ class Recorder(RingDrain):
         folder = os.path.dirname(os.path.abspath(self.path))
         try:
             os.makedirs(folder, exist_ok=True)
-            self._file = open(self.path, "w", encoding="ascii", newline="\n")  # noqa: SIM115
+            self._file = open(self.path, "w", encoding="ascii", newline="\n")
         except OSError as e:
             raise OSError(f"recording {self.path}: {e.strerror}") from None
 
@@ -126,7 +126,7 @@ class Recorder(RingDrain):
         if not events:
             return
         if self._events_file is None:
-            self._events_file = open(faults_path(self.path), "w", encoding="utf-8",  # noqa: SIM115
+            self._events_file = open(faults_path(self.path), "w", encoding="utf-8",
                                      newline="\n")
             self._events_file.write("time_s,id,kind,target,event\n")
         for e in events:
@@ -162,7 +162,7 @@ def read_recording(path: str | os.PathLike) -> dict:
 
 
 def _read_mf4(path: str) -> dict:
-    from asammdf import MDF  # noqa: PLC0415
+    from asammdf import MDF
 
     with MDF(path) as mdf:
         for index, group in enumerate(mdf.groups):

@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 import numpy as np
 
@@ -45,7 +46,7 @@ class ScopeError(ValueError):
 
 
 def _suggest(name: str, known: Iterable[str]) -> str:
-    import difflib  # noqa: PLC0415
+    import difflib
 
     close = difflib.get_close_matches(str(name), list(known), n=3)
     return f" (did you mean {', '.join(close)}?)" if close else ""
@@ -64,7 +65,7 @@ def traceable_offsets(ffi: Any, lib: Any, channels: Any) -> dict[str, int]:
     for name in _LOOP_TIMES:
         out[name] = ffi.offsetof("rt_loop", "stats", name)
     # every CAN signal by Message.Signal (and bus:Message.Signal), named as the faults name them
-    from rt_loop.faults import Names  # noqa: PLC0415
+    from rt_loop.faults import Names
 
     for name, (_g, _k, value_index, _sig) in Names(ffi, lib, channels).signals.items():
         out[name] = ffi.offsetof("rt_loop", "signal_values", value_index)
@@ -164,7 +165,7 @@ class Scope:
 
     def _configure(self) -> None:
         """Publishes the traced names as a new configuration (holding the lock)."""
-        ffi, lib, loop = self._ffi, self._lib, self._loop
+        lib, loop = self._lib, self._loop
         deadline = time.monotonic() + 1.0
         while int(lib.rt_scope_acked(loop)) != self._gen:   # the other slot is free
             if not self._running() or time.monotonic() > deadline:
@@ -269,7 +270,7 @@ def _bucket_dtype() -> np.dtype:
     """numpy's view of rt_scope_bucket (checked against cffi's layout)."""
     global _DTYPE
     if _DTYPE is None:
-        from rt_loop._rt_loop import ffi, lib  # noqa: PLC0415
+        from rt_loop._rt_loop import ffi, lib
 
         n = int(lib.RT_SCOPE_TRACES)
         t = ffi.typeof("rt_scope_bucket")

@@ -30,8 +30,10 @@ import sys
 import threading
 import time
 import weakref
-from typing import Any, Callable, TextIO
+from collections.abc import Callable
+from typing import Any, TextIO
 
+from plant.machine import machine_info
 from rt_loop import status as _status
 from rt_loop import verdict as _verdict
 from rt_loop.channels import ChannelError, LoopChannels
@@ -40,8 +42,13 @@ from rt_loop.drain import one_line as _one_line
 from rt_loop.pm_qos import DEFAULT_LATENCY_US as DEFAULT_PM_QOS_US
 from rt_loop.pm_qos import PmQos
 from rt_loop.recorder import Recorder
-from rt_loop.stats import StatsReader, machine_info
-from rt_loop.transport import Transport, TransportError, default_interface, open_transport
+from rt_loop.stats import StatsReader
+from rt_loop.transport import (
+    Transport,
+    TransportError,
+    default_interface,
+    open_transport,
+)
 
 __all__ = [
     "LOG_FORMATS",
@@ -102,13 +109,13 @@ def _stop_live_servers() -> None:
     for server in list(_LIVE):
         try:
             server.stop()
-        except Exception:  # noqa: BLE001 (exiting anyway)
+        except Exception:
             pass
 
 
 def _extension() -> tuple[Any, Any]:
     try:
-        from rt_loop._rt_loop import ffi, lib  # noqa: PLC0415 (compiled module)
+        from rt_loop._rt_loop import ffi, lib
     except ImportError as e:
         raise ServerError(f"the real-time loop is not built ({e}); run scripts/setup") from None
     return ffi, lib
@@ -133,7 +140,7 @@ class TrafficLogger(RingDrain):
         "log", "rt_log_pop_many", "rt_log_entry", _LOG_BATCH, 0.02, "can-log")
 
     def __init__(self, path: str | os.PathLike, channel: str | list[str]) -> None:
-        import can  # noqa: PLC0415
+        import can
 
         super().__init__(path)
         channels = [channel] if isinstance(channel, str) else list(channel)
@@ -207,7 +214,7 @@ def _log_channel(channel: str, suffix: str) -> str | int | None:
     (None; a name like "bench-12345" would give a number the format cannot hold)."""
     if suffix == ".log":
         return channel
-    from can.util import channel2int  # noqa: PLC0415
+    from can.util import channel2int
 
     number = channel2int(channel)
     return number if number is not None and 0 <= number <= 63 else None
@@ -305,8 +312,8 @@ class Server:
                  faults_path: str | os.PathLike | None = None,
                  control_path: str | os.PathLike | None = None,
                  maneuver_inputs: dict | None = None) -> None:
-        from can_dbc import mapping as _mapping  # noqa: PLC0415
-        from plant.params import fill_params, load_params  # noqa: PLC0415
+        from can_dbc import mapping as _mapping
+        from plant.params import fill_params, load_params
 
         self.channel = _check_channel(channel)
         self.interface = interface
@@ -402,7 +409,7 @@ class Server:
         fill_params(ffi, self._l.plant.params, self.params)
         self.stats = StatsReader(ffi, lib, self._l, self.channels)
         self._read_lock = threading.Lock()   # one copy of the statistics, many readers
-        from rt_loop.faults import FaultError, FaultManager, load_faults  # noqa: PLC0415
+        from rt_loop.faults import FaultError, FaultManager, load_faults
 
         #: failure simulation: inject and clear faults, their figures and events
         self.faults = FaultManager(ffi, lib, self._l, self.channels)
@@ -419,7 +426,7 @@ class Server:
         self.control_path = None if control_path is None else os.fspath(control_path)
         self.control = None
         if self.control_path is not None:
-            from rt_loop.control import check_socket_path  # noqa: PLC0415
+            from rt_loop.control import check_socket_path
 
             check_socket_path(self.control_path, ServerError)
         #: the live scope (``rt_loop.scope``): min and max of chosen values per bucket of ticks
@@ -450,9 +457,13 @@ class Server:
             raise ServerError(f"stimulus start {start!r}: choose plant or maneuver")
         if start == "maneuver" and not self.driver_rows:
             raise ServerError("a stimulus started with the maneuver needs a maneuver")
-        from rt_loop.stimulus import (  # noqa: PLC0415
-            StimulusError, load_stimulus, plant_inputs_writable, writable_of_regions)
-        from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
+        from rt_loop.stimulus import (
+            StimulusError,
+            load_stimulus,
+            plant_inputs_writable,
+            writable_of_regions,
+        )
+        from rt_loop.xcp import a2l as _a2l
 
         ffi, lib = self._ffi, self._lib
         writable = {**writable_of_regions(_a2l.calibration_regions(ffi, lib)),
@@ -467,8 +478,8 @@ class Server:
             if key is not None:
                 raise ServerError("--xcp-key needs --xcp")
             return None, protocol, None
-        from rt_loop.xcp import parse_address  # noqa: PLC0415
-        from rt_loop.xcp.protocol import read_secret  # noqa: PLC0415
+        from rt_loop.xcp import parse_address
+        from rt_loop.xcp.protocol import read_secret
 
         try:
             address = parse_address(xcp) if isinstance(xcp, str) else (str(xcp[0]), int(xcp[1]))
@@ -518,7 +529,7 @@ class Server:
             if self.record_path is not None:
                 try:
                     if self.record_path.lower().endswith((".mf4", ".mdf")):
-                        from rt_loop.mdf_recorder import MdfRecorder  # noqa: PLC0415
+                        from rt_loop.mdf_recorder import MdfRecorder
 
                         self.recorder = MdfRecorder(self.record_path, self.channels.command_names,
                                                     channels=list(self.bus_channels.values()))
@@ -547,8 +558,8 @@ class Server:
             self.channels.install(loop, self.transports)
             if self.driver_rows:
                 self._maneuver = "scripted"
-            from rt_loop.xcp import a2l as _a2l  # noqa: PLC0415
-            from rt_loop.xcp.loop_backend import set_regions  # noqa: PLC0415
+            from rt_loop.xcp import a2l as _a2l
+            from rt_loop.xcp.loop_backend import set_regions
 
             self._regions = _a2l.calibration_regions(ffi, lib)
             set_regions(ffi, lib, loop, self._regions)
@@ -561,7 +572,7 @@ class Server:
                 raise ServerError(f"the loop refused its set-up: {os.strerror(abs(rc))} "
                                   f"(rt_loop_prepare returned {rc}; rate {self.rate_hz:g} Hz, "
                                   f"priority {self.priority}, cpu {cfg.cpu})")
-            from rt_loop.scope import Scope  # noqa: PLC0415
+            from rt_loop.scope import Scope
 
             self.scope = Scope(ffi, lib, loop, self.channels, self.step_s)
             self.scope.start()
@@ -590,7 +601,7 @@ class Server:
                     if self.logger is not None:
                         self.logger.forward = self.recorder.add_frames
             if self.stimulus is not None:
-                from rt_loop.stimulus import StimulusPlayer  # noqa: PLC0415
+                from rt_loop.stimulus import StimulusPlayer
 
                 self.player = StimulusPlayer(self.stimulus, ffi, lib, loop,
                                              start=self.stimulus_start,
@@ -609,7 +620,7 @@ class Server:
     def _run(self) -> None:
         try:
             self._final_state = self._lib.rt_loop_run(self._l)
-        except BaseException as e:  # noqa: BLE001 (reported by stop()/report())
+        except BaseException as e:
             self._loop_error = f"{type(e).__name__}: {_one_line(e)}"
         finally:
             self._t_end = time.monotonic()
@@ -709,7 +720,7 @@ class Server:
         for hook in reversed(hooks):          # what reads the loop stops while it still runs
             try:
                 hook()
-            except Exception as e:  # noqa: BLE001 (the server stops anyway; raised below)
+            except Exception as e:
                 hook_errors.append(e)
         if self._thread is not None:
             self._lib.rt_loop_request_stop(self._l)
@@ -727,7 +738,7 @@ class Server:
                      self._stop_recorder, self._close_transport, self._release_cpu):
             try:
                 step()
-            except Exception as e:  # noqa: BLE001 (every step runs; the first error is raised)
+            except Exception as e:
                 errors.append(e)
         with self._read_lock:
             self.stats.read()
@@ -793,7 +804,7 @@ class Server:
         self._stop_hooks.append(hook)
 
     def _start_xcp(self, a2l: Any) -> None:
-        from rt_loop.xcp import XcpServer  # noqa: PLC0415
+        from rt_loop.xcp import XcpServer
 
         host, port = self.xcp_address
         ffi, lib = self._ffi, self._lib
@@ -822,7 +833,7 @@ class Server:
                                  "--xcp-key: anyone who reaches it can calibrate the plant")
 
     def _start_control(self) -> None:
-        from rt_loop.control import ControlServer  # noqa: PLC0415
+        from rt_loop.control import ControlServer
 
         try:
             self.control = ControlServer(self, self.control_path)
@@ -870,8 +881,8 @@ class Server:
     @staticmethod
     def loop_maneuvers() -> list[str]:
         """The shipped maneuvers the loop can play itself (pedal tables)."""
-        from plant.driver import ScriptedDriver  # noqa: PLC0415
-        from plant.maneuvers import MANEUVERS, get_maneuver  # noqa: PLC0415
+        from plant.driver import ScriptedDriver
+        from plant.maneuvers import MANEUVERS, get_maneuver
 
         return [n for n in MANEUVERS if isinstance(get_maneuver(n).driver, ScriptedDriver)
                 and len(get_maneuver(n).driver.table) <= MAX_DRIVER_ROWS]
@@ -923,7 +934,7 @@ class Server:
         maneuver's own)."""
         name = None
         if isinstance(maneuver, str):
-            from plant.maneuvers import get_maneuver  # noqa: PLC0415
+            from plant.maneuvers import get_maneuver
 
             if maneuver not in self.loop_maneuvers():
                 raise ServerError(f"maneuver {maneuver!r}: the loop plays "
@@ -982,7 +993,7 @@ class Server:
             mf4 = path.lower().endswith((".mf4", ".mdf"))
             try:
                 if mf4:
-                    from rt_loop.mdf_recorder import MdfRecorder  # noqa: PLC0415
+                    from rt_loop.mdf_recorder import MdfRecorder
 
                     rec = MdfRecorder(path, self.channels.command_names,
                                       channels=list(self.bus_channels.values()))
@@ -1033,7 +1044,7 @@ class Server:
         for t in self.transports:
             try:
                 t.close()
-            except Exception as e:  # noqa: BLE001 (every bus is closed; the first error raised)
+            except Exception as e:
                 errors.append(e)
         if errors:
             raise errors[0]
@@ -1089,7 +1100,7 @@ class Server:
         bridges = [t for t in self.transports if not t.hard_real_time]
         bridge = _sum_counters([t.counters for t in bridges])
         counts["bridge"] = bridge
-        for t, (name, ch) in zip(self.transports, counts["channels"].items()):
+        for t, ch in zip(self.transports, counts["channels"].values()):
             ch["channel"] = t.channel
             if not t.hard_real_time and len(self.transports) > 1:
                 ch["bridge"] = {k: v for k, v in t.counters.items() if k != "last_error"}
@@ -1360,7 +1371,7 @@ def _check_driver(driver: Any) -> tuple[list, bool, list | None]:
     ScriptedDriver or rows (t_s, accel %, brake %[, selector P/R/N/D])."""
     if driver is None:
         return [], False, None
-    from plant.driver import selector_code  # noqa: PLC0415
+    from plant.driver import selector_code
 
     table = getattr(driver, "table", driver)
     linear = getattr(driver, "mode", "step") == "linear"
@@ -1395,7 +1406,7 @@ def _check_driver(driver: Any) -> tuple[list, bool, list | None]:
 
 def _check_maneuver_inputs(inputs: Any) -> dict:
     """A maneuver's fixed plant inputs (``plant.maneuvers.FIXED_INPUTS``: the road grade)."""
-    from plant.maneuvers import check_inputs  # noqa: PLC0415
+    from plant.maneuvers import check_inputs
 
     try:
         return check_inputs(inputs, "maneuver inputs")

@@ -105,7 +105,7 @@ def _fill(ring: Any) -> int:
 
 
 def _sample(server: Any, t0: float, cycles: int, mf4: Path) -> dict:
-    loop = server._l          # noqa: SLF001 (read-only look at the rings' indices)
+    loop = server._l
     snap = server.snapshot()
     c = snap["counts"]
     row: dict[str, Any] = {"t_s": round(time.monotonic() - t0, 3), **proc_figures()}
@@ -200,7 +200,7 @@ def _verdict(rows: list[dict], args: argparse.Namespace, run: dict) -> dict:
 def _floor(seconds: float, priority: int) -> dict | None:
     if seconds <= 0:
         return None
-    from rt_loop.floor import FloorError, measure_floor  # noqa: PLC0415
+    from rt_loop.floor import FloorError, measure_floor
 
     try:
         fig = measure_floor(duration_s=seconds, priority=priority,
@@ -213,10 +213,10 @@ def _floor(seconds: float, priority: int) -> dict | None:
 
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
 
     t = [r["t_s"] / 60.0 for r in rows]
     fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
@@ -249,9 +249,9 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
 
 
 def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
-    from plant.maneuvers import get_maneuver  # noqa: PLC0415
-    from rt_loop.server import Server, ServerError  # noqa: PLC0415
-    from rt_loop.transport import TransportError  # noqa: PLC0415
+    from plant.maneuvers import get_maneuver
+    from rt_loop.server import Server, ServerError
+    from rt_loop.transport import TransportError
 
     duration = args.seconds
     folder = Path(args.out)
@@ -289,10 +289,10 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             server.start(cancel=stop)
         except (ServerError, TransportError) as e:
             raise SoakError(str(e)) from None
-        except Exception as e:  # noqa: BLE001 (the plant's parameters, the build: one line)
+        except Exception as e:
             raise SoakError(f"the server cannot be set up: {type(e).__name__}: "
                             f"{' '.join(str(e).split())}") from None
-        from tcu_stub.can_tcu import CanTcu  # noqa: PLC0415
+        from tcu_stub.can_tcu import CanTcu
 
         tcu = CanTcu.open("virtual", CHANNEL)
         server.start_recording(paths["mf4"], args.record_every)
@@ -310,7 +310,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             stop.wait(0.05)
         cycles = 0
         cycle_started = None
-        f = open(paths["csv"], "w", newline="", encoding="utf-8")  # noqa: SIM115
+        f = open(paths["csv"], "w", newline="", encoding="utf-8")
         writer = None
         next_sample = time.monotonic()
         next_json = time.monotonic() + 60.0
@@ -370,7 +370,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
                 tcu.stop()
                 tcu.write_report(paths["tcu_report"])
                 tcu.close()
-            except Exception as e:  # noqa: BLE001 (the run's files stand; said in the JSON)
+            except Exception as e:
                 run["tcu_error"] = " ".join(str(e).split())
         if server is not None:
             try:
@@ -395,7 +395,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
         try:
             plot(rows, paths["png"], f"soak: {rows[-1]['t_s'] / 60.0:.0f} min of {MANEUVER}, "
                  "embedded transport, MF4 recording")
-        except Exception as e:  # noqa: BLE001 (a plot is not worth the verdict)
+        except Exception as e:
             print(f"soak: warning: no plot: {' '.join(str(e).split())}", file=err)
     _print_summary(doc, paths, out)
     v = doc["verdict"]

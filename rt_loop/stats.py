@@ -21,10 +21,7 @@ maximum.
 
 from __future__ import annotations
 
-import datetime
 import math
-import os
-import platform
 from typing import Any
 
 import numpy as np
@@ -34,7 +31,6 @@ __all__ = [
     "STATE_NAMES",
     "StatsReader",
     "hist_percentiles",
-    "machine_info",
 ]
 
 #: (percent, key) of the figures reported for every time
@@ -214,43 +210,3 @@ class StatsReader:
             "torque_request_active": cmd.get("torque_request_active"),
             "commands": cmd,
         }
-
-
-# --------------------------------------------------------------------------
-# the machine, for the JSON file
-# --------------------------------------------------------------------------
-
-def cpu_model() -> str:
-    """The CPU's model name (for benchmark reports)."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                if key.strip() in ("model name", "Model", "Hardware"):
-                    return value.strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _preempt_rt() -> bool:
-    try:
-        with open("/sys/kernel/realtime", encoding="ascii") as f:
-            return f.read().strip() == "1"
-    except OSError:
-        return "PREEMPT_RT" in platform.uname().version
-
-
-def machine_info() -> dict:
-    """CPU, kernel, Python and date of this run."""
-    uname = platform.uname()
-    return {
-        "cpu": cpu_model(),
-        "nproc": os.cpu_count(),
-        "kernel": uname.release,
-        "kernel_version": uname.version,
-        "preempt_rt": _preempt_rt(),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-    }

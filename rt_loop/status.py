@@ -261,7 +261,7 @@ def _below_bridge_lines(b: dict) -> list[str]:
 
 
 def summary_lines(report: dict, stats_path: str) -> list[str]:
-    from rt_loop.verdict import verdict_lines  # noqa: PLC0415
+    from rt_loop.verdict import verdict_lines
 
     run, cfg, c = report["run"], report["config"], report["counts"]
     rx, tx = c["rx"], c["tx"]

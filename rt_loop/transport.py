@@ -43,6 +43,8 @@ import threading
 import time
 from typing import Any
 
+from can_dbc.own_frames import ECHOING_INTERFACES, OwnFrames
+
 __all__ = [
     "BRIDGE_POLL_S",
     "BRIDGE_WATCH_S",
@@ -93,13 +95,6 @@ BRIDGE_DRAIN_S = 1.0
 #: costs in a UDP receive buffer (measured on loopback: the default
 #: 212992-byte buffer held 256 of them)
 UDP_BYTES_PER_FRAME = 832
-from can_dbc.own_frames import (  # noqa: E402 (re-exported: the bridge's echo filter)
-    ECHOING_INTERFACES,
-    OWN_FRAMES_AWAITED_MAX,
-    OWN_FRAMES_REORDER,
-    OwnFrames,
-    is_echoing_bus,
-)
 
 # Linux socket options (asm-generic values, used by x86, arm, arm64, riscv)
 _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
@@ -170,7 +165,7 @@ def default_interface(channel: str) -> tuple[str, str]:
 
 def valid_interfaces() -> list[str]:
     """Every interface name ``open_transport`` accepts."""
-    import can  # noqa: PLC0415 (only when asked)
+    import can
 
     return sorted(set(can.interfaces.VALID_INTERFACES) | {"socketcan"})
 
@@ -464,7 +459,7 @@ def _bus_udp_sockets(bus: Any) -> list[socket.socket]:
                     continue
     try:
         fds.append(int(bus.fileno()))
-    except Exception:  # noqa: BLE001 (BusABC.fileno raises NotImplementedError; others anything)
+    except Exception:
         pass
     sockets: list[socket.socket] = []
     seen = set()
@@ -612,7 +607,7 @@ class BusWatch:
         except NotImplementedError:
             self._state_reported = False
             return None
-        except Exception as e:  # noqa: BLE001 (a backend may raise anything)
+        except Exception as e:
             self._error("bus state", e)
             return self.bus_state
 
@@ -623,7 +618,7 @@ class BusWatch:
         try:
             value = getattr(get_stats(), "overruns", None)
             return None if value is None else int(value)
-        except Exception:  # noqa: BLE001 (no statistics: not counted)
+        except Exception:
             return None
 
     def poll(self) -> None:
@@ -748,7 +743,7 @@ class BridgeTransport(Transport):
             raise TransportError(f"interface {interface}: {_NOT_BRIDGED[interface]}")
         check_interface(interface)
         rcvbuf_bytes = _check_rcvbuf(rcvbuf_bytes)
-        import can  # noqa: PLC0415 (python-can only for the bridge)
+        import can
 
         self._can = can
         try:
@@ -918,7 +913,7 @@ class BridgeTransport(Transport):
     def _poll_watch(self) -> None:
         try:
             self.watch.poll()
-        except Exception as e:  # noqa: BLE001 (the bridge goes on)
+        except Exception as e:
             self._watch_error(f"{type(e).__name__}: {_one_line(e)}")
 
     def _count_unread(self) -> None:
@@ -936,7 +931,7 @@ class BridgeTransport(Transport):
                     continue
                 if not self._not_forwarded(msg):
                     drained += 1
-        except Exception as e:  # noqa: BLE001 (counted; the bus is closed next)
+        except Exception as e:
             self._error("rx_errors", e)
         self._count("rx_drained_at_stop", drained)
 

@@ -66,7 +66,8 @@ from failures (1), bad options (2) and Ctrl-C (130).
 
 from __future__ import annotations
 
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 __all__ = [
     "END_MARGIN_S",

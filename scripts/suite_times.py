@@ -90,7 +90,7 @@ def main(argv):
     if elapsed is not None and elapsed < total - 1.0:
         print(f"{'elapsed':<10}{'':>8}{elapsed:>9.1f}s   ({elapsed / 60:.1f} min: stages side by side)")
     if cases:
-        print(f"slowest tests (setup + call + teardown):")
+        print("slowest tests (setup + call + teardown):")
         for c in cases[:10]:
             print(f"  {c['time_s']:7.1f} s  {c['stage']:<6} {c['test']}")
     print(f"figures in {out}")

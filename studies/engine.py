@@ -22,7 +22,8 @@ import logging
 import os
 import sys
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from studies import StudyError
 
@@ -65,7 +66,7 @@ class Engine:
         self.description = ""
 
     # ------------------------------------------------------------ lifecycle
-    def __enter__(self) -> "Engine":
+    def __enter__(self) -> Engine:
         self.start()
         return self
 
@@ -115,7 +116,7 @@ class Engine:
     def _check_workers(self) -> None:
         try:
             self.client.run(_probe)
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:
             where = self.scheduler or "the LocalCluster"
             reason = " ".join(str(e).split()) or type(e).__name__
             self.close()
@@ -157,7 +158,7 @@ class Engine:
                 i = index[fut.key]
                 try:
                     result = fut.result()
-                except Exception as e:  # noqa: BLE001 (a worker lost, a task that raised)
+                except Exception as e:
                     reason = " ".join(str(e).split()) or type(e).__name__
                     result = {"error": f"{type(e).__name__}: {reason}"}
                 fut.release()

@@ -36,7 +36,15 @@ from pathlib import Path
 import numpy as np
 
 from studies import StudyError
-from studies.keys import Assignment, build, check_plant, default_of, merge, plant_range, resolve
+from studies.keys import (
+    Assignment,
+    build,
+    check_plant,
+    default_of,
+    merge,
+    plant_range,
+    resolve,
+)
 from studies.measurement import ChannelMap, Measurement, load
 from studies.runs import Case, evaluate_signals, make_case
 

@@ -134,7 +134,7 @@ def load(path: str | os.PathLike, needed: list[str], optional: tuple = (),
         if started.any():
             keep &= started
             t = np.where(started, mt, t)
-    for n, v in channels.items():
+    for v in channels.values():
         keep &= np.isfinite(v)
     t = t[keep]
     if len(t) < 2:
@@ -177,7 +177,7 @@ def _mdf(p: Path, needed: list[str], mapping: ChannelMap):
         raise StudyError(f"{p}: reading MF4 needs asammdf (pip install asammdf)") from None
     try:
         mdf = MDF(str(p))
-    except Exception as e:  # noqa: BLE001 (asammdf raises many kinds)
+    except Exception as e:
         raise StudyError(f"{p}: cannot read as MDF: {' '.join(str(e).split())}") from None
     available = sorted({name for name in mdf.channels_db if name and name != "time"})
     cache: dict = {}

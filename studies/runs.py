@@ -290,7 +290,7 @@ def evaluate(task: dict) -> dict:
         rec, shifts = simulate(task["case"], task.get("overrides"), task.get("calibration"))
         figs = figures(task["case"], rec, shifts)
         error = None
-    except Exception as e:  # noqa: BLE001 (a failed run is a result)
+    except Exception as e:
         figs, error = None, one_line(e)
     return {"figures": figs, "error": error, "wall_s": time.perf_counter() - t0,
             "worker": worker_name()}
@@ -312,7 +312,7 @@ def evaluate_signals(task: dict) -> dict:
                 raise StudyError(f"the simulation records no {name!r}")
             out[name] = np.interp(times, rec["time_s"], rec[name])
         error = None
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         out, error = None, one_line(e)
     return {"signals": out, "error": error, "wall_s": time.perf_counter() - t0,
             "worker": worker_name()}

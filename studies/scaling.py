@@ -27,18 +27,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from plant.machine import cpu_model
+
 TARGET = 1.7
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _tree_cpu_s(proc) -> float:
@@ -150,7 +141,7 @@ def main(argv=None) -> int:
     result = {"case": args.case, "duration_s": args.duration, "runs": args.points,
               "speedup_2_over_1": round(speedup, 3), "target": TARGET,
               "met": speedup >= TARGET, "rounds": rounds,
-              "machine": {"cpus": cores, "cpu_model": _cpu_model(),
+              "machine": {"cpus": cores, "cpu_model": cpu_model(),
                           "python": platform.python_version()},
               "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     out = Path(args.out)

@@ -440,7 +440,7 @@ class Journal:
             with open(path, "rb") as f:
                 f.seek(-1, os.SEEK_END)
                 torn = f.read(1) != b"\n"
-        self._f = open(path, "a", encoding="utf-8")  # noqa: SIM115
+        self._f = open(path, "a", encoding="utf-8")
         if torn:       # a killed sweep's torn last line: the next record starts a line of its own
             self._f.write("\n")
 
@@ -595,7 +595,7 @@ def run_sweep(spec: Spec, out: Path | None = None, workers: int | None = None,
                                "inputs": r.inputs, "figures": result.get("figures"),
                                "error": result.get("error"), "wall_s": result.get("wall_s"),
                                "worker": result.get("worker", ""),
-                               "finished_at": datetime.datetime.now(datetime.timezone.utc)
+                               "finished_at": datetime.datetime.now(datetime.UTC)
                                .isoformat(timespec="seconds")}
                         journal.append(rec)
                         keep[r.run_id] = rec
@@ -629,7 +629,7 @@ def run_sweep(spec: Spec, out: Path | None = None, workers: int | None = None,
 
 
 def _lock(out: Path):
-    f = open(out / ".lock", "w")  # noqa: SIM115
+    f = open(out / ".lock", "w")
     try:
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:

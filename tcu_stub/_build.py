@@ -3,11 +3,12 @@
 setup.py names it in ``cffi_modules``; ``scripts/setup`` (or any ``pip
 install``) compiles ``tcu_stub/_tcu_fast*.so``: the reference TCU, the
 in-process CAN contract, the drivers and the closed loop in C
-(``tcu_stub/csrc/``), with the table codec of ``can_dbc/csrc/can_table.c``.
+(``tcu_stub/csrc/``), with the table codec of ``can_dbc/csrc/can_table.c``
+compiled in and its types from ``can_dbc._can_table`` (``ffi.include``).
 The plant is not compiled in: the loop steps it through function pointers
 taken from ``plant._dct_plant``, the code ``Plant.step`` runs; the plant's
 structs are declared to cffi by name only (their layout comes from
-``dct_plant.h`` when the C compiles). The cdef is the public headers,
+``dct_plant.h`` when the C compiles). The cdef is the public header,
 read as plant/_build.py reads dct_plant.h.
 """
 
@@ -22,7 +23,6 @@ _PLANT_CSRC = os.path.join(_ROOT, "plant", "csrc")
 _CAN_CSRC = os.path.join(_ROOT, "can_dbc", "csrc")
 _TCU_CSRC = os.path.join(_HERE, "csrc")
 _SOURCES = ("tcu_clutch.c", "tcu_diag.c", "tcu_logic.c", "tcu_link.c", "tcu_driver.c", "tcu_run.c")
-_COMPILE_ARGS = ["-O2", "-std=c11", "-fno-math-errno", "-Wall", "-Wextra"]
 # the plant's structs, their layout left to the compiler (cffi's "...")
 _PLANT_TYPES = """
 #define DCT_OK 0
@@ -31,34 +31,28 @@ typedef struct { ...; } dct_plant;
 """
 
 
-def _plant_build():
+def _can_build():
     # loaded by path: setuptools runs build files by path, not as package modules
-    path = os.path.join(_ROOT, "plant", "_build.py")
-    spec = importlib.util.spec_from_file_location("_dct_plant_build", path)
+    path = os.path.join(_ROOT, "can_dbc", "_build.py")
+    spec = importlib.util.spec_from_file_location("_can_table_build", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
 
 
-_cdef_text = _plant_build().cdef_text
-
-
-def _rel(path):
-    # setuptools wants sources relative to the project root (the cwd when pip
-    # builds); absolute paths when the builder is loaded from elsewhere.
-    rel = os.path.relpath(path)
-    return path if rel.startswith(os.pardir) else rel
+_can = _can_build()
+_rel = _can.rel
 
 
 def make_builder():
     ffi = FFI()
-    ffi.cdef(_cdef_text(os.path.join(_CAN_CSRC, "can_table.h")) + _PLANT_TYPES
-             + _cdef_text(os.path.join(_TCU_CSRC, "tcu_fast.h")))
+    ffi.include(_can.ffibuilder)
+    ffi.cdef(_PLANT_TYPES + _can.cdef_text(os.path.join(_TCU_CSRC, "tcu_fast.h")))
     ffi.set_source(
         "tcu_stub._tcu_fast",
         '#include "tcu_fast.h"',
         sources=[_rel(os.path.join(_TCU_CSRC, f)) for f in _SOURCES]
-        + [_rel(os.path.join(_CAN_CSRC, "can_table.c"))],
+        + [_rel(_can.SOURCE)],
         include_dirs=[_rel(d) for d in (_TCU_CSRC, _CAN_CSRC, _PLANT_CSRC)],
         # the headers too: a changed dct_plant.h (the plant's layout) must rebuild this
         # extension, not only plant._dct_plant (tcu_stub/fast.py refuses a mismatch)
@@ -66,7 +60,7 @@ def make_builder():
                                    os.path.join(_CAN_CSRC, "can_table.h"),
                                    os.path.join(_TCU_CSRC, "tcu_fast.h"),
                                    os.path.join(_TCU_CSRC, "tcu_util.h"))],
-        extra_compile_args=_COMPILE_ARGS,
+        extra_compile_args=_can.COMPILE_ARGS,
         libraries=["m"],
     )
     return ffi

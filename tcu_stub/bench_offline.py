@@ -87,7 +87,7 @@ def _summary(walls, simulated_s):
 
 def bench(maneuver="wltc", repeat=3, python_duration_s=120.0, progress=print):
     """The figures (a JSON-ready dict)."""
-    from dct_hil.cli import machine_info
+    from plant.machine import machine_info
     from plant.maneuvers import get_maneuver
 
     duration = get_maneuver(maneuver).duration_s
@@ -136,7 +136,7 @@ def bench(maneuver="wltc", repeat=3, python_duration_s=120.0, progress=print):
     out["batch"] = None
     out["load_average_before"] = list(load_before)
     out["load_average_after"] = list(os.getloadavg())
-    out["machine"] = machine_info()
+    out["machine"] = machine_info(build=True)
     return out
 
 

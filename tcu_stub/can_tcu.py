@@ -153,9 +153,9 @@ import threading
 import time
 
 from can_dbc import codec
-from dct_hil import argtypes
 from can_dbc.own_frames import OwnFrames, is_echoing_bus
 from can_dbc.peer import CanPeer
+from plant import argtypes
 from tcu_stub.diagnostics import ENGINE_SIGNALS, decode_active_faults
 from tcu_stub.logic import PERIOD_S, TcuLogic
 from tcu_stub.mapped_link import MissingSignalError, TcuMatrix, cycle_ticks, message_key
@@ -521,7 +521,7 @@ class MappedPeer:
         while not self._stop.is_set():
             try:
                 msg = bus.recv(timeout=0.05)
-            except Exception:  # noqa: BLE001 (a bus going down while stopping)
+            except Exception:
                 if self._stop.is_set():
                     return
                 time.sleep(0.01)
@@ -799,7 +799,7 @@ class CanTcu:
                 else:
                     values = self.matrix.safe_values(self.peer.tx_messages[name])
                 ok = self.peer.send_now(name, values) and ok
-            except Exception as e:  # noqa: BLE001 (a closed bus): reported
+            except Exception as e:
                 ok = False
                 self.peer.last_send_error = f"{name}: {_one_line(e) or type(e).__name__}"
         with self._lock:
@@ -897,7 +897,7 @@ class CanTcu:
                 self._late_us.add(late * 1e6)
                 self._exec_us.add((time.monotonic() - now) * 1e6)
                 k += 1
-        except Exception as e:  # noqa: BLE001 (the task stops; stop() sends the safe frames)
+        except Exception as e:
             self.error = f"TCU task stopped at {k * PERIOD_S:.3f} s: {type(e).__name__}: {_one_line(e)}"
             self._send_safe()                           # the last commands on the bus are safe
         finally:
@@ -915,7 +915,7 @@ class CanTcu:
         k = 0
         try:
             while not self._stop.is_set():
-                self.peer.wait_for(lambda p: self._stop.is_set()
+                self.peer.wait_for(lambda p, seen=seen: self._stop.is_set()
                                    or p.counts(name)["accepted"] > seen, timeout=wait_s)
                 if self._stop.is_set():
                     return
@@ -931,7 +931,7 @@ class CanTcu:
                     self._tick(k, now, snap)
                     self._exec_us.add((time.monotonic() - now) * 1e6)
                     k += 1
-        except Exception as e:  # noqa: BLE001 (the task stops; stop() sends the safe frames)
+        except Exception as e:
             self.error = f"TCU task stopped at {k * PERIOD_S:.3f} s: {type(e).__name__}: {_one_line(e)}"
             self._send_safe()
         finally:

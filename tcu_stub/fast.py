@@ -4,7 +4,7 @@
 here by default. One C call (``tcu_stub/csrc/tcu_run.c``) runs many TCU periods
 of what ``run_offline`` does in Python, in the same order: the driver's pedals
 every 10 ms, the plant messages through the CAN contract at their cycle times
-and phases (``offline.ContractLink``: packed and unpacked with the DBC's
+and phases (``contract_link.ContractLink``: packed and unpacked with the DBC's
 scaling, offset and length by the table codec, bit-exact with cantools), the
 TCU step every 2 ms (``tcu_stub/csrc/tcu_logic.c``, a port of
 ``tcu_stub/logic.py`` and ``tcu_stub/diagnostics.py``), its commands through
@@ -312,7 +312,10 @@ def python_tcu(calibration=None):
 
 # ------------------------------------------------------------------ the C side
 def _lib():
-    from tcu_stub._tcu_fast import ffi, lib   # built by scripts/setup (setup.py build_ext)
+    from tcu_stub._tcu_fast import (  # built by scripts/setup (setup.py build_ext)
+        ffi,
+        lib,
+    )
     return ffi, lib
 
 
@@ -325,7 +328,7 @@ def unavailable():
     return _layout_mismatch()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _layout_mismatch():
     """None when this extension and plant._dct_plant were compiled with the same dct_plant.h
     (the C loop steps plant._dct_plant's structs), else why not."""
@@ -352,7 +355,7 @@ def _names(fn, n):
     return [ffi.string(fn(i)).decode() for i in range(n)]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _layout():
     """Sensor, command and phase names of the C, checked against the Python."""
     ffi, lib = _lib()
@@ -521,7 +524,7 @@ def _sensor_value(name, value):
     return int(value) if name in _integer_signals() else float(value)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _integer_signals():
     from can_dbc import codec
     return frozenset(s.name for m in codec.messages("PLANT") for s in m.signals
@@ -532,7 +535,7 @@ def store_state(c, tcu, shifts, diag_events, sensors=None):
     """A ``tcu_state`` into the TcuLogic ``tcu``: every attribute as its own steps
     would have left it. ``shifts`` and ``diag_events`` (drained from the C) are
     appended to its events; ``sensors`` (the last period's array) becomes ``tcu.s``."""
-    from tcu_stub import offline
+    from tcu_stub import contract_link
 
     phases = _layout()[2]
     tcu.phase = phases[c.phase]
@@ -560,7 +563,7 @@ def store_state(c, tcu, shifts, diag_events, sensors=None):
         if sensors is not None:
             names = sensor_names()
             s = {}
-            for _, _, fields in offline._PLANT_MESSAGES:
+            for _, _, fields in contract_link.PLANT_MESSAGES:
                 for sig in fields:
                     s[sig] = _sensor_value(sig, sensors[names.index(sig)])
             s["stale"] = False
@@ -683,25 +686,20 @@ class CTcu:
 
 
 # ------------------------------------------------------------------ the link
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _codec_table():
-    """The contract's codec table (can_dbc.table, built in rt_loop's extension) and
-    its ct_table pointer as this extension's type."""
+    """The contract's codec table (can_dbc.table) and its ct_table pointer: this
+    extension takes the codec's types from can_dbc._can_table (ffi.include)."""
     from can_dbc.table import contract_table
-    from rt_loop._rt_loop import ffi as rt_ffi
 
-    ffi, _ = _lib()
-    for t in ("ct_signal", "ct_message", "ct_mux_range", "ct_table"):
-        if ffi.sizeof(t) != rt_ffi.sizeof(t):
-            raise RuntimeError(f"{t} differs between rt_loop._rt_loop and tcu_stub._tcu_fast; rebuild")
     table = contract_table()
-    return table, ffi.cast("ct_table *", int(rt_ffi.cast("uintptr_t", table.table)))
+    return table, table.table
 
 
 def fill_link(link):
-    """The contract's plan and routing (offline.py's) into a ``tcu_link`` struct."""
+    """The contract's plan and routing (contract_link.py's) into a ``tcu_link`` struct."""
     from plant.model import INPUT_NAMES, OUTPUT_NAMES
-    from tcu_stub import offline
+    from tcu_stub import contract_link
 
     table, c_table = _codec_table()
     sensors = {n: i for i, n in enumerate(sensor_names())}
@@ -710,23 +708,23 @@ def fill_link(link):
     inputs = {n: i for i, n in enumerate(INPUT_NAMES)}
     link.table = c_table
     plant = []
-    for name, _, fields in offline._PLANT_MESSAGES:
+    for name, _, fields in contract_link.PLANT_MESSAGES:
         sigs = table.signal_names(name)
-        div, off = offline._PLANT_PLAN[name]
+        div, off = contract_link.PLANT_PLAN[name]
         plant.append({"msg": table.index(name), "divisor": div, "offset": off, "n_signals": len(sigs),
                       "source": [outputs[fields[s]] if s in fields else -1 for s in sigs],
                       "target": [sensors[s] if s in fields else -1 for s in sigs]})
     tcu = []
-    for name, _, targets in offline._TCU_MESSAGES:
+    for name, _, targets in contract_link.TCU_MESSAGES:
         if not any(inp is not None for _, inp in targets.values()):
             continue                      # drives no plant input (TCU_Status)
         sigs = table.signal_names(name)
-        div, off = offline._TCU_PLAN[name]
+        div, off = contract_link.TCU_PLAN[name]
         tcu.append({"msg": table.index(name), "divisor": div, "offset": off, "n_signals": len(sigs),
                     "source": [commands[s] if s in targets else -1 for s in sigs],
                     "target": [inputs[targets[s][1]] if s in targets and targets[s][1] is not None
                                else -1 for s in sigs]})
-    missing = set(sensors) - {s for _, _, f in offline._PLANT_MESSAGES for s in f}
+    missing = set(sensors) - {s for _, _, f in contract_link.PLANT_MESSAGES for s in f}
     if missing:
         raise RuntimeError(f"the contract carries no {', '.join(sorted(missing))} for the C TCU")
     for i, m in enumerate(plant):
@@ -835,9 +833,10 @@ class FastLoop:
     def __init__(self, plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, calibration=None,
                  record_outputs=None, record_before_tcu=False, scenario=None, trace=False,
                  period_s=None):
+        from plant._dct_plant import ffi as p_ffi
+        from plant._dct_plant import lib as p_lib
         from plant.model import OUTPUT_NAMES
-        from plant._dct_plant import ffi as p_ffi, lib as p_lib
-        from tcu_stub import offline
+        from tcu_stub import contract_link
 
         if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s) and duration_s > 0):
             raise ValueError(f"duration_s must be positive, got {duration_s}")
@@ -858,7 +857,7 @@ class FastLoop:
         self._keep = []
         steps_per_tcu = max(1, int(round(_logic.PERIOD_S / plant.step_s)))
         period = _logic.PERIOD_S if period_s is None else float(period_s)
-        self.tcu_per_driver = max(1, int(round(offline.DRIVER_PERIOD_S / period)))
+        self.tcu_per_driver = max(1, int(round(contract_link.DRIVER_PERIOD_S / period)))
         tcu_per_record = max(1, int(round(record_every_s / period)))
         self.n_periods = int(round(duration_s / period))
         self.record_outputs = list(OUTPUT_NAMES if record_outputs is None else record_outputs)
@@ -1011,7 +1010,7 @@ class FastLoop:
 def run_offline_c(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, calibration=None):
     """``offline.run_offline`` in C: the arguments the C loop takes, the same result
     (NotInC, a ValueError, for a ``tcu`` it cannot run)."""
-    from tcu_stub.offline import RECORDED
+    from tcu_stub.contract_link import RECORDED
 
     loop = FastLoop(plant, driver_fn, duration_s, record_every_s, tcu=tcu, calibration=calibration,
                     record_outputs=RECORDED)

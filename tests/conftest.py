@@ -3,7 +3,6 @@
 import random
 
 import pytest
-
 import requires
 from waiting import free_udp_port
 

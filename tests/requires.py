@@ -23,6 +23,7 @@ HOW = {
     "pytest_timeout": SETUP,
     "asammdf": SETUP, "cantools": SETUP, "msgpack": "pip install 'python-can[multicast]' "
                                                    "(a dependency of dct-hil: scripts/setup)",
+    "can_dbc._can_table": "the C extension is built by scripts/setup",
     "rt_loop._rt_loop": "the C extension is built by scripts/setup",
     "plant._dct_plant": "the C extension is built by scripts/setup",
     "tcu_stub._tcu_fast": "the C extension is built by scripts/setup",

@@ -19,8 +19,8 @@ import tomllib
 from pathlib import Path
 
 import pytest
-
 import requires
+
 from can_dbc import mapping as can_mapping
 from rt_loop.channels import LoopChannels
 from rt_loop.xcp import a2l
@@ -306,7 +306,7 @@ def test_every_address_is_the_offset_of_its_field(c, texts, parser):
 def test_without_channels_commands_and_channels_go_by_index(c, texts, parser):
     ffi, lib = c
     objs = _objects(_parse(parser, texts[None]))
-    n_cmd = getattr(lib, "RT_MAX_COMMANDS")
+    n_cmd = lib.RT_MAX_COMMANDS
     for k in range(n_cmd):
         assert objs[f"stats.commands[{k}]"][1] == ffi.offsetof("rt_loop", "stats", "commands", k)
     assert objs["stats.chan[3].tx_frames"][1] == ffi.offsetof("rt_loop", "stats", "chan", 3,
@@ -541,7 +541,7 @@ def test_every_parameter_field_is_described(c):
             covered.update(range(o.address, o.address + o.size))
     start = ffi.offsetof("rt_loop", "plant", "params")
     doubles_and_ints = 0
-    for path, _n, ptype, _d, _p, _f in a2l._leaves(ffi, ffi.typeof("dct_params"), (), ""):
+    for path, _n, _ptype, _d, _p, _f in a2l._leaves(ffi, ffi.typeof("dct_params"), (), ""):
         at = ffi.offsetof("rt_loop", "plant", "params", *path)
         assert at in covered, path
         doubles_and_ints += 1

@@ -9,8 +9,8 @@ import re
 import uuid
 
 import pytest
-
 import requires
+
 from can_dbc import codec
 
 # name -> (id, cycle ms, sender, {payload signal: (start bit, length, signed, scale, unit[, offset])})
@@ -236,7 +236,7 @@ def test_encode_limits_to_the_dbc_range_and_rejects_bad_input():
 
 def test_e2e_receiver_rules_and_counts():
     rx = codec.E2eReceiver(sender="TCU")
-    f = lambda c: codec.encode("TCU_EngineCmd", {"EngineTorqueRequest": 12.5}, c)  # noqa: E731
+    f = lambda c: codec.encode("TCU_EngineCmd", {"EngineTorqueRequest": 12.5}, c)  # noqa: E731 (a short probe, named for the lines below)
     assert rx.check(0x091, f(14)) == codec.OK                     # first frame: any counter
     assert rx.check(0x091, f(14)) == codec.BAD_COUNTER            # repeated
     assert rx.check(0x091, f(1)) == codec.BAD_COUNTER             # jump by 3 (14 -> 1)
@@ -272,7 +272,7 @@ def test_e2e_receiver_rules_and_counts():
 def served():
     """(mapping, CodecTable) of the default mapping: the tables the real-time
     loop serves the contract with (rt_loop/channels.py builds the same)."""
-    requires.module("rt_loop._rt_loop")
+    requires.module("can_dbc._can_table")
     from can_dbc import mapping
     from can_dbc.table import CodecTable
 
@@ -291,7 +291,7 @@ def _received(m):
 
 def test_the_mapping_table_matches_the_dbc(served):
     m, t = served
-    from rt_loop._rt_loop import lib
+    from can_dbc._can_table import lib
 
     assert sorted(_sent(m)) == sorted(codec.PLANT_SIGNAL_SOURCES) == sorted(x.name for x in codec.messages("PLANT"))
     assert sorted(_received(m)) == sorted(codec.TCU_SIGNAL_TARGETS) == sorted(x.name for x in codec.messages("TCU"))
@@ -312,7 +312,7 @@ def test_the_mapping_table_matches_the_dbc(served):
 
 def test_table_crc_and_protection_equal_python(served):
     m, t = served
-    from rt_loop._rt_loop import lib
+    from can_dbc._can_table import lib
 
     check = b"123456789"
     assert lib.ct_crc8_j1850(check, len(check)) == codec.crc8_j1850(check) == 0x4B

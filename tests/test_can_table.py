@@ -29,8 +29,8 @@ from can_dbc import codec, table
 from can_dbc.protection import KINDS, P1_DATA_ID_MODES, Protection
 
 cantools = requires.module("cantools")
-from cantools.database.can import Message, Signal  # noqa: E402
-from cantools.database.conversion import BaseConversion  # noqa: E402
+from cantools.database.can import Message, Signal
+from cantools.database.conversion import BaseConversion
 
 # Every property test: no example database on disk, no deadline (the first
 # examples build the cffi tables), the same number of examples each run.
@@ -41,8 +41,11 @@ SETTINGS = settings(max_examples=300, deadline=None, database=None,
 
 @pytest.fixture(scope="module")
 def c():
-    from rt_loop._rt_loop import ffi, lib  # built by scripts/setup: a missing build fails here
-    assert hasattr(lib, "ct_encode"), "rt_loop._rt_loop does not include the table codec"
+    from can_dbc._can_table import (  # built by scripts/setup: a missing build fails here
+        ffi,
+        lib,
+    )
+    assert hasattr(lib, "ct_encode"), "can_dbc._can_table does not hold the table codec"
     return ffi, lib
 
 
@@ -723,11 +726,12 @@ def contract(c):
 
 
 @pytest.fixture(scope="module")
-def loop_table(c):
-    """The table the loop serves the default mapping with (rt_loop.channels)."""
+def loop_table():
+    """The table the loop serves the default mapping with (rt_loop.channels, with
+    the loop's extension: it takes the codec's types from can_dbc._can_table)."""
     from can_dbc import mapping
+    from rt_loop._rt_loop import ffi, lib
     from rt_loop.channels import LoopChannels
-    ffi, lib = c
     return LoopChannels(mapping.load(mapping.DEFAULT_MAPPING), ffi, lib).table(0)
 
 

@@ -20,12 +20,12 @@ import uuid
 
 import can
 import pytest
+from waiting import wait_until
 
 from can_dbc import mapping as mapping_mod
 from can_dbc.table import CodecTable
 from tcu_stub import can_tcu
 from tcu_stub.can_tcu import REJECTS_TO_STALE, CanTcu, MissingSignalError
-from waiting import wait_until
 
 #: a car at standstill, brake on, engine idling (the plant's output names)
 STANDSTILL = {

@@ -389,6 +389,7 @@ def test_engine_deep_request_closes_the_air_path_too(car, h):
     eng = Engine(p, rpm, accel_pedal_pct=100.0, torque_request_active=1.0, torque_request_nm=20.0)
     eng.run(2.0, h)
     demand = 20.0 - drag
+    assert demand / (1.0 - p.spark_cut_max_share) < full      # the premise: below full load
     assert eng.out.torque_nm == pytest.approx(20.0, rel=1e-6)
     assert eng.s.combustion_torque_nm == pytest.approx(demand / (1.0 - p.spark_cut_max_share), rel=1e-6)
 

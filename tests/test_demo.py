@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 import pytest
-
 import requires
+
 from dct_hil import cli, demo
 from rt_loop import verdict as vd
 

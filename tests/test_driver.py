@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from plant.driver import CarData, ScriptedDriver, SpeedTrackingDriver
-from plant.maneuvers import (Maneuver, get_maneuver, load_wltc, report, run_driver)
+from plant.maneuvers import Maneuver, get_maneuver, load_wltc, report, run_driver
 from plant.model import Plant
 from plant.plots import write_plots
 

@@ -13,10 +13,17 @@ import time
 
 import numpy as np
 import pytest
+from test_rt_loop_c import CHANNELS, CMD, DB, MSG, TCU_MESSAGES, Loop, e2e_ok, tcu_frame
 
 from rt_loop._rt_loop import ffi, lib
-from rt_loop.faults import FaultError, FaultManager, Names, invalid_value, load_faults, parse_fault
-from test_rt_loop_c import CHANNELS, CMD, DB, MSG, TCU_MESSAGES, Loop, e2e_ok, tcu_frame
+from rt_loop.faults import (
+    FaultError,
+    FaultManager,
+    Names,
+    invalid_value,
+    load_faults,
+    parse_fault,
+)
 
 CLUTCH_MSG = DB.get_message_by_name("DCT_Clutch")
 SHAFT_MSG = DB.get_message_by_name("DCT_ShaftSpeeds")
@@ -469,7 +476,7 @@ def test_no_fault_message_index_is_outside_the_loop():
     for name, g in NAMES.messages.items():
         assert 0 <= g < len(CHANNELS.messages)
         assert CHANNELS.messages[g][1].name == name.split(":")[-1]
-    for name, (g, k, index, sig) in NAMES.signals.items():
+    for name, (_g, _k, _index, sig) in NAMES.signals.items():
         assert sig.name == name.split(".")[-1]
     assert MSG["DCT_Clutch"] == NAMES.messages["DCT_Clutch"]
     assert not math.isnan(invalid_value(CLUTCH_MSG.get_signal_by_name("LinePressure")))

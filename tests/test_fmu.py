@@ -13,20 +13,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 import requires
-fmpy = requires.module("fmpy")
-from fmpy import extract, read_model_description, simulate_fmu  # noqa: E402
-from fmpy.fmi2 import FMU2Slave  # noqa: E402
-from fmpy.fmi3 import FMU3Slave  # noqa: E402
-from fmpy.model_description import read_build_description  # noqa: E402
-from fmpy.validation import validate_fmu  # noqa: E402
 
-from plant import simulate  # noqa: E402
-from plant.fmu import build  # noqa: E402
-from plant.fmu import scenario as fmu_scenario  # noqa: E402
-from plant.model import Plant  # noqa: E402
-from plant.scenario import load_scenario  # noqa: E402
+fmpy = requires.module("fmpy")
+from fmpy import extract, read_model_description, simulate_fmu
+from fmpy.fmi2 import FMU2Slave
+from fmpy.fmi3 import FMU3Slave
+from fmpy.model_description import read_build_description
+from fmpy.validation import validate_fmu
+
+from plant import simulate
+from plant.fmu import build
+from plant.fmu import scenario as fmu_scenario
+from plant.model import Plant
+from plant.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 VERSIONS = (2, 3)
@@ -213,7 +213,11 @@ _KEEP = []    # ctypes callbacks must outlive the instances
 
 
 def _fmi2_callbacks(messages):
-    from fmpy.fmi2 import defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+    from fmpy.fmi2 import (
+        defaultCallbacks,
+        fmi2CallbackFunctions,
+        fmi2CallbackLoggerTYPE,
+    )
 
     def logger(env, instance, status, category, message):
         messages.append((status, category.decode(), message.decode()))

@@ -19,14 +19,28 @@ import math
 import re
 import struct
 import subprocess
-from ctypes import (CFUNCTYPE, POINTER, Structure, byref, c_bool, c_char, c_char_p, c_double,
-                    c_int, c_int32, c_size_t, c_uint, c_uint32, c_void_p)
+from ctypes import (
+    CFUNCTYPE,
+    POINTER,
+    Structure,
+    byref,
+    c_bool,
+    c_char,
+    c_char_p,
+    c_double,
+    c_int,
+    c_int32,
+    c_size_t,
+    c_uint,
+    c_uint32,
+    c_void_p,
+)
 from pathlib import Path
 
 import numpy as np
 import pytest
-
 import requires
+
 from plant import simulate
 from plant._dct_plant import ffi
 from plant.fmu import scenario as fmu_scenario
@@ -107,7 +121,7 @@ class CALLBACKS2(Structure):
 
 
 def _bind(lib, version):
-    V, I, D, S = c_void_p, c_int, c_double, c_size_t
+    V, I, D, S = c_void_p, c_int, c_double, c_size_t  # noqa: E741 (I: the C int, beside V, D, S)
     if version == 2:
         VR = POINTER(c_uint)
         sig = {

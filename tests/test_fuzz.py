@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import pytest
-
 from waiting import wait_until
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -84,7 +83,7 @@ def test_an_xcp_datagram_of_no_bytes_is_counted_as_a_bad_frame():
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             for _ in range(3):
                 s.sendto(b"", tuple(srv.xcp.address[:2]))
-        bad = lambda: srv.xcp_counters()["transport"]["bad_frames"].get(  # noqa: E731
+        bad = lambda: srv.xcp_counters()["transport"]["bad_frames"].get(  # noqa: E731 (a short probe, named for the lines below)
             "empty_datagram", 0)
         assert wait_until(lambda: bad() == 3), srv.xcp_counters()["transport"]
     finally:

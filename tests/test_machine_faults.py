@@ -29,7 +29,6 @@ import sys
 import time
 
 import pytest
-
 import requires
 from waiting import wait_until
 
@@ -51,9 +50,9 @@ class Bench:
         self.stats = tmp_path / "stats.json"
         self.mf4 = tmp_path / "run.mf4"
         self.sock = tmp_path / "control.sock"
-        self.out = open(tmp_path / "serve.out", "w")  # noqa: SIM115
+        self.out = open(tmp_path / "serve.out", "w")
         self.err_path = tmp_path / "serve.err"
-        self.err = open(self.err_path, "w")  # noqa: SIM115
+        self.err = open(self.err_path, "w")
         self.server = subprocess.Popen(
             DCT_HIL + ["serve", "--interface", "udp_multicast", "--channel", self.group,
                        "--priority", "0", "--no-pm-qos", "--quiet", "--stats", str(self.stats),
@@ -126,7 +125,7 @@ def test_a_tcu_killed_mid_run_times_out_and_a_new_one_is_taken_again(bench):
         "the TCU's frames were not accepted: " + bench.err_path.read_text()[-1000:])
     tcu.send_signal(signal.SIGKILL)
     tcu.wait(timeout=WAIT_S)
-    msgs = lambda: bench.counts()["tcu_messages"]  # noqa: E731
+    msgs = lambda: bench.counts()["tcu_messages"]  # noqa: E731 (a short probe, named for the lines below)
     assert wait_until(lambda: all(m["timed_out"] for n, m in msgs().items()
                                   if not m["optional"]), WAIT_S), msgs()
     before = _accepted(bench)

@@ -13,9 +13,21 @@ import numpy as np
 import pytest
 
 from plant.driver import SELECTOR_CODES, ScriptedDriver, driver_inputs
-from plant.maneuvers import (MANEUVERS, Maneuver, brake_applies, brake_releases, format_report,
-                             get_maneuver, mean_speed_kmh, report, reverse_figures, rollback_m,
-                             selector_times, speed_max_abs_kmh, time_to_speed_s)
+from plant.maneuvers import (
+    MANEUVERS,
+    Maneuver,
+    brake_applies,
+    brake_releases,
+    format_report,
+    get_maneuver,
+    mean_speed_kmh,
+    report,
+    reverse_figures,
+    rollback_m,
+    selector_times,
+    speed_max_abs_kmh,
+    time_to_speed_s,
+)
 from plant.model import Plant
 from tcu_stub import fast
 from tcu_stub.offline import run_offline

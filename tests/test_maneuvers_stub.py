@@ -73,7 +73,7 @@ def test_paper_cycle_shifts_up_at_full_load_and_down_to_first_while_braking(pape
     assert [kind for kind, _ in legs] == ["up", "down", "up", "down"], legs
     # at the stops only K2's kiss point learning (1 -> 2 on the brake), and not at both
     assert {(a, b) for _, a, b in _standstill(r, shifts)} <= {(1, 2), (2, 1)}
-    for kind, steps in legs:                        # one gear at a time, never skipping
+    for _kind, steps in legs:                       # one gear at a time, never skipping
         assert all(abs(b - a) == 1 for a, b in steps), steps
     assert legs[0][1][0] == (1, 2) and legs[0][1][-1][1] >= 4      # WOT: 1 -> 4 or higher
     assert legs[1][1][-1] == (2, 1) and legs[3][1][-1] == (2, 1)   # braking: down to 1st

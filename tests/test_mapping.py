@@ -728,7 +728,7 @@ def test_bus_load_of_an_fd_bus_and_the_warning_above_half(tmp_path, capsys):
     assert load.warning is None
     code, out, err = run_cli(capsys, "mapping", "check", path)
     assert code == 0, err
-    assert f"CAN FD at 500 kbit/s, data phase 2 Mbit/s" in out
+    assert "CAN FD at 500 kbit/s, data phase 2 Mbit/s" in out
     assert f"worst-case bus load at 500 kbit/s: {100 * expected:.1f} %" in out
     # without the bit rate switch the 64-byte frame every 1 ms fills more than half the bus
     path.write_text(path.read_text().replace("data_bitrate = 2000000\n", ""))

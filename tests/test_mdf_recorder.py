@@ -10,7 +10,6 @@ frames as bus logging decoded with the project's DBC, a file whose
 recorder was killed, and the one-line error of an unwritable path.
 """
 
-import os
 import shutil
 import signal
 import subprocess
@@ -22,17 +21,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 import requires
+
 asammdf = requires.module("asammdf")
 
-from can_dbc import mapping as can_mapping  # noqa: E402
-from plant.params import fill_params, load_params  # noqa: E402
-from rt_loop._rt_loop import ffi, lib  # noqa: E402
-from rt_loop.channels import LoopChannels  # noqa: E402
-from rt_loop.mdf_recorder import MdfRecorder, output_comments  # noqa: E402
-from rt_loop.recorder import Recorder, read_recording  # noqa: E402
-from waiting import WAIT_S, wait_until  # noqa: E402
+from waiting import WAIT_S, wait_until
+
+from can_dbc import mapping as can_mapping
+from plant.params import fill_params, load_params
+from rt_loop._rt_loop import ffi, lib
+from rt_loop.channels import LoopChannels
+from rt_loop.mdf_recorder import MdfRecorder, output_comments
+from rt_loop.recorder import Recorder, read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 DBC_PATH = ROOT / "can_dbc" / "dct_hil.dbc"
@@ -253,7 +253,7 @@ def test_values_equal_the_csv_recorders_for_the_same_run(run, recorded):
         sig = mdf.get(name, group=0)
         assert len(sig) == run.n, name
         # the MF4 holds the loop's doubles, the CSV them to 9 digits (%.9g)
-        to_9 = np.array([float("%.9g" % v) for v in sig.samples.tolist()])
+        to_9 = np.array([float(f"{v:.9g}") for v in sig.samples.tolist()])
         np.testing.assert_array_equal(to_9, csv[name], err_msg=name)
     # and exactly what the loop recorded
     s = run.samples

@@ -33,7 +33,7 @@ import pytest
 from can_dbc import codec
 from plant.maneuvers import get_maneuver, report
 from plant.model import INPUT_NAMES, OUTPUT_NAMES, Plant, PlantError
-from tcu_stub import fast, logic, offline
+from tcu_stub import contract_link, fast, logic, offline
 from tcu_stub.logic import TcuLogic
 from tcu_stub.offline import run_offline
 
@@ -309,7 +309,7 @@ def test_link_gives_the_dbc_codec_values_at_each_message_cycle_and_phase():
     tcu_sigs = {s.name: s for m in codec.messages("TCU") for s in m.signals}
     for k in range(400):
         outputs = np.zeros(len(OUTPUT_NAMES))
-        for _, _, fields in offline._PLANT_MESSAGES:
+        for _, _, fields in contract_link.PLANT_MESSAGES:
             for sig, field in fields.items():
                 outputs[out_index[field]] = _random_value(rng, plant_sigs[sig])
         lib.tcu_link_sensors(link, ffi.cast("double *", ffi.from_buffer(outputs)), k, sensors_c)

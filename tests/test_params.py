@@ -298,8 +298,8 @@ def test_without_ffi_uses_the_compiled_module(default):
      ["gearbox.ratio = [3.4,", "too long for the C array (maximum 7)"]),
     ("[gearbox]\nratio = [3.4, 2.0, 1.3, 0.9, 0.9, 0.75]\n",
      ["gearbox.ratio = [3.4,", "C array needs exactly 7"]),
-    ("[engine.full_load]\nspeed_rpm = [%s]\ntorque_nm = [%s]\n"
-     % (", ".join(str(100 * i) for i in range(25)), ", ".join("100" for _ in range(25))),
+    ("[engine.full_load]\nspeed_rpm = [" + ", ".join(str(100 * i) for i in range(25))
+     + "]\ntorque_nm = [" + ", ".join("100" for _ in range(25)) + "]\n",
      ["engine.full_load.speed_rpm = [0, 100,", "too long for the C array (maximum 24)"]),
     ("[[clutch]]\n[[clutch]]\n[[clutch]]\nsurfaces = 6\n",
      ["clutch = [", "too long for the C array (maximum 2)"]),

@@ -501,7 +501,7 @@ def test_sim_state_says_running_once_a_received_frame_is_accepted(rig):
     with Loop(rig.channels) as loop:
         loop.wait(lambda s: s.msgs[rig.msg["a", "P_Status"]].frames >= 3, "3 status frames")
         assert loop.push(rig.chan("b"), [rig.frame("b", "F_Ext", {"ExtValue": 1.0})]) == 1
-        s = loop.wait(lambda s: s.msgs[rig.msg["a", "P_Status"]].frames >= 8 and s.rx_accepted == 1,
+        loop.wait(lambda s: s.msgs[rig.msg["a", "P_Status"]].frames >= 8 and s.rx_accepted == 1,
                       "status frames after the first accepted frame")
     states = [rig.decode("a", "P_Status", f[2])["SimState"] for f in loop.pop_tx(rig.chan("a"))
               if f[0] == 0x201]
@@ -747,9 +747,9 @@ def test_can_fd_on_a_socket_needs_fd_frames_and_carries_canfd_frames(fd_rig):
 def _signal(loop, array, pred):
     """(channel, signal index) of the first source or target (``array``) of a
     sent or received message for which ``pred`` holds, read from the loop's tables."""
-    l = loop.c
-    for c in range(l.n_channels):
-        ch = l.chan[c]
+    lc = loop.c
+    for c in range(lc.n_channels):
+        ch = lc.chan[c]
         for m in range(ch.table.n_messages):
             if ch.msgs[m].direction != (lib.RT_DIR_TX if array == "sources" else lib.RT_DIR_RX):
                 continue
@@ -761,34 +761,34 @@ def _signal(loop, array, pred):
 
 
 def _break(loop, what):
-    l = loop.c
+    lc = loop.c
     if what == "output index":
         c, k = _signal(loop, "sources", lambda x: x.kind == lib.RT_SRC_OUTPUT)
-        l.chan[c].sources[k].field = len(_OUTPUTS)
+        lc.chan[c].sources[k].field = len(_OUTPUTS)
     elif what == "status index":
         c, k = _signal(loop, "sources", lambda x: x.kind == lib.RT_SRC_STATUS)
-        l.chan[c].sources[k].field = lib.RT_N_STATUS
+        lc.chan[c].sources[k].field = lib.RT_N_STATUS
     elif what == "value table beyond the ranges":
         c, k = _signal(loop, "sources", lambda x: x.kind == lib.RT_SRC_OUTPUT and x.table.count > 0)
-        l.chan[c].sources[k].table.first = l.chan[c].n_ranges
+        lc.chan[c].sources[k].table.first = lc.chan[c].n_ranges
     elif what == "command index":
         c, k = _signal(loop, "targets", lambda x: x.kind == lib.RT_TGT_COMMAND)
-        l.chan[c].targets[k].command = l.n_commands
+        lc.chan[c].targets[k].command = lc.n_commands
     elif what == "min above max":
         c, k = _signal(loop, "targets", lambda x: x.kind == lib.RT_TGT_COMMAND)
-        l.chan[c].targets[k].minimum, l.chan[c].targets[k].maximum = 2.0, 1.0
+        lc.chan[c].targets[k].minimum, lc.chan[c].targets[k].maximum = 2.0, 1.0
     elif what == "input index":
-        l.command_input[0] = len(_INPUTS)
+        lc.command_input[0] = len(_INPUTS)
     elif what == "no channel":
-        l.n_channels = 0
+        lc.n_channels = 0
     elif what == "five channels":
-        l.n_channels = 5
+        lc.n_channels = 5
     elif what == "no table":
-        l.chan[1].table.messages = ffi.NULL
+        lc.chan[1].table.messages = ffi.NULL
     elif what == "cycle time 0":
-        l.chan[0].msgs[0].cycle_s = 0.0
+        lc.chan[0].msgs[0].cycle_s = 0.0
     elif what == "unknown transport":
-        l.chan[1].transport = 7
+        lc.chan[1].transport = 7
     else:
         raise AssertionError(what)
 

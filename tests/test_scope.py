@@ -104,7 +104,7 @@ def test_tracing_is_counted_per_reader(bench):
 
 def test_a_bad_configuration_is_refused_and_counted(bench):
     srv = bench.server
-    ffi, lib, loop = srv._ffi, srv._lib, srv._l
+    lib, loop = srv._lib, srv._l
     scope = srv.scope
     refused = int(loop.scope_refused)
     with scope._lock:                         # the scope's own publication path, a bad offset

@@ -11,16 +11,16 @@ import uuid
 
 import numpy as np
 import pytest
-
 import requires
+
 requires.module("asammdf")
 
-from asammdf import MDF  # noqa: E402
+from asammdf import MDF
+from waiting import wait_until
 
-from can_dbc import codec  # noqa: E402
-from rt_loop.server import Server, ServerError  # noqa: E402
-from tcu_stub.can_tcu import CanTcu  # noqa: E402
-from waiting import wait_until  # noqa: E402
+from can_dbc import codec
+from rt_loop.server import Server, ServerError
+from tcu_stub.can_tcu import CanTcu
 
 
 @pytest.mark.slow

@@ -13,21 +13,21 @@ import struct
 import uuid
 
 import pytest
-
 import requires
+
 requires.module("pyxcp")
 
-import logging  # noqa: E402
+import logging
 
-from pyxcp.config import create_application_from_config, set_application  # noqa: E402
-from pyxcp.daq_stim import DaqList  # noqa: E402
-from pyxcp.types import XcpResponseError  # noqa: E402
+from pyxcp.config import create_application_from_config, set_application
+from pyxcp.daq_stim import DaqList
+from pyxcp.types import XcpResponseError
+from test_xcp_protocol import Measured, error_of, pyxcp_master
+from waiting import wait_until
 
-from rt_loop._rt_loop import ffi, lib  # noqa: E402
-from rt_loop.server import Server, ServerError  # noqa: E402
-from rt_loop.xcp import a2l  # noqa: E402
-from test_xcp_protocol import Measured, error_of, pyxcp_master  # noqa: E402
-from waiting import wait_until  # noqa: E402
+from rt_loop._rt_loop import ffi, lib
+from rt_loop.server import Server, ServerError
+from rt_loop.xcp import a2l
 
 OUT = ("plant", "outputs")
 SIGNALS = ["engine_speed_rpm", "engine_torque_nm", "input_shaft1_speed_rpm",
@@ -39,7 +39,7 @@ SIGNALS = ["engine_speed_rpm", "engine_torque_nm", "input_shaft1_speed_rpm",
 
 
 def region(name):
-    for off, size, _kind, n, lo, hi, _t in a2l.calibration_regions(ffi, lib):
+    for off, _size, _kind, n, lo, hi, _t in a2l.calibration_regions(ffi, lib):
         if n == name:
             return off, lo, hi
     raise KeyError(name)

@@ -18,12 +18,18 @@ import time
 import cffi
 import numpy as np
 import pytest
-
 import requires
-from rt_loop._rt_loop import ffi, lib
-from rt_loop.stimulus import (PLANT_INPUT_RANGES, Stimulus, StimulusError, StimulusPlayer,
-                              load_stimulus, plant_inputs_writable)
 from waiting import WAIT_S, wait_until
+
+from rt_loop._rt_loop import ffi, lib
+from rt_loop.stimulus import (
+    PLANT_INPUT_RANGES,
+    Stimulus,
+    StimulusError,
+    StimulusPlayer,
+    load_stimulus,
+    plant_inputs_writable,
+)
 
 WRITABLE = plant_inputs_writable(ffi)
 

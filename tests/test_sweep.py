@@ -132,9 +132,8 @@ def test_tcu_calibration_and_maneuver_in_a_sweep(tmp_path, engine):
     """A TCU calibration value reaches the TCU: a lower full-pedal upshift speed makes
     the 0-100 slower; the shipped shift-map example runs (few points, cut short) and
     finds its Pareto front."""
-    from studies import sweep as sw
-
     import studies
+    from studies import sweep as sw
 
     example = os.path.join(os.path.dirname(studies.__file__), "examples", "shift_map.toml")
     spec = load_spec(example, duration_cap_s=40.0)

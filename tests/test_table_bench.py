@@ -16,7 +16,10 @@ SHIPPED = [("dct_hil", 7, 4, {"dct": (7, 4)}),
 
 @pytest.fixture(scope="module")
 def c():
-    from rt_loop._rt_loop import ffi, lib  # built by scripts/setup: a missing build fails here
+    from rt_loop._rt_loop import (  # built by scripts/setup: a missing build fails here
+        ffi,
+        lib,
+    )
     assert hasattr(lib, "ct_bench_tick"), "rt_loop._rt_loop does not include the table codec"
     return ffi, lib
 

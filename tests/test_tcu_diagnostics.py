@@ -12,7 +12,6 @@ are printed with ``-s``.
 """
 
 import json
-import math
 import os
 
 import numpy as np

@@ -13,8 +13,15 @@ import pytest
 
 from dct_hil.cli import main
 from dct_hil.ui import figures as fg
-from dct_hil.ui.server import (UiError, UiServer, check_token, is_loopback, origins_for,
-                               parse_address, read_token_file)
+from dct_hil.ui.server import (
+    UiError,
+    UiServer,
+    check_token,
+    is_loopback,
+    origins_for,
+    parse_address,
+    read_token_file,
+)
 
 # ---------------------------------------------------------------- addresses
 

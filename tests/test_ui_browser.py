@@ -57,7 +57,10 @@ def require_browser(paths=(CHROMIUM, CHROMEDRIVER)):
 def wait_for(predicate, what, timeout=WAIT_S, step=0.05):
     """``predicate()`` until true; an element the page replaced meanwhile
     (it reloads after a form is sent) or has not shown yet counts as not yet."""
-    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
+    from selenium.common.exceptions import (
+        NoSuchElementException,
+        StaleElementReferenceException,
+    )
 
     deadline = time.monotonic() + timeout
     while True:

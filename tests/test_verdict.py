@@ -133,7 +133,7 @@ def test_any_overrun_or_skipped_tick_invalidates(overruns, skipped):
     v = vd.serve_verdict(r)
     assert not v["valid"]
     (f,) = v["findings"]
-    assert f"in 16200 ticks" in f and "turnaround max 5123 us against the 500 us period" in f
+    assert "in 16200 ticks" in f and "turnaround max 5123 us against the 500 us period" in f
     assert str(overruns) in f and str(skipped) in f
     assert vd.exit_code(v, strict=True) == vd.EXIT_INVALID == 3
     assert vd.exit_code(v, strict=False) == 0

@@ -14,22 +14,23 @@ import threading
 import time
 
 import pytest
-
 from requires import built_with, module
+
 from rt_loop._rt_loop import ffi, lib
 
 built_with(lib, "rt_daq_pop_many")
 module("pyxcp")
 
-from can_dbc import mapping as can_mapping  # noqa: E402
-from plant.params import fill_params, load_params  # noqa: E402
-from rt_loop.channels import LoopChannels  # noqa: E402
-from rt_loop.xcp import XcpServer  # noqa: E402
-from rt_loop.xcp import protocol as xp  # noqa: E402
-from rt_loop.xcp.loop_backend import LoopBackend, loop_events, set_regions  # noqa: E402
-from rt_loop.xcp.protocol import DaqEntry, DaqListConfig  # noqa: E402
-from test_xcp_protocol import Measured, error_of, pyxcp_master  # noqa: E402
-from waiting import wait_until  # noqa: E402
+from test_xcp_protocol import Measured, error_of, pyxcp_master
+from waiting import wait_until
+
+from can_dbc import mapping as can_mapping
+from plant.params import fill_params, load_params
+from rt_loop.channels import LoopChannels
+from rt_loop.xcp import XcpServer
+from rt_loop.xcp import protocol as xp
+from rt_loop.xcp.loop_backend import LoopBackend, loop_events, set_regions
+from rt_loop.xcp.protocol import DaqEntry, DaqListConfig
 
 MAPPING = can_mapping.load(can_mapping.DEFAULT_MAPPING)
 CHANNELS = LoopChannels(MAPPING, ffi, lib)

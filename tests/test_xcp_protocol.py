@@ -22,19 +22,23 @@ import time
 from collections import deque
 
 import pytest
-
 import requires
 
 requires.module("pyxcp")
 
-from pyxcp.config import create_application_from_config, reset_application, set_application  # noqa: E402
-from pyxcp.daq_stim import DaqList, DaqOnlinePolicy  # noqa: E402
-from pyxcp.master import Master  # noqa: E402
-from pyxcp.types import XcpResponseError  # noqa: E402
+from pyxcp.config import (
+    create_application_from_config,
+    reset_application,
+    set_application,
+)
+from pyxcp.daq_stim import DaqList, DaqOnlinePolicy
+from pyxcp.master import Master
+from pyxcp.types import XcpResponseError
+from waiting import wait_until
 
-from rt_loop.xcp import XcpServer, parse_address  # noqa: E402
-from rt_loop.xcp import protocol as xp  # noqa: E402
-from rt_loop.xcp.protocol import (  # noqa: E402
+from rt_loop.xcp import XcpServer, parse_address
+from rt_loop.xcp import protocol as xp
+from rt_loop.xcp.protocol import (
     OK,
     Daq,
     DaqEntry,
@@ -47,13 +51,12 @@ from rt_loop.xcp.protocol import (  # noqa: E402
     read_secret,
     seed_n_key_function,
 )
-from rt_loop.xcp.transport import (  # noqa: E402
+from rt_loop.xcp.transport import (
     TCP_QUEUE_BYTES,
     StreamDeframer,
     deframe_datagram,
     frame,
 )
-from waiting import wait_until  # noqa: E402
 
 MEM_SIZE = 8192
 COUNTERS = 0              # 20 U32 counters: n * 100 + k at tick n

@@ -1073,8 +1073,8 @@ def _sprung_mass(p):
 
 
 def _spring_preloads(p):
-    ms, l, a = _sprung_mass(p), p.wheelbase_m, p.cg_to_front_axle_m
-    return ms * p.gravity_m_s2 * (l - a) / l, ms * p.gravity_m_s2 * a / l
+    ms, wb, a = _sprung_mass(p), p.wheelbase_m, p.cg_to_front_axle_m
+    return ms * p.gravity_m_s2 * (wb - a) / wb, ms * p.gravity_m_s2 * a / wb
 
 
 def _suspension_forces(p, s):
@@ -1811,7 +1811,7 @@ def bench_step(n_steps, params=None):
     single steps are timed with ``time.perf_counter``.
     """
     if params is None:
-        from plant.params import load_params  # noqa: PLC0415
+        from plant.params import load_params
 
         params = load_params(None, None, {"hydraulics": {"pressure_commanded": 0}})
     py = PyPlant(params)

@@ -189,7 +189,7 @@ class Case:
     drag_smoothing_rad_s: float = -1.0   # <0: from the plant (reflected to the gear)
     dog_phase_pitch: float = 0.0         # initial dog-tooth misalignment, fraction of a pitch
 
-    def resolved(self, params: dict | None = None) -> "Case":
+    def resolved(self, params: dict | None = None) -> Case:
         """The case with the plant's inertia and drag filled in where left at their defaults."""
         if min(self.gear_inertia_kgm2, self.gear_drag_nm + 1.0, self.gear_drag_nms_per_rad + 1.0,
                self.drag_smoothing_rad_s) > 0.0 and self.gear_drag_nm >= 0.0 \

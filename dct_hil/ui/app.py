@@ -75,8 +75,8 @@ class Hub:
     ``SLOW_S`` (used only in the UI's thread)."""
 
     def __init__(self, ui: Any) -> None:
-        from rt_loop.control import ControlServer  # noqa: PLC0415
-        from rt_loop.stats import StatsReader  # noqa: PLC0415
+        from rt_loop.control import ControlServer
+        from rt_loop.stats import StatsReader
 
         self.ui = ui
         s = self.server = ui.server
@@ -208,14 +208,26 @@ class BenchView:
     """One browser session's document and its periodic update."""
 
     def __init__(self, doc: Any, ui: Any) -> None:
-        from bokeh.layouts import column, row  # noqa: PLC0415
-        from bokeh.models import (  # noqa: PLC0415
-            Button, ColumnDataSource, DataRange1d, DataTable, InlineStyleSheet, MultiChoice,
-            Range1d, Select, Slider, Span, TableColumn, TextInput, Toggle)
-        from bokeh.models import Div as _Div  # noqa: PLC0415
-        from bokeh.plotting import figure  # noqa: PLC0415
+        from bokeh.layouts import column, row
+        from bokeh.models import (
+            Button,
+            ColumnDataSource,
+            DataRange1d,
+            DataTable,
+            InlineStyleSheet,
+            MultiChoice,
+            Range1d,
+            Select,
+            Slider,
+            Span,
+            TableColumn,
+            TextInput,
+            Toggle,
+        )
+        from bokeh.models import Div as _Div
+        from bokeh.plotting import figure
 
-        from rt_loop.faults import KINDS  # noqa: PLC0415
+        from rt_loop.faults import KINDS
 
         self.doc, self.ui, self.hub = doc, ui, ui.hub
         self.server = ui.server
@@ -231,7 +243,7 @@ class BenchView:
         doc.title = ui.title
         sheet = InlineStyleSheet(css=_CSS)
 
-        def Div(**kw: Any) -> Any:  # noqa: N802 (every Div with the page's style sheet)
+        def Div(**kw: Any) -> Any:
             return _Div(stylesheets=[sheet], **kw)
 
         # ---- header and the one-line message
@@ -415,7 +427,7 @@ class BenchView:
                              f"{html.escape(' '.join(str(text).split()))}</span></div>")
 
     def _kind_help(self, kind: str) -> str:
-        from rt_loop.faults import KINDS  # noqa: PLC0415
+        from rt_loop.faults import KINDS
 
         k = KINDS.get(kind)
         if k is None:
@@ -438,7 +450,7 @@ class BenchView:
         """The instrument row: one canvas of boxes whose values are a source's
         column (a Div's new text would lay the whole page out again, 20 times a
         second; a source's new values redraw only this canvas)."""
-        from bokeh.models import Range1d  # noqa: PLC0415
+        from bokeh.models import Range1d
 
         weights = {"gear": 0.6, "maneuver": 1.7, "loop": 1.6, "phase": 1.3}
         x, w = [], []
@@ -488,7 +500,7 @@ class BenchView:
             self._syncing = False
         try:
             self._retrace(wanted)
-        except Exception as e:  # noqa: BLE001 (e.g. 32 values traced by other pages)
+        except Exception as e:
             self.say(str(e), ok=False)
             self._set_picker([])
 
@@ -501,7 +513,7 @@ class BenchView:
             return
         try:
             self._retrace(list(new))
-        except Exception as e:  # noqa: BLE001 (ScopeError and the like: one line, old set kept)
+        except Exception as e:
             self.say(str(e), ok=False)
             self._set_picker(self.traced)
 
@@ -718,7 +730,7 @@ class BenchView:
             return False, None
         try:
             return True, fn()
-        except Exception as e:  # noqa: BLE001 (ServerError and the like: one line)
+        except Exception as e:
             self.say(f"{what}: {e}", ok=False)
             return False, None
 
@@ -772,6 +784,6 @@ class BenchView:
         if self.scope is not None and self.traced:
             try:
                 self.scope.remove(self.traced)
-            except Exception:  # noqa: BLE001 (the scope may be stopped already)
+            except Exception:
                 pass
         self.traced = []

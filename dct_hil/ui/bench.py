@@ -49,8 +49,8 @@ CHROMEDRIVER = "/usr/bin/chromedriver"
 
 def open_browser(url: str, user_dir: str) -> Any:
     """A headless Chromium on ``url`` (Selenium with the system's driver)."""
-    from selenium import webdriver  # noqa: PLC0415
-    from selenium.webdriver.chrome.service import Service  # noqa: PLC0415
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
 
     opts = webdriver.ChromeOptions()
     opts.binary_location = CHROMIUM
@@ -76,7 +76,7 @@ def _page_streams(driver: Any, timeout_s: float = 60.0) -> None:
     while time.monotonic() < end:
         try:
             t = driver.execute_script(script)
-        except Exception:  # noqa: BLE001 (the page is still loading)
+        except Exception:
             t = None
         if t is not None:
             if first is None:
@@ -102,14 +102,14 @@ def updates_per_s(driver: Any, seconds: float = 3.0) -> float | None:
             "}, 2);")
         time.sleep(seconds)
         n = driver.execute_script("clearInterval(window.__dct_timer); return window.__dct_updates;")
-    except Exception:  # noqa: BLE001 (a browser too busy to answer: not measured)
+    except Exception:
         return None
     return max(0.0, float(n) - 1.0) / seconds
 
 
 def _window(server: Any, seconds: float, stop: threading.Event) -> dict:
     """The loop's histograms and counts over the next ``seconds``."""
-    from rt_loop.stats import hist_percentiles  # noqa: PLC0415
+    from rt_loop.stats import hist_percentiles
 
     ffi = server._ffi
 
@@ -138,8 +138,8 @@ def _window(server: Any, seconds: float, stop: threading.Event) -> dict:
 
 
 def _loop_round(args: Any, browsers: int, stop: threading.Event) -> dict:
-    from can_dbc.peer import CanPeer  # noqa: PLC0415
-    from rt_loop.server import Server  # noqa: PLC0415
+    from can_dbc.peer import CanPeer
+    from rt_loop.server import Server
 
     channel = f"bench-ui-{uuid.uuid4().hex[:8]}"
     srv = Server(channel, interface="virtual", priority=args.priority, cpu=args.cpu)
@@ -164,7 +164,7 @@ def _loop_round(args: Any, browsers: int, stop: threading.Event) -> dict:
     try:
         t_settle = time.monotonic()
         if browsers:
-            from dct_hil.ui.server import UiServer  # noqa: PLC0415
+            from dct_hil.ui.server import UiServer
 
             mine = os.sched_getaffinity(0)
             os.sched_setaffinity(0, args.others)   # inherited by the page's thread, the browsers
@@ -192,7 +192,7 @@ def _loop_round(args: Any, browsers: int, stop: threading.Event) -> dict:
         for drv in drivers:
             try:
                 drv.quit()
-            except Exception:  # noqa: BLE001 (the round's figures are taken)
+            except Exception:
                 pass
         if ui is not None:
             ui.stop()
@@ -205,7 +205,7 @@ def _loop_round(args: Any, browsers: int, stop: threading.Event) -> dict:
 
 
 def _floor_round(args: Any, stop: threading.Event) -> dict:
-    from rt_loop.floor import measure_floor  # noqa: PLC0415
+    from rt_loop.floor import measure_floor
 
     fig = measure_floor(duration_s=args.round_s, rate_hz=2000.0, priority=args.priority,
                         cpu=args.cpu, pm_qos_us=0, stop=stop)
@@ -244,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"dct_hil.ui.bench: {exe} not found (apt-get install chromium chromium-driver)",
                   file=sys.stderr)
             return 2
-    from rt_loop.stats import machine_info  # noqa: PLC0415
+    from plant.machine import machine_info
 
     cpus = sorted(os.sched_getaffinity(0))
     if args.cpu is None:

@@ -41,7 +41,8 @@ import secrets
 import socket
 import sys
 import threading
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 from urllib.parse import quote
 
 __all__ = ["DEFAULT_ADDRESS", "UiError", "UiServer", "check_token", "is_loopback",
@@ -238,7 +239,7 @@ class UiServer:
         running)."""
         if self._thread is not None:
             raise UiError("the UI was already started")
-        from dct_hil.ui.app import Hub  # noqa: PLC0415
+        from dct_hil.ui.app import Hub
 
         if self.port == 0:
             try:
@@ -259,13 +260,13 @@ class UiServer:
             raise UiError(f"UI on {self.host}:{self.port}: {why}")
 
     def _run(self) -> None:
-        from bokeh.application import Application  # noqa: PLC0415
-        from bokeh.application.handlers.function import FunctionHandler  # noqa: PLC0415
-        from bokeh.server.server import Server as BokehServer  # noqa: PLC0415
-        from bokeh.settings import settings  # noqa: PLC0415
-        from tornado.ioloop import IOLoop  # noqa: PLC0415
+        from bokeh.application import Application
+        from bokeh.application.handlers.function import FunctionHandler
+        from bokeh.server.server import Server as BokehServer
+        from bokeh.settings import settings
+        from tornado.ioloop import IOLoop
 
-        from dct_hil.ui.app import make_document  # noqa: PLC0415
+        from dct_hil.ui.app import make_document
 
         # a closed tab's last pushes and the login's 403s are the page's business, not
         # the console's (the live status stays readable; refused logins are logged here)
@@ -290,7 +291,7 @@ class UiServer:
                 keep_alive_milliseconds=10000,
                 **kwargs)
             self._bokeh.start()
-        except BaseException as e:  # noqa: BLE001 (reported by start())
+        except BaseException as e:
             self._error = e
             self._ready.set()
             loop.close(all_fds=True)
@@ -301,7 +302,7 @@ class UiServer:
         finally:
             try:
                 loop.close(all_fds=True)
-            except Exception:  # noqa: BLE001 (closing anyway)
+            except Exception:
                 pass
 
     def freeze(self) -> None:
@@ -322,7 +323,7 @@ class UiServer:
         self.recording_path = None
         try:
             final = self.server.stop_recording()
-        except Exception as e:  # noqa: BLE001 (told, the UI still stops)
+        except Exception as e:
             self._log(f"UI: stopping the recording {path}: {_one_line(e)}")
             return None
         final = os.fspath(final) if final else path
@@ -349,7 +350,7 @@ class UiServer:
                     self._bokeh.stop(wait=False)
                     http = self._bokeh._http
                     await asyncio.wait_for(http.close_all_connections(), 2.0)
-            except Exception:  # noqa: BLE001 (stopping anyway)
+            except Exception:
                 pass
             finally:
                 done.set()
@@ -405,8 +406,8 @@ def _safe_next(value: str) -> str:
 
 
 def _token_auth(ui: UiServer) -> Any:
-    from bokeh.server.auth_provider import AuthProvider  # noqa: PLC0415
-    from tornado.web import RequestHandler  # noqa: PLC0415
+    from bokeh.server.auth_provider import AuthProvider
+    from tornado.web import RequestHandler
 
     class LoginHandler(RequestHandler):
         def _page(self, message: str, next_: str) -> str:
@@ -452,8 +453,8 @@ def _token_auth(ui: UiServer) -> Any:
 
 
 def _download_handler() -> type:
-    from bokeh.server.views.auth_request_handler import AuthRequestHandler  # noqa: PLC0415
-    from tornado.web import HTTPError, authenticated  # noqa: PLC0415
+    from bokeh.server.views.auth_request_handler import AuthRequestHandler
+    from tornado.web import HTTPError, authenticated
 
     class RecordingHandler(AuthRequestHandler):
         """GET /recordings/<name>: a file this UI recorded, as an attachment."""

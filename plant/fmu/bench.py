@@ -40,7 +40,7 @@ def wltc_inputs(duration_s: float = 1800.0) -> Scenario:
     the launch): the launch-1st scenario's launch (its first 4.5 s), then, K1
     kept closed in 1st, the pedal following the class 3b speed trace
     (10 % + 0.4 %/(km/h)), so the powertrain is driven the whole time."""
-    from plant.scenario import load_scenario  # noqa: PLC0415
+    from plant.scenario import load_scenario
     launch = load_scenario("launch-1st")
     data = np.loadtxt(_WLTC, delimiter=",", comments="#", skiprows=4)
     v = data[:, 1]
@@ -56,7 +56,7 @@ def wltc_inputs(duration_s: float = 1800.0) -> Scenario:
 
 
 def _table(s: Scenario) -> np.ndarray:
-    from plant.fmu.scenario import input_table  # noqa: PLC0415
+    from plant.fmu.scenario import input_table
     return input_table(s)
 
 
@@ -67,9 +67,10 @@ def lean_master(unzipdir: str, md, scenario: Scenario, step_s: float, start: dic
     does; FMPy's ``simulate_fmu`` adds its input-event scan, interpolation
     and recorder in Python at every step). Returns the outputs, one row
     per communication point."""
-    from fmpy.fmi2 import FMU2Slave  # noqa: PLC0415
-    from fmpy.fmi3 import FMU3Slave  # noqa: PLC0415
-    import ctypes  # noqa: PLC0415
+    import ctypes
+
+    from fmpy.fmi2 import FMU2Slave
+    from fmpy.fmi3 import FMU3Slave
     v3 = md.fmiVersion.startswith("3")
     vr = {v.name: v.valueReference for v in md.modelVariables}
     outs = [v.valueReference for v in md.modelVariables if v.causality == "output"]
@@ -97,16 +98,16 @@ def lean_master(unzipdir: str, md, scenario: Scenario, step_s: float, start: dic
     buf = (ctypes.c_double * len(outs))()
     view = np.frombuffer(buf, dtype=np.float64)
     if v3:
-        get = lambda: fmu.fmi3GetFloat64(c, out_vr, len(outs), buf, len(outs))  # noqa: E731
-        put = lambda: fmu.fmi3SetFloat64(c, in_vrs, len(in_vr), values, len(in_vr))  # noqa: E731
+        get = lambda: fmu.fmi3GetFloat64(c, out_vr, len(outs), buf, len(outs))  # noqa: E731 (bound before the timed loop)
+        put = lambda: fmu.fmi3SetFloat64(c, in_vrs, len(in_vr), values, len(in_vr))  # noqa: E731 (bound before the timed loop)
         ev, term, early, last = (ctypes.c_bool(), ctypes.c_bool(), ctypes.c_bool(),
                                  ctypes.c_double())
-        step = lambda t: fmu.fmi3DoStep(c, t, step_s, True, ctypes.byref(ev), ctypes.byref(term),  # noqa: E731
+        step = lambda t: fmu.fmi3DoStep(c, t, step_s, True, ctypes.byref(ev), ctypes.byref(term),  # noqa: E731 (bound before the timed loop)
                                         ctypes.byref(early), ctypes.byref(last))
     else:
-        get = lambda: fmu.fmi2GetReal(c, out_vr, len(outs), buf)  # noqa: E731
-        put = lambda: fmu.fmi2SetReal(c, in_vrs, len(in_vr), values)  # noqa: E731
-        step = lambda t: fmu.fmi2DoStep(c, t, step_s, 1)  # noqa: E731
+        get = lambda: fmu.fmi2GetReal(c, out_vr, len(outs), buf)  # noqa: E731 (bound before the timed loop)
+        put = lambda: fmu.fmi2SetReal(c, in_vrs, len(in_vr), values)  # noqa: E731 (bound before the timed loop)
+        step = lambda t: fmu.fmi2DoStep(c, t, step_s, 1)  # noqa: E731 (bound before the timed loop)
     get()
     out[0] = view
     row_k = scenario.row_steps(step_s)
@@ -127,9 +128,9 @@ def lean_master(unzipdir: str, md, scenario: Scenario, step_s: float, start: dic
 
 def run(fmi: int = 2, step_s: float = 0.01, duration_s: float = 1800.0, repeat: int = 3,
         json_path: str | None = None, out=sys.stdout) -> dict:
-    import fmpy  # noqa: PLC0415
+    import fmpy
 
-    from plant.fmu.scenario import start_values  # noqa: PLC0415
+    from plant.fmu.scenario import start_values
     scenario = wltc_inputs(duration_s)
     table = _table(scenario)
     start = start_values(scenario)

@@ -106,7 +106,7 @@ def compile_binary(sources_dir: Path, out_so: Path) -> None:
 
 def _version() -> str:
     try:
-        from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415
+        from importlib.metadata import PackageNotFoundError, version
         return version("dct-hil")
     except (ImportError, PackageNotFoundError):
         return ""
@@ -203,7 +203,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, out=None, err=None, prog: str = "dct-hil fmu") -> int:
-    from plant.params import ParamError  # noqa: PLC0415
+    from plant.params import ParamError
     out = out or sys.stdout
     err = err or sys.stderr
     try:

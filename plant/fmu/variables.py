@@ -111,7 +111,7 @@ class Model:
 
 
 def _ffi():
-    from plant._dct_plant import ffi  # noqa: PLC0415 (the compiled module)
+    from plant._dct_plant import ffi
     return ffi
 
 
@@ -195,7 +195,7 @@ def load(params_path: str | os.PathLike | None = None) -> Model:
 
     plant = ffi.new("dct_plant *")
     _params.fill_params(ffi, ffi.addressof(plant[0], "params"), values)
-    from plant._dct_plant import lib  # noqa: PLC0415
+    from plant._dct_plant import lib
     if lib.dct_plant_init(plant) != lib.DCT_OK:
         raise FmuError("the plant's C core refused the parameter set (dct_plant_init)")
 
@@ -254,10 +254,10 @@ def _initial_defaults(values: dict | None = None) -> dict:
     """dct_initial's defaults: standing, neutral, clutches open, engine on,
     the parameters' initial temperatures (what ``Plant.reset()`` and the
     scenarios start from); ``values``: the car's parameters (default car)."""
-    from plant.scenario import INITIAL_KEYS  # noqa: PLC0415
+    from plant.scenario import INITIAL_KEYS
     if values is None:
-        from plant.params import load_params  # noqa: PLC0415
-        values = load_params(None, ffi)
+        from plant.params import load_params
+        values = load_params(None, _ffi())
     k = INITIAL_KEYS
     th = values["thermal"]
     return {"vehicle_speed_kmh": k["vehicle_speed_kmh"],

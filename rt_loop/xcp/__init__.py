@@ -103,7 +103,7 @@ class XcpServer:
         if memory is None or daq is None:
             if loop is None:
                 raise TypeError("XcpServer needs the loop (ffi, lib, loop) or memory= and daq=")
-            from rt_loop.xcp.loop_backend import LoopBackend  # noqa: PLC0415
+            from rt_loop.xcp.loop_backend import LoopBackend
 
             self.backend = LoopBackend(ffi, lib, loop, readable=readable, ranges=ranges)
             memory = memory or self.backend

@@ -52,6 +52,7 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any
 
+from plant import __version__
 from plant.describe import RANGES as _RANGES
 from plant.describe import header_comments as _header_comments
 from plant.describe import online_keys, unit_of
@@ -301,7 +302,7 @@ class _Builder:
         self.names: set[str] = set()
         self.c_comments = _header_comments()
         if params_doc is None:
-            from plant.params import DEFAULT_PARAMS  # noqa: PLC0415
+            from plant.params import DEFAULT_PARAMS
 
             params_doc = DEFAULT_PARAMS
         self.p_comments = (dict(params_doc) if isinstance(params_doc, dict)
@@ -601,10 +602,6 @@ def epk(ffi: Any, lib: Any, *, channels: Any = None, objs: list | None = None) -
     """The A2L's ident (MOD_PAR EPK): the project's version and a hash of the
     layout it describes (size of the rt_loop, every object's name, address,
     type and size), so a stale A2L can be told from a matching one."""
-    try:
-        from dct_hil import __version__  # noqa: PLC0415
-    except ImportError:  # pragma: no cover
-        __version__ = "0"
     objs = objs if objs is not None else objects(ffi, lib, channels=channels)
     h = hashlib.sha256(f"rt_loop {ffi.sizeof('rt_loop')}\n".encode())
     for o in objs:
@@ -631,7 +628,7 @@ def _slug(unit: str) -> str:
 def _time_code(seconds: float) -> tuple[int, int]:
     """XCP EVENT TIME_CYCLE and TIME_UNIT of a cycle time, as the slave's
     GET_DAQ_EVENT_INFO codes it (one rule: rt_loop.xcp.protocol.event_cycle)."""
-    from rt_loop.xcp.protocol import event_cycle  # noqa: PLC0415
+    from rt_loop.xcp.protocol import event_cycle
 
     return event_cycle(seconds)
 
@@ -745,10 +742,6 @@ def generate(ffi: Any, lib: Any, *, channels: Any = None, params_doc: Any = None
     cfg = _xcp_settings(xcp, channels, lib)
     objs = objects(ffi, lib, channels=channels, params_doc=params_doc)
     ident = epk(ffi, lib, objs=objs)
-    try:
-        from dct_hil import __version__  # noqa: PLC0415
-    except ImportError:  # pragma: no cover
-        __version__ = "0"
 
     out: list[str] = ["ASAP2_VERSION 1 71",
                       '/begin PROJECT dct_hil "dct-hil: hardware-in-the-loop plant of the VW DSG 02E"',
@@ -762,8 +755,8 @@ def generate(ffi: Any, lib: Any, *, channels: Any = None, params_doc: Any = None
     out += ["    /end MOD_PAR",
                       '    /begin MOD_COMMON "little endian, natural alignment (x86-64, aarch64)"',
                       "      BYTE_ORDER MSB_LAST",
-                      f"      ALIGNMENT_BYTE 1 ALIGNMENT_WORD 2 ALIGNMENT_LONG 4 ALIGNMENT_INT64 8 "
-                      f"ALIGNMENT_FLOAT32_IEEE 4 ALIGNMENT_FLOAT64_IEEE 8",
+                      "      ALIGNMENT_BYTE 1 ALIGNMENT_WORD 2 ALIGNMENT_LONG 4 ALIGNMENT_INT64 8 "
+                      "ALIGNMENT_FLOAT32_IEEE 4 ALIGNMENT_FLOAT64_IEEE 8",
                       "    /end MOD_COMMON"]
     out += ["    " + line for line in _if_data(cfg, lib)]
 
@@ -921,11 +914,11 @@ def run(args: argparse.Namespace, out=None, err=None, prog: str = "dct-hil a2l")
     if problem:
         return fail(2, problem)
     try:
-        from rt_loop._rt_loop import ffi, lib  # noqa: PLC0415
+        from rt_loop._rt_loop import ffi, lib
     except ImportError as e:
         return fail(1, f"the loop's C extension is not built ({e}); run scripts/setup")
-    from can_dbc.mapping import MappingError, load_options  # noqa: PLC0415
-    from rt_loop.channels import ChannelError, LoopChannels  # noqa: PLC0415
+    from can_dbc.mapping import MappingError, load_options
+    from rt_loop.channels import ChannelError, LoopChannels
 
     try:
         mapping = load_options(getattr(args, "mapping", None), getattr(args, "dbc", None) or (),

@@ -187,15 +187,15 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not (1 <= args.signals <= 1000 and args.pairs >= 1 and args.round_s > 0):
         p.error("--signals 1..1000, --pairs >= 1, --round-s > 0")
+    from plant.machine import machine_info
     from rt_loop._rt_loop import ffi
-    from rt_loop.stats import machine_info
 
     signals = measurable_doubles(ffi, args.signals)
     copy_ns, n_odts = daq_copy_ns(signals)
     print(f"DAQ copy alone (rt_daq_bench, cache warm): {len(signals)} doubles in {n_odts} ODTs: "
           f"{copy_ns:.0f} ns per tick (target {TARGET_NS:.0f} ns)", flush=True)
     rounds = []
-    for i in range(args.pairs):
+    for _ in range(args.pairs):
         for with_xcp in (False, True):
             r = _round(args, with_xcp, signals)
             rounds.append(r)

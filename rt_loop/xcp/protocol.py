@@ -272,7 +272,7 @@ def compute_key(secret: bytes, seed: bytes) -> bytes:
 def seed_n_key_function(secret: bytes) -> Callable[[int, bytes], bytes]:
     """The master's side, as pyxcp's ``General.seed_n_key_function`` takes it."""
 
-    def key_for(resource: int, seed: bytes) -> bytes:  # noqa: ARG001 (same key for every resource)
+    def key_for(resource: int, seed: bytes) -> bytes:
         return compute_key(secret, bytes(seed))
 
     return key_for
@@ -495,7 +495,7 @@ class Slave:
                 payload = method(cto)
             except _Refused as e:
                 return [self._error(e.code)]
-            except Exception:  # noqa: BLE001 (a backend's bug must not stop the slave)
+            except Exception:
                 self._bump(self._ignored, "internal_error")
                 return [self._error(ERR_GENERIC)]
             if payload is None:
@@ -791,7 +791,7 @@ class Slave:
         return bytes([1, 0])                   # one segment, no freeze
 
     def _get_segment_info(self, p: bytes) -> bytes:
-        mode, segment, info, mapping = p[1], p[2], p[3], p[4]
+        mode, segment, info, _mapping = p[1], p[2], p[3], p[4]   # p[4]: a short packet fails here
         self._segment(segment)
         if mode == 0:
             start = self._regions[0][0] if self._regions else 0

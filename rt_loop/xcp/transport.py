@@ -168,7 +168,7 @@ class _Server:
         def run() -> None:
             try:
                 target()
-            except Exception as e:  # noqa: BLE001 (reported in counters, never fatal to the loop)
+            except Exception as e:
                 self.error = f"{type(e).__name__}: {e}"
         return run
 

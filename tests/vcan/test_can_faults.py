@@ -35,8 +35,8 @@ def _wait(pred, what, timeout=WAIT_S, step=0.1):
 
 
 def _serve(vcan0, d, name):
-    out = open(d / f"{name}.out", "w")  # noqa: SIM115
-    err = open(d / f"{name}.err", "w")  # noqa: SIM115
+    out = open(d / f"{name}.out", "w")
+    err = open(d / f"{name}.err", "w")
     p = subprocess.Popen(
         [sys.executable, "-m", "dct_hil.cli", "serve", "--channel", vcan0, "--interface",
          "socketcan", "--priority", "0", "--no-pm-qos", "--quiet",

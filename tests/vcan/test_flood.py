@@ -144,7 +144,7 @@ def flood(vcan0, tmp_path_factory):
         # the value the loop decoded from the first ClutchCmd after the flood (the
         # plant's input falls back to 0 A when the message times out again)
         index = srv.faults.names.signals["TCU_ClutchCmd.SolenoidCurrent1"][2]
-        r["solenoid_current1_signal"] = float(srv._l.signal_values[index])  # noqa: SLF001
+        r["solenoid_current1_signal"] = float(srv._l.signal_values[index])
         r["pre_resume"] = pre
         _quiet(srv, "the TCU's frames")
         r["before"] = before

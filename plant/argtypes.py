@@ -1,6 +1,8 @@
 """Option types shared by the dct-hil commands: each turns the text of an
 option into a value or raises ``argparse.ArgumentTypeError`` with the reason,
-which argparse prints as one line naming the option."""
+which argparse prints as one line naming the option. In the lowest layer so
+that every command line (the plant's, the TCU's, the loop's tools, dct-hil's)
+takes its options with the same rules."""
 
 import argparse
 import math
