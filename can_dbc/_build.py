@@ -10,8 +10,9 @@ their functions as it is. The cdef is the public header, read as
 plant/_build.py reads dct_plant.h.
 """
 
-import importlib.util
 import os
+import runpy
+from types import SimpleNamespace
 
 from cffi import FFI
 
@@ -19,17 +20,8 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 _ROOT = os.path.dirname(_HERE)
 _CSRC = os.path.join(_HERE, "csrc")
 
-
-def _plant_build():
-    # loaded by path: setuptools runs build files by path, not as package modules
-    path = os.path.join(_ROOT, "plant", "_build.py")
-    spec = importlib.util.spec_from_file_location("_dct_plant_build", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-_plant = _plant_build()
+# loaded by path: setuptools runs build files by path, not as package modules
+_plant = SimpleNamespace(**runpy.run_path(os.path.join(_ROOT, "plant", "_build.py")))
 # the plant builder's helpers, for this builder and the ones that load it
 cdef_text, rel, COMPILE_ARGS = _plant.cdef_text, _plant.rel, _plant.COMPILE_ARGS
 #: the codec's C source and header, for the extensions that compile it in

@@ -12,8 +12,9 @@ reads dct_plant.h: every preprocessor line dropped except ``#define NAME
 """
 
 import glob
-import importlib.util
 import os
+import runpy
+from types import SimpleNamespace
 
 from cffi import FFI
 
@@ -29,17 +30,8 @@ _HEADERS = (
     os.path.join(_RT_CSRC, "rt_floor.h"),
 )
 
-
-def _can_build():
-    # loaded by path: setuptools runs build files by path, not as package modules
-    path = os.path.join(_ROOT, "can_dbc", "_build.py")
-    spec = importlib.util.spec_from_file_location("_can_table_build", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-_can = _can_build()
+# loaded by path: setuptools runs build files by path, not as package modules
+_can = SimpleNamespace(**runpy.run_path(os.path.join(_ROOT, "can_dbc", "_build.py")))
 
 
 def _sources():

@@ -12,8 +12,9 @@ structs are declared to cffi by name only (their layout comes from
 read as plant/_build.py reads dct_plant.h.
 """
 
-import importlib.util
 import os
+import runpy
+from types import SimpleNamespace
 
 from cffi import FFI
 
@@ -30,17 +31,8 @@ typedef struct { ...; } dct_outputs;
 typedef struct { ...; } dct_plant;
 """
 
-
-def _can_build():
-    # loaded by path: setuptools runs build files by path, not as package modules
-    path = os.path.join(_ROOT, "can_dbc", "_build.py")
-    spec = importlib.util.spec_from_file_location("_can_table_build", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-_can = _can_build()
+# loaded by path: setuptools runs build files by path, not as package modules
+_can = SimpleNamespace(**runpy.run_path(os.path.join(_ROOT, "can_dbc", "_build.py")))
 _rel = _can.rel
 
 
