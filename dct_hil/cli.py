@@ -1062,7 +1062,7 @@ def cmd_a2l(args):
 
 
 def cmd_doctor(args):
-    from rt_loop.doctor import DoctorError, run_doctor
+    from rt_loop.tools.doctor import DoctorError, run_doctor
 
     to_file = args.json not in (None, "-")
     if to_file:

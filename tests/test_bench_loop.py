@@ -1,4 +1,4 @@
-"""The loop benchmark (rt_loop.bench): round schedule, judgement, output, options.
+"""The loop benchmark (rt_loop.tools.bench): round schedule, judgement, output, options.
 
 Most tests feed made-up figures to the pure functions (the schedule, the
 neighbouring floors, the ratios and the targets, the table); two short
@@ -17,7 +17,7 @@ import uuid
 
 import pytest
 
-from rt_loop import bench
+from rt_loop.tools import bench
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -239,7 +239,7 @@ def test_cyclictest_without_pm_qos_gets_laptop_and_its_request_is_parsed():
 def test_bad_options_are_one_line_exit_2(capsys, tmp_path, argv, words):
     assert bench.main(argv + ["--json", str(tmp_path / "b.json")]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith("rt_loop.bench: error:")
+    assert len(err.splitlines()) == 1 and err.startswith("rt_loop.tools.bench: error:")
     assert words in err
     assert not (tmp_path / "b.json").exists()
 
@@ -263,7 +263,7 @@ def test_defaults_of_each_mode():
 # --------------------------------------------------------------------------
 
 def bench_cmd(tmp_path, *extra):
-    return [sys.executable, "-m", "rt_loop.bench", "--priority", "0",
+    return [sys.executable, "-m", "rt_loop.tools.bench", "--priority", "0",
             "--channel", f"bench-{uuid.uuid4().hex[:8]}", "--json", str(tmp_path / "b.json"),
             *extra]
 

@@ -1,4 +1,4 @@
-"""dct-hil doctor (rt_loop/doctor.py): every item's verdicts on fake /proc and
+"""dct-hil doctor (rt_loop/tools/doctor.py): every item's verdicts on fake /proc and
 /sys trees, odd files, the report, and the command line.
 
 The baseline tree is a well set-up bench PC (PREEMPT_RT, CPU 3 of four
@@ -16,9 +16,9 @@ import struct
 import pytest
 
 from dct_hil import cli
-from rt_loop import doctor
-from rt_loop.doctor import parse_cpulist, run_doctor
 from rt_loop.floor import FloorError
+from rt_loop.tools import doctor
+from rt_loop.tools.doctor import parse_cpulist, run_doctor
 
 IP_CAN0 = {
     "ifname": "can0", "flags": ["NOARP", "UP", "LOWER_UP", "ECHO"], "operstate": "UP",

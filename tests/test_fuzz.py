@@ -45,7 +45,7 @@ def test_a_short_fuzz_run_explains_every_frame_and_writes_its_table(tmp_path):
 
 def test_the_counter_model_follows_the_loops_check():
     from can_dbc import codec
-    from rt_loop.fuzz import Generator
+    from rt_loop.tools.fuzz import Generator
 
     g = Generator(5, "embedded", True)
     rx = codec.E2eReceiver(sender="TCU")
@@ -59,11 +59,11 @@ def test_the_counter_model_follows_the_loops_check():
 
 
 def test_bad_options_are_refused(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "rt_loop.fuzz", "--frames", "-3"], cwd=REPO,
+    p = subprocess.run([sys.executable, "-m", "rt_loop.tools.fuzz", "--frames", "-3"], cwd=REPO,
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 2
     assert p.stderr.strip().splitlines()[-1].startswith("scripts/fuzz: error: argument --frames")
-    p = subprocess.run([sys.executable, "-m", "rt_loop.fuzz", "--transport", "socketcan",
+    p = subprocess.run([sys.executable, "-m", "rt_loop.tools.fuzz", "--transport", "socketcan",
                         "--channel", "nosuchcan9", "--frames", "10"], cwd=REPO,
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1
@@ -92,7 +92,7 @@ def test_an_xcp_datagram_of_no_bytes_is_counted_as_a_bad_frame():
 
 @pytest.mark.parametrize("kind", ["remote", "error", "fd"])
 def test_frames_the_bridge_does_not_forward_are_expected_there(kind):
-    from rt_loop.fuzz import Generator
+    from rt_loop.tools.fuzz import Generator
 
     g = Generator(1, "embedded", True)
     seen = set()

@@ -104,7 +104,7 @@ def test_pyxcp_measures_20_signals_at_2_khz_and_calibrates_the_grade(server):
         assert struct.unpack("<d", x.shortUpload(8, grade_at))[0] == 10.0
         x.disconnect()
     # about 20 000 ticks measured; that none is lost under any load is the XCP benchmark's
-    # figure (python -m rt_loop.xcp.bench: DTOs received and lost), not this test's
+    # figure (python -m rt_loop.tools.xcp_bench: DTOs received and lost), not this test's
     assert len(rows) >= 19_000
     # pyxcp hands the values over in the order it packed them: by address
     addresses = sorted(m[1] for m in measurements())
@@ -179,10 +179,10 @@ def test_a_taken_port_is_one_line_and_nothing_is_left_running():
 
 @pytest.mark.slow
 def test_the_xcp_benchmark_writes_its_figures(tmp_path):
-    """python -m rt_loop.xcp.bench in its shortest form: the figures are there (never judged)."""
+    """python -m rt_loop.tools.xcp_bench in its shortest form: the figures are there (never judged)."""
     import json
 
-    from rt_loop.xcp import bench
+    from rt_loop.tools import xcp_bench as bench
 
     out = tmp_path / "bench-xcp.json"
     assert bench.main(["--signals", "30", "--pairs", "1", "--round-s", "1", "--priority", "0",

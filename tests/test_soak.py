@@ -10,7 +10,7 @@ import subprocess
 
 import pytest
 
-from rt_loop import soak
+from rt_loop.tools import soak
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -712,11 +712,11 @@ def speed(quick: bool, plots: Path, doc_dir: Path) -> Section:
     cmd = ["--rounds", str(rounds), "--round-s", str(round_s)]
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench-loop.json"
-        proc = subprocess.run([sys.executable, "-m", "rt_loop.bench", *cmd, "--json", str(path)],
+        proc = subprocess.run([sys.executable, "-m", "rt_loop.tools.bench", *cmd, "--json", str(path)],
                               capture_output=True, text=True,
                               timeout=(2 * rounds + 1) * (round_s + 30) + 120, cwd=REPO)
         rep = json.loads(path.read_text()) if path.exists() else None
-    sec.lines += ["", f"Loop benchmark (`python -m rt_loop.bench {' '.join(cmd)}`: the server at "
+    sec.lines += ["", f"Loop benchmark (`python -m rt_loop.tools.bench {' '.join(cmd)}`: the server at "
                   "2 kHz, SCHED_FIFO, PM QoS, bridge transport with a test TCU, in rounds between "
                   "rounds of the machine's wake-up floor measured alone (the C floor loop, "
                   "`rt_loop/floor.py`); the README's figures come from longer runs of the same "

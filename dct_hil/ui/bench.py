@@ -14,7 +14,7 @@ last) and everything else of the benchmark (browsers, the page's server,
 the TCU peer) on the others, as on a bench PC whose loop has a CPU of its
 own. Loop rounds are the plant server at 2 kHz under
 SCHED_FIFO on the bridge transport with a test TCU peer sending commands (as
-``rt_loop.bench``). Each loop round settles first (the browsers start and
+``rt_loop.tools.bench``). Each loop round settles first (the browsers start and
 load the page there); its figures are the turnaround and execution
 histograms of the ``--round-s`` window after that (the difference of two
 copies of the loop's 1 us histograms), its overruns and skipped ticks in

@@ -11,7 +11,7 @@
   (the kernel's drops on the server's socket, SO_RXQ_OVFL, and in its
   receive backlog, /proc/net/softnet_stat), and the TCU's first frame after
   the flood is accepted and decoded (its value is the message's last).
-- ``rt_loop.fuzz`` over SocketCAN for 20 s with CAN FD frames (1e7 frames on
+- ``rt_loop.tools.fuzz`` over SocketCAN for 20 s with CAN FD frames (1e7 frames on
   the embedded transport are scripts/test-long's) (vcan0's MTU
   raised to 72 for the test): every frame accounted for, the table written
   to the run folder.
@@ -215,7 +215,7 @@ def fd_mtu(vcan0):
 def test_fuzz_on_vcan0_explains_every_frame(fd_mtu, tmp_path_factory):
     d = tmp_path_factory.mktemp("fuzz")
     out = d / "fuzz.json"
-    p = subprocess.run([sys.executable, "-m", "rt_loop.fuzz", "--transport", "socketcan",
+    p = subprocess.run([sys.executable, "-m", "rt_loop.tools.fuzz", "--transport", "socketcan",
                         "--channel", fd_mtu, "--fd", "--seconds", "20", "--time-scale", "0.02",
                         "--bursts", "1", "--burst-frames", "5000", "--silent-restarts", "1",
                         "--xcp-packets", "100", "--seed", "18", "--json", str(out), "--quiet"],

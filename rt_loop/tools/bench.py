@@ -1,9 +1,9 @@
 """Loop benchmark: the plant loop alone against the machine's wake-up floor alone.
 
-    python -m rt_loop.bench [--rounds 5] [--round-s 20] [--floor c|cyclictest]
+    python -m rt_loop.tools.bench [--rounds 5] [--round-s 20] [--floor c|cyclictest]
                             [--no-pm-qos] [--rate 2000] [--priority 80] [--cpu N]
                             [--json out/bench-loop.json] [--check]
-    python -m rt_loop.bench --same-run [--duration 60] ...
+    python -m rt_loop.tools.bench --same-run [--duration 60] ...
 
 Rounds (the default). Rounds of ``--round-s`` seconds alternate, one thing
 running at a time: the machine's floor, the loop, the floor, the loop, ...,
@@ -128,7 +128,7 @@ def _spin_us(text):
 
 
 def build_parser():
-    p = _Parser(prog="python -m rt_loop.bench",
+    p = _Parser(prog="python -m rt_loop.tools.bench",
                 description="Benchmark the real-time loop (bridge transport, TCU peer, SCHED_FIFO) "
                             "in rounds alternating with the machine's wake-up floor, one at a "
                             "time.")
@@ -576,7 +576,7 @@ def measure_loop_round(args, stop, progress, duration_s=None, beside=None):
 
 
 def _note(progress, line):
-    print(f"rt_loop.bench: {line}", file=progress, flush=True)
+    print(f"rt_loop.tools.bench: {line}", file=progress, flush=True)
 
 
 # --------------------------------------------------------------------------
@@ -848,7 +848,7 @@ def _load_average():
 def _machine():
     from plant.machine import machine_info
 
-    info = machine_info()
+    info = machine_info(build=True)      # with the git commit (and the compiler)
     info["load_average_start"] = _load_average()
     info["rt_runtime_us"] = _read("/proc/sys/kernel/sched_rt_runtime_us")
     info["rt_period_us"] = _read("/proc/sys/kernel/sched_rt_period_us")
@@ -856,17 +856,6 @@ def _machine():
     info["cpuidle_driver"] = _read("/sys/devices/system/cpu/cpuidle/current_driver")
     info["pm_qos_in_force_us_start"] = _in_force_us()
     info["euid"] = os.geteuid()
-    here = os.path.dirname(os.path.abspath(__file__))
-    try:
-        r = subprocess.run(["git", "-C", here, "rev-parse", "HEAD"], capture_output=True,
-                           text=True, timeout=10)
-        info["git_commit"] = r.stdout.strip() if r.returncode == 0 else None
-        if info["git_commit"]:
-            r = subprocess.run(["git", "-C", here, "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10)
-            info["git_dirty"] = bool(r.stdout.strip()) if r.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        info["git_commit"] = None
     return info
 
 
@@ -1150,27 +1139,27 @@ def main(argv=None, progress=None):
                 rep = run_rounds(args, progress, stopper.event,
                                  write=lambda r: write_json(args.json, r))
     except BenchError as e:
-        print(f"rt_loop.bench: error: {' '.join(str(e).split())}", file=sys.stderr)
+        print(f"rt_loop.tools.bench: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("rt_loop.bench: aborted", file=sys.stderr)
+        print("rt_loop.tools.bench: aborted", file=sys.stderr)
         return 130
     except OSError as e:
-        print(f"rt_loop.bench: error: cannot write {args.json}: {e.strerror or e}", file=sys.stderr)
+        print(f"rt_loop.tools.bench: error: cannot write {args.json}: {e.strerror or e}", file=sys.stderr)
         return 2
     for line in table_lines(rep):
         print(line)
     try:
         write_json(args.json, rep)
     except OSError as e:
-        print(f"rt_loop.bench: error: cannot write {args.json}: {e.strerror or e}", file=sys.stderr)
+        print(f"rt_loop.tools.bench: error: cannot write {args.json}: {e.strerror or e}", file=sys.stderr)
         return 2
     print(f"json              {args.json}")
     if stopper.signum is not None:
         return 128 + stopper.signum
     if args.check and not rep["pass"]:
         missed = [t["target"] for t in rep["targets"] if t["status"] == "FAIL"]
-        print(f"rt_loop.bench: check failed: {'; '.join(missed)}", file=sys.stderr)
+        print(f"rt_loop.tools.bench: check failed: {'; '.join(missed)}", file=sys.stderr)
         return 1
     return 0
 

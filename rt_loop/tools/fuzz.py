@@ -1,8 +1,8 @@
 """Fuzz: hostile traffic into a running plant server, every frame accounted for.
 
-    python -m rt_loop.fuzz --frames 1000000 --seed 7            # scripts/fuzz
-    python -m rt_loop.fuzz --transport socketcan --channel vcan0 --seconds 60
-    python -m rt_loop.fuzz --transport udp_multicast --frames 200000 --xcp-packets 0
+    python -m rt_loop.tools.fuzz --frames 1000000 --seed 7            # scripts/fuzz
+    python -m rt_loop.tools.fuzz --transport socketcan --channel vcan0 --seconds 60
+    python -m rt_loop.tools.fuzz --transport udp_multicast --frames 200000 --xcp-packets 0
 
 The server (``rt_loop.server.Server``) runs in this process on the chosen
 transport (``embedded``: python-can's in-process virtual bus through the

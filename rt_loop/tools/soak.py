@@ -1,7 +1,7 @@
 """Soak: the plant server and the reference TCU for hours, memory watched.
 
-    python -m rt_loop.soak --hours 1            # scripts/soak --hours 1
-    python -m rt_loop.soak --minutes 3 --out out/soak-short
+    python -m rt_loop.tools.soak --hours 1            # scripts/soak --hours 1
+    python -m rt_loop.tools.soak --minutes 3 --out out/soak-short
 
 One process: ``rt_loop.server.Server`` on the embedded transport
 (python-can's in-process virtual bus, bridged into the loop's rings) and the

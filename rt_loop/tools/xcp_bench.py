@@ -1,11 +1,11 @@
 """XCP measurement benchmark: the loop with N signals measured at 2 kHz over XCP
 beside the same loop without XCP, in one run.
 
-    python -m rt_loop.xcp.bench [--signals 100] [--pairs 3] [--round-s 20]
+    python -m rt_loop.tools.xcp_bench [--signals 100] [--pairs 3] [--round-s 20]
                                 [--priority 80] [--json out/bench-xcp.json]
 
 Rounds alternate, one loop at a time: the plant server (2 kHz, SCHED_FIFO,
-bridge transport, a test TCU peer sending commands, as rt_loop.bench's loop
+bridge transport, a test TCU peer sending commands, as rt_loop.tools.bench's loop
 round) without XCP, then with XCP on UDP loopback and pyxcp as the master
 measuring ``--signals`` doubles (plant outputs, inputs and state, in address
 order) on the tick event, ``--pairs`` times. Per round: turnaround and
@@ -177,7 +177,7 @@ def daq_copy_ns(signals, iterations=200_000):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m rt_loop.xcp.bench", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m rt_loop.tools.xcp_bench", description=__doc__.split("\n")[0])
     p.add_argument("--signals", type=int, default=100)
     p.add_argument("--pairs", type=int, default=3)
     p.add_argument("--round-s", type=float, default=20.0)

@@ -1,11 +1,11 @@
 """Failure simulation benchmark: the loop with 20 faults active beside the same
 loop without any, in one run.
 
-    python -m rt_loop.faults_bench [--pairs 3] [--round-s 20] [--priority 80]
+    python -m rt_loop.tools.faults_bench [--pairs 3] [--round-s 20] [--priority 80]
                                    [--json out/bench-faults.json] [--check]
 
 Rounds alternate, one loop at a time: the plant server (2 kHz, SCHED_FIFO,
-bridge transport, a test TCU peer sending commands, as rt_loop.bench's loop
+bridge transport, a test TCU peer sending commands, as rt_loop.tools.bench's loop
 round) without faults, then with ``FAULTS`` active from the first tick
 (20: four CAN faults on sent messages, twelve signal faults on sent and
 received signals, four physical faults with values that leave the run as it
@@ -92,7 +92,7 @@ def _round(args, with_faults):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m rt_loop.faults_bench",
+    p = argparse.ArgumentParser(prog="python -m rt_loop.tools.faults_bench",
                                 description=__doc__.split("\n")[0])
     p.add_argument("--pairs", type=int, default=3)
     p.add_argument("--round-s", type=float, default=20.0)
