@@ -385,7 +385,7 @@ class Bench:
     def recording(self) -> dict:
         """The run's recording read back ({column: array}); complete after stop(),
         up to the last flush while running."""
-        from rt_loop.recorder import read_recording
+        from rt_loop.measure.recorder import read_recording
 
         if not self.record_path:
             raise BenchError("recording: this bench records nothing (start it with record=PATH)")

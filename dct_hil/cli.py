@@ -285,7 +285,7 @@ def build_parser():
                              "instead of the table")
     doctor.set_defaults(func=cmd_doctor)
 
-    from rt_loop.xcp import a2l as a2l_module
+    from rt_loop.measure.xcp import a2l as a2l_module
 
     a2l_cmd = sub.add_parser(
         "a2l", help="write the A2L (ASAP2) file of the loop's memory for an XCP master",
@@ -1056,7 +1056,7 @@ def cmd_fmu(args):
 
 
 def cmd_a2l(args):
-    from rt_loop.xcp import a2l
+    from rt_loop.measure.xcp import a2l
 
     return a2l.run(args)
 

@@ -236,7 +236,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     from plant import maneuvers as mv
     from plant.plots import write_plots
     from rt_loop import verdict as vd
-    from rt_loop.recorder import read_recording
+    from rt_loop.measure.recorder import read_recording
     from rt_loop.server import Server, StopSignals
 
     out = sys.stdout if out is None else out

@@ -2,7 +2,7 @@
 (from the field name's suffix), its comment (in the C header, in the
 parameter TOML), its allowed range and whether it may change while running
 (``plant/data/ranges.toml``). Read by the generated descriptions of the
-plant (the A2L of rt_loop/xcp/a2l.py, the FMU's modelDescription.xml of
+plant (the A2L of rt_loop/measure/xcp/a2l.py, the FMU's modelDescription.xml of
 plant/fmu/) so that they describe it alike.
 """
 

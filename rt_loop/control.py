@@ -120,9 +120,9 @@ class ControlServer:
 
     def __init__(self, server: Any, path: str | os.PathLike | None) -> None:
         from rt_loop.faults import FaultError
+        from rt_loop.measure.stimulus import writable_of_regions
+        from rt_loop.measure.xcp import a2l as _a2l
         from rt_loop.stats import StatsReader
-        from rt_loop.stimulus import writable_of_regions
-        from rt_loop.xcp import a2l as _a2l
 
         self.server = server
         self.path = None if path is None else os.fspath(path)   # None: in-process only
@@ -374,7 +374,7 @@ class ControlServer:
     def write_value(self, name: Any, value: Any) -> bool:
         """Queues one value into the cal ring (holding the server's cal_lock);
         True once the loop applied it, False when it is still queued."""
-        from rt_loop.xcp.loop_backend import push_writes
+        from rt_loop.measure.xcp.loop_backend import push_writes
 
         key, (offset, size, lo, hi) = self.target(name)
         if isinstance(value, bool) or not isinstance(value, (int, float)):

@@ -39,9 +39,9 @@ from rt_loop import verdict as _verdict
 from rt_loop.channels import ChannelError, LoopChannels
 from rt_loop.drain import RingDrain
 from rt_loop.drain import one_line as _one_line
+from rt_loop.measure.recorder import Recorder
 from rt_loop.pm_qos import DEFAULT_LATENCY_US as DEFAULT_PM_QOS_US
 from rt_loop.pm_qos import PmQos
-from rt_loop.recorder import Recorder
 from rt_loop.stats import StatsReader
 from rt_loop.transport import (
     Transport,
@@ -252,8 +252,8 @@ class Server:
     grade), set before it plays.
     ``record_path``: a recording (CSV, or with the suffix .mf4 ASAM MDF4
     with the CAN traffic as bus logging in the same file,
-    ``rt_loop.mdf_recorder``) of every plant output each
-    ``record_every_s`` of plant time (``rt_loop.recorder``).
+    ``rt_loop.measure.mdf_recorder``) of every plant output each
+    ``record_every_s`` of plant time (``rt_loop.measure.recorder``).
     ``pm_qos_us``: the CPU wake-up latency (us) requested through PM QoS
     (``/dev/cpu_dma_latency``, or ``pm_qos_path``) from before the loop
     starts until it has stopped, so that idle CPUs do not sink into states
@@ -272,12 +272,12 @@ class Server:
     ``f"{channel}-{bus}"`` (``Mapping.channels``); each bus has a transport
     of its own (``transports``; ``transport`` is the first).
 
-    ``xcp``: serve the loop's memory to an XCP master (``rt_loop.xcp``): a
+    ``xcp``: serve the loop's memory to an XCP master (``rt_loop.measure.xcp``): a
     "[HOST:]PORT" text or (host, port); the host is 127.0.0.1 unless one is
     given; ``xcp_protocol`` "udp" or "tcp"; ``xcp_key``: a file holding the
     seed & key secret that locks calibration and DAQ (a warning when the port
     is opened beyond loopback without one). The A2L it serves on GET_ID is
-    ``rt_loop.xcp.a2l.generate`` of this loop and mapping. The loop's
+    ``rt_loop.measure.xcp.a2l.generate`` of this loop and mapping. The loop's
     writable regions (the inputs a test may override and the parameters
     marked online) are set for every run: XCP calibration and stimulus
     write only there.
@@ -429,7 +429,7 @@ class Server:
             from rt_loop.control import check_socket_path
 
             check_socket_path(self.control_path, ServerError)
-        #: the live scope (``rt_loop.scope``): min and max of chosen values per bucket of ticks
+        #: the live scope (``rt_loop.measure.scope``): min and max of chosen values per bucket of ticks
         self.scope = None
         self._maneuver: str | None = None            # the name of the maneuver started last
         self._recording: dict | None = None          # the recording running, if any
@@ -457,13 +457,13 @@ class Server:
             raise ServerError(f"stimulus start {start!r}: choose plant or maneuver")
         if start == "maneuver" and not self.driver_rows:
             raise ServerError("a stimulus started with the maneuver needs a maneuver")
-        from rt_loop.stimulus import (
+        from rt_loop.measure.stimulus import (
             StimulusError,
             load_stimulus,
             plant_inputs_writable,
             writable_of_regions,
         )
-        from rt_loop.xcp import a2l as _a2l
+        from rt_loop.measure.xcp import a2l as _a2l
 
         ffi, lib = self._ffi, self._lib
         writable = {**writable_of_regions(_a2l.calibration_regions(ffi, lib)),
@@ -478,8 +478,8 @@ class Server:
             if key is not None:
                 raise ServerError("--xcp-key needs --xcp")
             return None, protocol, None
-        from rt_loop.xcp import parse_address
-        from rt_loop.xcp.protocol import read_secret
+        from rt_loop.measure.xcp import parse_address
+        from rt_loop.measure.xcp.protocol import read_secret
 
         try:
             address = parse_address(xcp) if isinstance(xcp, str) else (str(xcp[0]), int(xcp[1]))
@@ -529,7 +529,7 @@ class Server:
             if self.record_path is not None:
                 try:
                     if self.record_path.lower().endswith((".mf4", ".mdf")):
-                        from rt_loop.mdf_recorder import MdfRecorder
+                        from rt_loop.measure.mdf_recorder import MdfRecorder
 
                         self.recorder = MdfRecorder(self.record_path, self.channels.command_names,
                                                     channels=list(self.bus_channels.values()))
@@ -558,8 +558,8 @@ class Server:
             self.channels.install(loop, self.transports)
             if self.driver_rows:
                 self._maneuver = "scripted"
-            from rt_loop.xcp import a2l as _a2l
-            from rt_loop.xcp.loop_backend import set_regions
+            from rt_loop.measure.xcp import a2l as _a2l
+            from rt_loop.measure.xcp.loop_backend import set_regions
 
             self._regions = _a2l.calibration_regions(ffi, lib)
             set_regions(ffi, lib, loop, self._regions)
@@ -572,7 +572,7 @@ class Server:
                 raise ServerError(f"the loop refused its set-up: {os.strerror(abs(rc))} "
                                   f"(rt_loop_prepare returned {rc}; rate {self.rate_hz:g} Hz, "
                                   f"priority {self.priority}, cpu {cfg.cpu})")
-            from rt_loop.scope import Scope
+            from rt_loop.measure.scope import Scope
 
             self.scope = Scope(ffi, lib, loop, self.channels, self.step_s)
             self.scope.start()
@@ -601,7 +601,7 @@ class Server:
                     if self.logger is not None:
                         self.logger.forward = self.recorder.add_frames
             if self.stimulus is not None:
-                from rt_loop.stimulus import StimulusPlayer
+                from rt_loop.measure.stimulus import StimulusPlayer
 
                 self.player = StimulusPlayer(self.stimulus, ffi, lib, loop,
                                              start=self.stimulus_start,
@@ -804,7 +804,7 @@ class Server:
         self._stop_hooks.append(hook)
 
     def _start_xcp(self, a2l: Any) -> None:
-        from rt_loop.xcp import XcpServer
+        from rt_loop.measure.xcp import XcpServer
 
         host, port = self.xcp_address
         ffi, lib = self._ffi, self._lib
@@ -993,7 +993,7 @@ class Server:
             mf4 = path.lower().endswith((".mf4", ".mdf"))
             try:
                 if mf4:
-                    from rt_loop.mdf_recorder import MdfRecorder
+                    from rt_loop.measure.mdf_recorder import MdfRecorder
 
                     rec = MdfRecorder(path, self.channels.command_names,
                                       channels=list(self.bus_channels.values()))

@@ -1,4 +1,4 @@
-"""Tests of rt_loop/xcp/a2l.py: the A2L of the loop's memory and its writable regions.
+"""Tests of rt_loop/measure/xcp/a2l.py: the A2L of the loop's memory and its writable regions.
 
 The A2L is read back with an independent parser (pya2l, from PyPI), and on
 its parse tree a strict structural check of our own (every reference
@@ -23,7 +23,7 @@ import requires
 
 from can_dbc import mapping as can_mapping
 from rt_loop.channels import LoopChannels
-from rt_loop.xcp import a2l
+from rt_loop.measure.xcp import a2l
 
 ROOT = Path(__file__).resolve().parents[1]
 HEADERS = (ROOT / "plant" / "csrc" / "dct_plant.h", ROOT / "can_dbc" / "csrc" / "can_table.h",
@@ -644,8 +644,8 @@ def test_if_data_xcp(c):
 
 
 def test_if_data_matches_the_slave():
-    """The defaults are what rt_loop/xcp/protocol.py declares."""
-    protocol = requires.module("rt_loop.xcp.protocol")
+    """The defaults are what rt_loop/measure/xcp/protocol.py declares."""
+    protocol = requires.module("rt_loop.measure.xcp.protocol")
     from rt_loop._rt_loop import ffi, lib
 
     block = _if_data(a2l.generate(ffi, lib))

@@ -99,7 +99,7 @@ def test_a_short_demo_ends_with_its_verdict_and_exit_0_without_strict(short_run)
 
 @pytest.mark.slow
 def test_the_recording_starts_before_the_tcu_and_plays_the_pedals_from_its_first_frame(short_run):
-    from rt_loop.recorder import read_recording
+    from rt_loop.measure.recorder import read_recording
 
     _, out = short_run
     rec = read_recording(out / "plant.csv")

@@ -487,7 +487,7 @@ def test_no_fault_message_index_is_outside_the_loop():
 def test_a_recording_holds_each_faults_start_and_end(tmp_path, suffix):
     from asammdf import MDF
 
-    from rt_loop.recorder import faults_path, read_recording
+    from rt_loop.measure.recorder import faults_path, read_recording
     from rt_loop.server import Server
 
     path = tmp_path / f"run.{suffix}"

@@ -356,7 +356,7 @@ def test_the_demo_plays_reverse_park_over_can_with_the_selector(tmp_path):
     import sys
     from pathlib import Path
 
-    from rt_loop.recorder import read_recording
+    from rt_loop.measure.recorder import read_recording
 
     repo = Path(__file__).resolve().parents[1]
     proc = subprocess.run([sys.executable, "-m", "dct_hil.cli", "demo", "--maneuver", "reverse-park",

@@ -1,4 +1,4 @@
-"""The MDF 4 recorder (rt_loop/mdf_recorder.py): plant samples and CAN traffic in one .mf4.
+"""The MDF 4 recorder (rt_loop/measure/mdf_recorder.py): plant samples and CAN traffic in one .mf4.
 
 The samples and frames come from the real loop (rt_loop.c run from Python,
 the default mapping, the ring transport, a TCU stand-in pushing
@@ -31,8 +31,8 @@ from can_dbc import mapping as can_mapping
 from plant.params import fill_params, load_params
 from rt_loop._rt_loop import ffi, lib
 from rt_loop.channels import LoopChannels
-from rt_loop.mdf_recorder import MdfRecorder, output_comments
-from rt_loop.recorder import Recorder, read_recording
+from rt_loop.measure.mdf_recorder import MdfRecorder, output_comments
+from rt_loop.measure.recorder import Recorder, read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 DBC_PATH = ROOT / "can_dbc" / "dct_hil.dbc"
@@ -428,7 +428,7 @@ def test_a_killed_recorder_leaves_a_file_readable_up_to_its_last_block(tmp_path)
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_mdf_recorder import new_loop, push_sample, COMMANDS
         from rt_loop._rt_loop import ffi, lib
-        from rt_loop.mdf_recorder import MdfRecorder
+        from rt_loop.measure.mdf_recorder import MdfRecorder
         loop = new_loop()
         rec = MdfRecorder({str(path)!r}, COMMANDS, flush_s=0.05)
         rec.start(ffi, lib, loop, drain_log=True)

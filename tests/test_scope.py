@@ -1,4 +1,4 @@
-"""The scope (rt_loop/csrc/rt_scope.c, rt_loop/scope.py): min and max of
+"""The scope (rt_loop/csrc/rt_scope.c, rt_loop/measure/scope.py): min and max of
 chosen values over buckets of ticks, drained in a thread of its own.
 
 Shown on a running server (the embedded transport, no TCU): a one-tick spike
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dct_hil.bench import Bench
-from rt_loop.scope import MAX_TRACES, ScopeError
+from rt_loop.measure.scope import MAX_TRACES, ScopeError
 
 
 @pytest.fixture(scope="module")

@@ -26,8 +26,8 @@ from test_xcp_protocol import Measured, error_of, pyxcp_master
 from waiting import wait_until
 
 from rt_loop._rt_loop import ffi, lib
+from rt_loop.measure.xcp import a2l
 from rt_loop.server import Server, ServerError
-from rt_loop.xcp import a2l
 
 OUT = ("plant", "outputs")
 SIGNALS = ["engine_speed_rpm", "engine_torque_nm", "input_shaft1_speed_rpm",

@@ -573,7 +573,7 @@ def test_a_maneuvers_grade_and_first_selector_hold_while_it_waits_for_the_tcu(ch
 
 
 def test_the_driver_table_waits_for_the_tcu_and_the_recording_holds_the_run(channel, tmp_path):
-    from rt_loop.recorder import read_recording
+    from rt_loop.measure.recorder import read_recording
 
     rows = [(0.0, 0.0, 30.0), (0.2, 20.0, 0.0)]
     path = tmp_path / "rec.csv"

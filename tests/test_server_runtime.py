@@ -8,7 +8,7 @@ import pytest
 
 from dct_hil.bench import Bench, BenchError
 from rt_loop.control import ControlServer
-from rt_loop.recorder import read_recording
+from rt_loop.measure.recorder import read_recording
 from rt_loop.server import ServerError
 
 

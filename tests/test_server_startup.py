@@ -41,9 +41,16 @@ def test_a_slow_start_is_waited_for_and_named(slow_entry):
     srv = new_server()
     notes = []
     # the old fixed 5 s bound would have failed this start; now the server
-    # waits as long as the loop is setting up
-    threading.Timer(0.5, slow_entry.set).start()
-    srv.start(progress=notes.append)
+    # waits as long as the loop is setting up. The loop thread is let in once the
+    # server has said what it waits for (a timer could fire before a starved
+    # waiting thread ever looked); the timer only ends a start that never says it.
+    threading.Timer(30.0, slow_entry.set).start()
+
+    def note(line):
+        notes.append(line)
+        slow_entry.set()
+
+    srv.start(progress=note)
     try:
         assert srv.running
         assert notes and "waiting for the loop thread to enter the C loop" in notes[0]

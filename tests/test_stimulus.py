@@ -1,4 +1,4 @@
-"""Stimulus files (rt_loop/stimulus.py): loading CSV and MF4, every bad input in
+"""Stimulus files (rt_loop/measure/stimulus.py): loading CSV and MF4, every bad input in
 one line, and playing them into the loop's stim ring.
 
 The player is first driven against a stand-in: an rt_loop-shaped struct of
@@ -22,7 +22,7 @@ import requires
 from waiting import WAIT_S, wait_until
 
 from rt_loop._rt_loop import ffi, lib
-from rt_loop.stimulus import (
+from rt_loop.measure.stimulus import (
     PLANT_INPUT_RANGES,
     Stimulus,
     StimulusError,
@@ -102,7 +102,7 @@ def test_an_mf4_stimulus_takes_its_writable_channels_each_on_its_time_base(tmp_p
 
 def test_a_recording_of_the_mdf_recorder_plays_its_pedals_and_grade(tmp_path):
     requires.module("asammdf")
-    from rt_loop.mdf_recorder import MdfRecorder
+    from rt_loop.measure.mdf_recorder import MdfRecorder
 
     loop = ffi.new("rt_loop *")
     loop.cfg.period_s = 0.0005
@@ -498,7 +498,7 @@ def test_a_grade_step_reaches_the_plant_at_its_plant_time(tmp_path):
 
 
 def test_the_a2ls_writable_doubles_can_be_stimulated(tmp_path):
-    from rt_loop.stimulus import writable_of_regions
+    from rt_loop.measure.stimulus import writable_of_regions
 
     regions = [(100, 8, 0, "override.road_grade_pct", -40.0, 40.0, "double"),
                (200, 8, 1, "params.engine.drag_nm", 0.0, 50.0, "double"),

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from plant.plots import _plot
-from rt_loop.recorder import read_recording
+from rt_loop.measure.recorder import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 

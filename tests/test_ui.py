@@ -374,7 +374,7 @@ def test_stopping_the_ui_finalises_its_recording(served_ui, tmp_path):
     from bokeh.document import Document
 
     from dct_hil.ui.app import BenchView
-    from rt_loop.recorder import read_recording
+    from rt_loop.measure.recorder import read_recording
 
     server, ui = served_ui
     ui.recordings_dir = str(tmp_path)

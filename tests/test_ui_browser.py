@@ -269,7 +269,7 @@ def test_bad_input_on_the_page_is_refused_and_changes_nothing(page, browser, ben
 
 
 def test_recording_started_on_the_page_is_a_valid_file(page, browser, bench, tmp_path):
-    from rt_loop.recorder import read_recording
+    from rt_loop.measure.recorder import read_recording
 
     set_value(browser, "rec_format", "csv")
     click(browser, "rec_start")

@@ -1,4 +1,4 @@
-"""The XCP slave on the real loop: rt_loop.xcp.loop_backend.LoopBackend over
+"""The XCP slave on the real loop: rt_loop.measure.xcp.loop_backend.LoopBackend over
 a running rt_loop (the C side of rt_loop.h's measurement and calibration
 block: the cal ring, daq[2] / daq_gen / daq_ack, the daq ring).
 
@@ -27,10 +27,10 @@ from waiting import wait_until
 from can_dbc import mapping as can_mapping
 from plant.params import fill_params, load_params
 from rt_loop.channels import LoopChannels
-from rt_loop.xcp import XcpServer
-from rt_loop.xcp import protocol as xp
-from rt_loop.xcp.loop_backend import LoopBackend, loop_events, set_regions
-from rt_loop.xcp.protocol import DaqEntry, DaqListConfig
+from rt_loop.measure.xcp import XcpServer
+from rt_loop.measure.xcp import protocol as xp
+from rt_loop.measure.xcp.loop_backend import LoopBackend, loop_events, set_regions
+from rt_loop.measure.xcp.protocol import DaqEntry, DaqListConfig
 
 MAPPING = can_mapping.load(can_mapping.DEFAULT_MAPPING)
 CHANNELS = LoopChannels(MAPPING, ffi, lib)

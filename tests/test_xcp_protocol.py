@@ -1,7 +1,7 @@
-"""The XCP on Ethernet slave (rt_loop/xcp/) against fake backends.
+"""The XCP on Ethernet slave (rt_loop/measure/xcp/) against fake backends.
 
-The protocol layer alone (rt_loop.xcp.protocol.Slave fed with command
-packets), the framing (rt_loop.xcp.transport), and the whole server over
+The protocol layer alone (rt_loop.measure.xcp.protocol.Slave fed with command
+packets), the framing (rt_loop.measure.xcp.transport), and the whole server over
 UDP and TCP on loopback with pyxcp as the master: CONNECT, GET_ID and the
 A2L upload, UPLOAD/DOWNLOAD and refused writes, the calibration pages,
 dynamic DAQ of 20 entries decoded by pyxcp's own DAQ machinery, seed &
@@ -36,9 +36,9 @@ from pyxcp.master import Master
 from pyxcp.types import XcpResponseError
 from waiting import wait_until
 
-from rt_loop.xcp import XcpServer, parse_address
-from rt_loop.xcp import protocol as xp
-from rt_loop.xcp.protocol import (
+from rt_loop.measure.xcp import XcpServer, parse_address
+from rt_loop.measure.xcp import protocol as xp
+from rt_loop.measure.xcp.protocol import (
     OK,
     Daq,
     DaqEntry,
@@ -51,7 +51,7 @@ from rt_loop.xcp.protocol import (
     read_secret,
     seed_n_key_function,
 )
-from rt_loop.xcp.transport import (
+from rt_loop.measure.xcp.transport import (
     TCP_QUEUE_BYTES,
     StreamDeframer,
     deframe_datagram,

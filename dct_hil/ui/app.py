@@ -2,7 +2,7 @@
 
 Panels:
 
-1. traces: any traceable names (``rt_loop.scope``: plant outputs, inputs,
+1. traces: any traceable names (``rt_loop.measure.scope``: plant outputs, inputs,
    received values, CAN signals, the loop's times), each a band from min to
    max of every tick plus a line through the middle, 20 updates a second;
    pause (the data stays), zoom and pan (Bokeh's tools; the time axis

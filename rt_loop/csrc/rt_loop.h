@@ -181,7 +181,7 @@ typedef struct {
     int32_t n_ranges;
 } rt_channel;
 
-/* ---- measurement, calibration and stimulus (XCP: rt_loop/xcp/) -------------
+/* ---- measurement, calibration and stimulus (XCP: rt_loop/measure/xcp/) -------------
  *
  * The loop's memory is the address space of measurement and calibration: an
  * address is a byte offset from the start of the rt_loop (XCP address

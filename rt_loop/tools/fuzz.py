@@ -321,7 +321,7 @@ class Sender:
 def fuzz_xcp(address: tuple, n: int, rng: random.Random, regions: list) -> dict:
     """Sends n malformed or random XCP datagrams (one frame each, or a cut
     header) from one socket; returns what was sent by kind."""
-    from rt_loop.xcp import protocol as P
+    from rt_loop.measure.xcp import protocol as P
 
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.settimeout(0.05)
@@ -574,7 +574,7 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
         resumed = snap["rx"]["accepted"] - before == len(gen.msgs)
         timeouts_in_run = snap["timeouts"] - timeouts_at_start
         if args.xcp_packets > 0 and server.xcp is not None and not stop.is_set():
-            from rt_loop.xcp import a2l as _a2l
+            from rt_loop.measure.xcp import a2l as _a2l
 
             regions = _a2l.calibration_regions(server._ffi, server._lib)
             xcp_result = fuzz_xcp(tuple(server.xcp.address[:2]), args.xcp_packets,

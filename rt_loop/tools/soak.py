@@ -8,7 +8,7 @@ One process: ``rt_loop.server.Server`` on the embedded transport
 reference TCU (``tcu_stub.can_tcu.CanTcu``) in a thread on the same bus.
 The loop plays ``paper-cycle`` again each time it ends (65 s of pedals from
 standstill) and records every plant output and both directions of CAN to
-one MF4 file (``rt_loop.mdf_recorder``) for the whole run.
+one MF4 file (``rt_loop.measure.mdf_recorder``) for the whole run.
 
 Every ``--sample-s`` (10 s) one row: the process's resident memory (VmRSS),
 its open file descriptors and threads, how many frames wait in the loop's

@@ -1,6 +1,6 @@
 """The measurement recorder in ASAM MDF 4: plant samples and CAN traffic in one .mf4 file.
 
-``MdfRecorder`` has the interface of ``rt_loop.recorder.Recorder`` (a
+``MdfRecorder`` has the interface of ``rt_loop.measure.recorder.Recorder`` (a
 ``RingDrain`` over the loop's ``rec`` ring: ``start(ffi, lib, loop)``,
 ``stop()``, ``counters()``, ``written``, ``dropped``) and writes an MDF 4.10
 file (asammdf reads it; so do the usual MDF tools) instead of a CSV:
@@ -72,9 +72,10 @@ from typing import Any
 
 import numpy as np
 
+import plant
 from can_dbc.mapping import unit_of_name
 from rt_loop.drain import RingDrain, one_line
-from rt_loop.recorder import sample_layout
+from rt_loop.measure.recorder import sample_layout
 
 __all__ = ["MdfRecorder", "MDF_VERSION", "output_comments"]
 
@@ -101,8 +102,7 @@ _REMOTE_FIELDS = [("BusChannel", "<u1"), ("ID", "<u4"), ("IDE", "<u1"), ("DLC", 
 _BUS_GROUPS = (("CAN_DataFrame", _FRAME_FIELDS), ("CAN_RemoteFrame", _REMOTE_FIELDS),
                ("CAN_ErrorFrame", _FRAME_FIELDS))
 
-_HEADER = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                       "plant", "csrc", "dct_plant.h")
+_HEADER = os.path.join(os.path.dirname(os.path.abspath(plant.__file__)), "csrc", "dct_plant.h")
 
 
 def _asammdf() -> Any:

@@ -33,7 +33,7 @@ import struct
 import threading
 from collections.abc import Iterator
 
-from rt_loop.xcp.protocol import CONNECT, Daq, Slave
+from rt_loop.measure.xcp.protocol import CONNECT, Daq, Slave
 
 __all__ = ["HEADER", "frame", "deframe_datagram", "StreamDeframer", "UdpServer", "TcpServer",
            "make_server", "TCP_QUEUE_BYTES", "TCP_GARBAGE_LEN"]

@@ -89,7 +89,7 @@ def plant_inputs_writable(ffi: Any) -> dict[str, tuple[int, int, float, float]]:
 def writable_of_regions(regions: list[tuple] | tuple) -> dict[str, tuple[int, int, float, float]]:
     """``{name: (offset, size, lo, hi)}`` of the single doubles among writable regions
     given as ``(offset, size, kind, name, lo, hi, c_type)`` (what
-    ``rt_loop.xcp.a2l.calibration_regions(ffi, lib)`` returns: ``override.<input>``,
+    ``rt_loop.measure.xcp.a2l.calibration_regions(ffi, lib)`` returns: ``override.<input>``,
     ``params.<name>``); blocks of several values are left out."""
     return {name: (int(offset), int(size), lo, hi)
             for offset, size, _kind, name, lo, hi, c_type in regions

@@ -12,7 +12,7 @@ An XCP address is a byte offset from the start of the ``rt_loop`` struct
   regions (``rt_loop.regions``, set with ``set_regions`` before
   ``rt_loop_prepare``; else ERR_WRITE_PROTECTED), every value it changes
   within its range (``ranges``: ``(offset, size, ..., lo, hi, c_type)`` as
-  ``rt_loop.xcp.a2l.calibration_regions`` gives them, the A2L's limits;
+  ``rt_loop.measure.xcp.a2l.calibration_regions`` gives them, the A2L's limits;
   else ERR_OUT_OF_RANGE), is cut at region borders and into pieces of
   RT_WRITE_BYTES, and all its pieces are queued at once (the loop applies
   them at its next tick boundary; one piece is never torn, a write of more
@@ -48,7 +48,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from rt_loop.xcp.protocol import (
+from rt_loop.measure.xcp.protocol import (
     ERR_ACCESS_DENIED,
     ERR_CMD_BUSY,
     ERR_DAQ_CONFIG,
@@ -78,7 +78,7 @@ _FORMATS = {"double": "d", "float": "f", "int": "i", "int32_t": "i", "unsigned i
 
 def set_regions(ffi: Any, lib: Any, loop: Any, regions: Sequence[tuple]) -> None:
     """Writes the loop's writable regions: (offset, size, kind RT_REGION_*,
-    ...) each, as ``rt_loop.xcp.a2l.calibration_regions`` gives them (what
+    ...) each, as ``rt_loop.measure.xcp.a2l.calibration_regions`` gives them (what
     follows the kind is not the loop's); before ``rt_loop_prepare`` (which
     checks them)."""
     size = ffi.sizeof("rt_loop")

@@ -2,11 +2,11 @@
 calibration of the real-time loop from any XCP master (CANape, INCA,
 pyxcp, ...), in threads of its own beside the loop.
 
-* ``rt_loop.xcp.protocol``: the XCP 1.4 protocol layer (``Slave``) over a
+* ``rt_loop.measure.xcp.protocol``: the XCP 1.4 protocol layer (``Slave``) over a
   ``Memory`` and a ``Daq`` backend; seed & key (``compute_key``);
-* ``rt_loop.xcp.transport``: XCP on Ethernet framing, the UDP and TCP
+* ``rt_loop.measure.xcp.transport``: XCP on Ethernet framing, the UDP and TCP
   servers (a receiver thread for commands, a sender thread for DTOs);
-* ``rt_loop.xcp.loop_backend``: ``LoopBackend``, the loop's memory and DAQ
+* ``rt_loop.measure.xcp.loop_backend``: ``LoopBackend``, the loop's memory and DAQ
   (``rt_loop.h``: the ``cal`` ring, ``daq[2]``/``daq_gen``/``daq_ack``,
   ``daq_ring``);
 * ``XcpServer`` puts them together: ``start()``, ``stop()``, ``counters()``.
@@ -22,7 +22,7 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from rt_loop.xcp.protocol import (
+from rt_loop.measure.xcp.protocol import (
     DEFAULT_EVENTS,
     Daq,
     Event,
@@ -31,7 +31,7 @@ from rt_loop.xcp.protocol import (
     Slave,
     read_secret,
 )
-from rt_loop.xcp.transport import make_server
+from rt_loop.measure.xcp.transport import make_server
 
 __all__ = ["XcpServer", "parse_address", "DEFAULT_PORT", "DEFAULT_HOST"]
 
@@ -76,7 +76,7 @@ class XcpServer:
     the event channels (default: the loop's tick, 10 ms and 100 ms, in
     wall-clock time); ``readable``: the (offset, size) ranges a master may
     read and measure (default: the whole rt_loop); ``ranges``: the writable
-    values' limits (``rt_loop.xcp.a2l.calibration_regions``)."""
+    values' limits (``rt_loop.measure.xcp.a2l.calibration_regions``)."""
 
     def __init__(
         self,
@@ -103,7 +103,7 @@ class XcpServer:
         if memory is None or daq is None:
             if loop is None:
                 raise TypeError("XcpServer needs the loop (ffi, lib, loop) or memory= and daq=")
-            from rt_loop.xcp.loop_backend import LoopBackend
+            from rt_loop.measure.xcp.loop_backend import LoopBackend
 
             self.backend = LoopBackend(ffi, lib, loop, readable=readable, ranges=ranges)
             memory = memory or self.backend
