@@ -980,7 +980,8 @@ def _mapping_from_args(args, rate_hz):
 
 
 def cmd_serve(args):
-    from rt_loop.server import Server, ServerError, run_console
+    from rt_loop.console import run_console
+    from rt_loop.server import Server, ServerError
     from rt_loop.transport import TransportError, check_interface
 
     mapping, bus_channels = _mapping_from_args(args, args.rate)

@@ -236,8 +236,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     from plant import maneuvers as mv
     from plant.plots import write_plots
     from rt_loop import verdict as vd
+    from rt_loop.console import StopSignals
     from rt_loop.measure.recorder import read_recording
-    from rt_loop.server import Server, StopSignals
+    from rt_loop.server import Server
 
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
@@ -438,7 +439,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
 def _keep_serving(view, stopped: bool, out) -> None:
     """After the run: the page keeps its last figures until Ctrl-C or SIGTERM
     (at once when the run itself was stopped that way)."""
-    from rt_loop.server import StopSignals
+    from rt_loop.console import StopSignals
 
     try:
         if not stopped:

@@ -5,13 +5,18 @@ The tick runs in C (``csrc/rt_loop.c``, contract ``csrc/rt_loop.h``, compiled
 into ``rt_loop._rt_loop``) in a thread of its own; Python sets it up and
 watches it:
 
-* ``rt_loop.server``: ``Server`` (set-up, loop thread, traffic log, stop) and
-  ``run_console`` (``dct-hil serve``);
+* ``rt_loop.server``: ``Server`` (set-up, loop thread, traffic log, stop);
+  ``rt_loop.console``: ``run_console`` (``dct-hil serve``);
 * ``rt_loop.transport``: SocketCAN (hard real time) or a bridge to any
   python-can interface (soft real time);
 * ``rt_loop.stats``: turnaround, execution time and wake-up latency
   percentiles, counters, the JSON report;
 * ``rt_loop.status``: the live status and the summary.
+
+Beside the loop and its server, two rooms: ``rt_loop.measure`` (XCP and the A2L,
+MDF and CSV recording, stimulus, the scope: beside the tick, never in it) and
+``rt_loop.tools`` (the benchmark, doctor, fuzz and soak: they drive a loop from
+outside).
 
 ``Server``, ``ServerError``, ``TransportError`` and ``open_transport`` are
 importable from here; nothing is loaded until first used.

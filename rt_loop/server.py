@@ -14,8 +14,8 @@ call). Every tick then happens in C. Around it, Python threads only move
 frames for the bridge transport, drain the traffic log into a python-can
 writer, and read the statistics.
 
-``run_console`` is ``dct-hil serve``: live status, SIGINT/SIGTERM, summary,
-JSON file.
+``rt_loop.console.run_console`` is ``dct-hil serve`` around it: live status,
+SIGINT/SIGTERM, summary, JSON file.
 """
 
 from __future__ import annotations
@@ -25,17 +25,13 @@ import errno
 import json
 import math
 import os
-import signal
-import sys
 import threading
 import time
 import weakref
 from collections.abc import Callable
-from typing import Any, TextIO
+from typing import Any
 
 from plant.machine import machine_info
-from rt_loop import status as _status
-from rt_loop import verdict as _verdict
 from rt_loop.channels import ChannelError, LoopChannels
 from rt_loop.drain import RingDrain
 from rt_loop.drain import one_line as _one_line
@@ -59,7 +55,6 @@ __all__ = [
     "ServerError",
     "TrafficLogger",
     "TransportError",
-    "run_console",
 ]
 
 #: the loop's limits: periods from 10 ms down to 50 us (rt_loop_prepare)
@@ -1438,115 +1433,3 @@ def _check_duration(duration_s: Any) -> float | None:
     if not (math.isfinite(d) and d > 0):
         raise ServerError(f"duration must be a number of seconds above 0, got {duration_s}")
     return d
-
-
-# --------------------------------------------------------------------------
-# dct-hil serve
-# --------------------------------------------------------------------------
-
-class StopSignals:
-    """SIGINT and SIGTERM turned into an event while the block runs (main
-    thread only; elsewhere the handlers stay as they are). ``received`` lists
-    the signals in order; ``interrupted`` is True after a Ctrl-C."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self.received: list[int] = []
-        self._previous: dict = {}
-
-    def _on_signal(self, signum: int, _frame: Any) -> None:
-        self.received.append(signum)
-        self.event.set()
-
-    def __enter__(self) -> StopSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._on_signal)
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-        self._previous = {}
-
-    @property
-    def interrupted(self) -> bool:
-        return bool(self.received) and self.received[0] == signal.SIGINT
-
-
-def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = False,
-                out: TextIO | None = None, err: TextIO | None = None,
-                strict: bool = False) -> int:
-    """Runs ``server`` with a live status until it ends or SIGINT/SIGTERM arrives.
-
-    The live status is redrawn in place about 5 times per second when
-    ``out`` is a terminal, else printed as one line per second (``quiet``:
-    none). On the way out the loop is stopped, the log and the bus are
-    flushed and closed, a summary is printed and the JSON stats file
-    written. Returns the exit code: 0 after a clean stop (duration reached,
-    SIGTERM), 130 after SIGINT (Ctrl-C, as everywhere in dct-hil), 1 if the
-    loop was stopped by the overrun policy or a transport error, or the
-    traffic log could not be written completely.
-
-    The summary ends with the run's verdict on its own timing
-    (``rt_loop.verdict.serve_verdict``, also in the JSON file as ``verdict``);
-    an INVALID run prints a warning to ``err``, and with ``strict`` a run that
-    would exit 0 exits ``verdict.EXIT_INVALID`` (3) instead.
-    """
-    out = sys.stdout if out is None else out
-    err = sys.stderr if err is None else err
-    signals = StopSignals()
-    stop = signals.event
-    view = None
-    try:
-        signals.__enter__()
-        try:
-            server.start(progress=lambda line: print(f"dct-hil: {line}", file=err, flush=True),
-                         cancel=stop)
-        except ServerError as e:
-            if not signals.received:
-                raise
-            print(f"dct-hil: stopped by {signal.Signals(signals.received[0]).name} before the "
-                  f"loop ran ({e})", file=err, flush=True)
-            return 130 if signals.interrupted else 0
-        for line in _status.banner_lines(server, stats_path):
-            print(line, file=out, flush=True)
-        for warning in server.warnings:
-            print(f"dct-hil: warning: {warning}", file=err, flush=True)
-        view = _status.LiveStatus(out, quiet=quiet)
-        while not stop.is_set() and server.running:
-            view.update(server.snapshot(), server)
-            stop.wait(view.interval_s)
-    finally:
-        try:
-            server.stop()
-        finally:
-            signals.__exit__()
-    if view is not None:
-        view.close()
-    report = server.report()
-    report["verdict"] = _verdict.serve_verdict(report)
-    server.write_report(stats_path, report)
-    for line in _status.summary_lines(report, stats_path):
-        print(line, file=out)
-    out.flush()
-
-    state = report["run"]["state"]
-    log = report.get("log")
-    code = 130 if signals.interrupted else 0
-    if report["run"]["error"]:
-        print(f"dct-hil: error: the loop stopped: {report['run']['error']}", file=err)
-        code = 1
-    elif state == "overrun_stop":
-        print(f"dct-hil: stopped by the overrun policy after {report['run']['ticks']} ticks "
-              f"(turnaround max {report['turnaround']['max_us']:.1f} us, period "
-              f"{server.period_s * 1e6:g} us)", file=err)
-        code = 1
-    elif log and log["error"]:
-        print(f"dct-hil: error: the traffic log is incomplete: {log['error']}", file=err)
-        code = 1
-    warning = _verdict.warning_line(report["verdict"], strict and code == 0)
-    if warning:
-        print(warning, file=err)
-    return _verdict.exit_code(report["verdict"], strict, code)
-

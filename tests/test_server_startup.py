@@ -12,6 +12,7 @@ import uuid
 
 import pytest
 
+from rt_loop import console
 from rt_loop import server as server_mod
 from rt_loop.server import Server, ServerError
 
@@ -112,7 +113,7 @@ def test_serve_cancelled_during_start_exits_130(slow_entry, tmp_path, capsys):
     threading.Timer(0.3, lambda: signal.raise_signal(signal.SIGINT)).start()
     threading.Timer(1.0, slow_entry.set).start()
     t0 = time.monotonic()
-    rc = server_mod.run_console(srv, str(tmp_path / "s.json"), quiet=True)
+    rc = console.run_console(srv, str(tmp_path / "s.json"), quiet=True)
     assert rc == 130
     assert time.monotonic() - t0 < 60
     err = capsys.readouterr().err
