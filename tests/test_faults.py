@@ -1,4 +1,4 @@
-"""Failure simulation inside the tick (rt_loop/csrc/rt_faults.c, rt_loop/faults.py).
+"""Failure simulation inside the tick (rt_loop/csrc/rt_faults.c, rt_loop/faults/).
 
 Each fault kind is shown by its effect on the bus or the plant while it is
 active, and by its absence once it ended or was cleared; no fault makes the

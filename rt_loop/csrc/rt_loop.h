@@ -309,7 +309,7 @@ typedef struct {
 /* ---- failure simulation: faults inside the tick ---------------------------
  *
  * Faults are data: a table of RT_MAX_FAULTS slots the tick walks. Python
- * (rt_loop/faults.py) queues commands (arm a slot with a fault, clear a
+ * (rt_loop/faults/) queues commands (arm a slot with a fault, clear a
  * slot, clear all) in the single-producer ring fault_cmds; the loop applies
  * them at the start of the next tick, so a fault can be switched while the
  * loop runs and the loop never waits for Python.

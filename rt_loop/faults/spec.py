@@ -1,67 +1,18 @@
-"""Failure simulation: faults injected inside the loop's tick while the TCU drives.
-
-A fault is data: a kind, what it acts on, its parameters and when it
-applies. ``parse_fault(spec, names)`` checks a spec (a dict, e.g. a
-``[[fault]]`` table of a TOML file or the keyword arguments of the test API)
-against the served mapping and the plant, and turns it into the C loop's
-``rt_fault_def``; ``FaultManager`` (one per ``rt_loop.server.Server``,
-``server.faults``) queues it into the loop's fault command ring, reads the
-loop's start and end events and its per-fault figures, and clears faults.
-The loop applies commands at the next tick boundary and never waits for
-Python (``rt_loop/csrc/rt_faults.c``).
-
-Kinds (``KINDS`` holds each one's parameters, units and meaning):
-
-=============================  ====================================================
-``can.omit``                   a message the plant sends is not sent
-``can.freeze_counter``         its alive counter stays at the value it had
-``can.bad_crc``                its checksum is wrong (inverted)
-``can.late``                   sent ``delay_ms`` later than its cycle, every cycle
-``can.too_often``              sent ``factor`` times as often as its cycle
-``can.length``                 sent with ``length`` data bytes
-``can.bus_off``                no frame of the plant on ``bus`` (every bus if none)
-``signal.hold``                a sent or received signal stuck at its last value
-``signal.value``               ... stuck at ``value``
-``signal.offset``              ... plus ``offset``
-``signal.gain``                ... times ``gain``
-``signal.noise``               ... plus Gaussian noise of ``sigma`` (``seed``)
-``signal.invalid``             ... its invalid value (the DBC's, ``invalid_value``)
-``valve.spool_stuck``          the ``clutch`` (1, 2) valve's spool does not move
-``valve.solenoid_open``        open circuit: no current in its solenoid
-``clutch.friction_fade``       the ``clutch``'s friction coefficient loses ``loss``
-``clutch.kiss_drift``          its pack gap grows by ``gap_mm`` (kiss point later)
-``hydraulics.line_pressure_loss``  the line pressure loses ``loss`` (1: all)
-``fork.jammed``                the ``sleeve``'s fork does not move
-``sync.blocker_failed``        the ``sleeve`` engages without synchronizing
-``engine.torque_limit``        the engine's torque limited to ``max_nm``
-=============================  ====================================================
-
-Schedule, for every kind: ``start_s`` (plant time it may start at; default
-at once), ``when`` (a condition that must hold too, e.g. ``"gear == 3"``,
-``"TCU_Status.ShiftActive == 1 and vehicle_speed_kmh > 30"``), and
-``duration_s`` (default: until cleared). A condition is up to four
-comparisons (``<``, ``<=``, ``>``, ``>=``, ``==``, ``!=`` against a number)
-joined by ``and`` or by ``or``; a name is a plant output (``gear``,
-``vehicle_speed_kmh``, ...), ``maneuver_time_s``, a received value as
-``cmd.<name>`` (``cmd.target_gear``), or a CAN signal as
-``Message.Signal`` (``bus:Message.Signal`` on a matrix of several buses).
-
-Every error names its cause in one line (``FaultError``); a file of faults
-is checked whole before any of it reaches the loop.
-"""
+"""What a fault is: its kinds and parameters, the names it may act on or watch,
+and the checks that turn a spec (a dict, a ``[[fault]]`` table) into the loop's
+``rt_fault_def`` (``parse_fault``, ``load_faults``). The kinds and the schedule
+are described in ``rt_loop.faults``."""
 
 from __future__ import annotations
 
 import math
 import os
 import re
-import threading
-import time
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["FaultError", "FaultManager", "KINDS", "Names", "load_faults", "parse_condition",
-           "parse_fault"]
+__all__ = ["KINDS", "Fault", "FaultError", "Names", "invalid_value", "load_faults",
+           "parse_condition", "parse_fault"]
 
 
 class FaultError(ValueError):
@@ -134,7 +85,8 @@ KINDS: dict[str, Kind] = {k.name: k for k in (
          (Param("max_nm", "Nm", 0.0, 10_000.0),), "the engine's combustion torque <= max_nm"),
 )}
 
-_WATCH = Kind("watch", "RT_FAULT_WATCH", "", (), "no effect: latches when its condition holds")
+#: the kind a watch has (no effect: it latches when its condition holds)
+WATCH_KIND = Kind("watch", "RT_FAULT_WATCH", "", (), "no effect: latches when its condition holds")
 
 #: sleeves by number or by the gears they carry
 SLEEVES = {"1": 0, "2": 1, "3": 2, "4": 3, "1-3": 0, "2-4": 1, "5-R": 2, "6-N": 3}
@@ -219,7 +171,7 @@ class Names:
                          "Message.Signal" + _suggest(name, known))
 
 
-def _number(value: Any, what: str) -> float:
+def check_number(value: Any, what: str) -> float:
     if isinstance(value, bool):
         raise FaultError(f"{what} must be a number, got {value!r}")
     try:
@@ -266,7 +218,7 @@ def parse_condition(text: Any, names: Names, what: str = "when") -> list[tuple[s
         if op == "&":
             x = _mask(value, f"{what}: the mask in {t.strip()!r}")
         else:
-            x = _number(value, f"{what}: the value in {t.strip()!r}")
+            x = check_number(value, f"{what}: the value in {t.strip()!r}")
         out.append((source, index, _OPS[op], x))
     return out, ("or" in joins)
 
@@ -383,7 +335,7 @@ def parse_fault(spec: Any, names: Names) -> Fault:
                 raise FaultError(f"{what} needs {p.name} ({p.unit})")
             values[p.name] = p.default
             continue
-        x = _number(spec[p.name], f"{what}: {p.name}")
+        x = check_number(spec[p.name], f"{what}: {p.name}")
         if p.integer and x != int(x):
             raise FaultError(f"{what}: {p.name} must be a whole number, got {spec[p.name]!r}")
         if not p.lo <= x <= p.hi:
@@ -409,7 +361,7 @@ def parse_fault(spec: Any, names: Names) -> Fault:
         sig = names.signal(spec["signal"], what)[3]
         scale, offset = float(sig.scale or 1.0), float(sig.offset or 0.0)
         if "invalid_value" in spec:
-            d["value"] = _number(spec["invalid_value"], f"{what}: invalid_value")
+            d["value"] = check_number(spec["invalid_value"], f"{what}: invalid_value")
             raw = None if sig.is_float else round((d["value"] - offset) / scale)
         else:
             raw = invalid_raw(sig)
@@ -425,9 +377,9 @@ def parse_fault(spec: Any, names: Names) -> Fault:
         d["value"] = float(values[kind.params[0].name])
     # schedule
     start = spec.get("start_s")
-    d["start_s"] = -_INF if start is None else _number(start, f"{what}: start_s")
+    d["start_s"] = -_INF if start is None else check_number(start, f"{what}: start_s")
     dur = spec.get("duration_s")
-    d["duration_s"] = 0.0 if dur is None else _number(dur, f"{what}: duration_s")
+    d["duration_s"] = 0.0 if dur is None else check_number(dur, f"{what}: duration_s")
     if d["duration_s"] < 0:
         raise FaultError(f"{what}: duration_s must be above 0 (leave it out: until cleared)")
     if "when" in spec:
@@ -461,183 +413,3 @@ def load_faults(path: str | os.PathLike, names: Names) -> list[Fault]:
         except FaultError as e:
             raise FaultError(f"{path}: fault {i + 1}: {e}") from None
     return out
-
-
-class FaultManager:
-    """The faults of one loop: inject, clear, figures and events.
-
-    ``inject`` queues a parsed fault into a free slot (at most
-    RT_MAX_FAULTS at once) and returns its id; ``clear(id)`` / ``clear_all()``
-    end and free them. Before the loop runs, commands wait in the ring and the
-    first tick takes them. ``status()`` reads the loop's published figures
-    (state, start and end in plant time, activations, hits: frames or values
-    changed); ``events()`` every start and end so far, in order. Thread-safe:
-    one lock serialises the ring's producer side and the event reader (the
-    loop never takes it)."""
-
-    def __init__(self, ffi: Any, lib: Any, loop: Any, channels: Any,
-                 read_stats: Any = None) -> None:
-        self.ffi, self.lib, self.loop = ffi, lib, loop
-        self.names = Names(ffi, lib, channels)
-        self._read_stats = read_stats
-        self._lock = threading.Lock()
-        self._next_id = 1
-        self._slots: dict[int, int] = {}          # id -> slot
-        self._faults: dict[int, Fault] = {}       # id -> fault (as injected)
-        self._events: list[dict] = []
-        self._taken = 0
-        self._cmd = ffi.new("rt_fault_cmd *")
-        self._ev = ffi.new("rt_fault_event[]", 256)
-
-    # --------------------------------------------------------------- control
-    def parse(self, spec: Any) -> Fault:
-        return parse_fault(spec, self.names)
-
-    def inject(self, spec: Any, watch: bool = False) -> int:
-        """Queues a fault (a spec dict or a parsed Fault); returns its id."""
-        f = spec if isinstance(spec, Fault) else self.parse(spec)
-        with self._lock:
-            used = set(self._slots.values())
-            free = [s for s in range(int(self.lib.RT_MAX_FAULTS)) if s not in used]
-            if not free:
-                raise FaultError(f"{len(used)} faults and watches are set: the loop holds at most "
-                                 f"{int(self.lib.RT_MAX_FAULTS)}; clear some first")
-            fid = self._next_id
-            c = self._cmd
-            self.ffi.memmove(c, b"\0" * self.ffi.sizeof("rt_fault_cmd"),
-                             self.ffi.sizeof("rt_fault_cmd"))
-            c.op = self.lib.RT_FCMD_SET
-            c.slot = free[0]
-            d = c.fault
-            for key, value in f.fields.items():
-                setattr(d, key, value)
-            d.id = fid
-            d.when.n_terms = len(f.terms)
-            d.when.any = 1 if f.any else 0
-            for i, (source, index, op, value) in enumerate(f.terms):
-                t = d.when.terms[i]
-                t.source = int(getattr(self.lib, source))
-                t.index = index
-                t.op = int(getattr(self.lib, op))
-                t.value = value
-            self._push(c)
-            self._next_id += 1
-            self._slots[fid] = free[0]
-            self._faults[fid] = f
-            return fid
-
-    def watch(self, when: str, start_s: float | None = None) -> int:
-        """Sets a watch: no effect on the plant; the loop latches the plant
-        time its condition first holds (``status`` started_s). Returns its id."""
-        f = Fault({"kind": "watch", "when": when}, _WATCH)
-        f.fields.update(kind=int(self.lib.RT_FAULT_WATCH), channel=-1, message=-1, signal=-1,
-                        local_signal=-1, target=-1, value=0.0, seed=0, duration_s=0.0,
-                        start_s=-_INF if start_s is None else _number(start_s, "watch: start_s"))
-        f.terms, f.any = parse_condition(when, self.names, "watch")
-        return self.inject(f)
-
-    def _push(self, c: Any) -> None:
-        if self.lib.rt_fault_push_many(self.ffi.addressof(self.loop, "fault_cmds"), c, 1) != 1:
-            raise FaultError("the loop's fault command ring is full (the loop is not taking "
-                             "commands: is it running?)")
-
-    def clear(self, fault_id: int) -> None:
-        """Ends (if active) and frees one fault or watch."""
-        with self._lock:
-            if fault_id not in self._slots:
-                raise FaultError(f"no fault {fault_id!r} is set")
-            c = self._cmd
-            c.op = self.lib.RT_FCMD_CLEAR
-            c.slot = self._slots.pop(fault_id)
-            c.fault.id = fault_id
-            self._push(c)
-
-    def clear_all(self) -> None:
-        with self._lock:
-            c = self._cmd
-            c.op = self.lib.RT_FCMD_CLEAR_ALL
-            c.slot = 0
-            c.fault.id = 0
-            self._push(c)
-            self._slots.clear()
-
-    def wait_taken(self, fault_id: int, timeout_s: float = 2.0) -> bool:
-        """True once the loop has taken the command of ``fault_id`` (False:
-        not within timeout_s, e.g. the loop is not running)."""
-        end = time.monotonic() + timeout_s
-        while int(self.loop.fault_cmds.last_id) < fault_id:
-            if time.monotonic() > end:
-                return False
-            time.sleep(0.001)
-        return True
-
-    # --------------------------------------------------------------- figures
-    def events(self) -> list[dict]:
-        """Every start, end and clearing so far: time_s (plant), id, kind, event."""
-        with self._lock:
-            while True:
-                n = self.lib.rt_fault_events_pop_many(
-                    self.ffi.addressof(self.loop, "fault_events"), self._ev, 256)
-                for i in range(n):
-                    e = self._ev[i]
-                    f = self._faults.get(int(e.id))
-                    self._events.append({
-                        "time_s": float(e.time_s), "id": int(e.id),
-                        "kind": f.kind.name if f else int(e.kind),
-                        "target": f.describe() if f else "",
-                        "event": EVENT_NAMES.get(int(e.what), str(int(e.what)))})
-                if n < 256:
-                    break
-            return list(self._events)
-
-    def take_events(self) -> list[dict]:
-        """The events not taken by an earlier call (for one reader: the recorder)."""
-        events = self.events()
-        with self._lock:
-            new = events[self._taken:]
-            self._taken = len(events)
-        return new
-
-    def status(self, stats: Any = None) -> list[dict]:
-        """The set faults as the loop last published them (``stats``: an
-        ``rt_stats`` copy, else the live one, read field by field)."""
-        s = stats if stats is not None else (self._read_stats() if self._read_stats
-                                             else self.loop.stats)
-        out = []
-        with self._lock:
-            items = sorted(self._slots.items())
-            faults = dict(self._faults)
-        for fid, slot in items:
-            x = s.faults[slot]
-            f = faults[fid]
-            mine = int(x.id) == fid
-            out.append({
-                "id": fid, "kind": f.kind.name, "target": f.describe(),
-                "state": STATE_NAMES.get(int(x.state), "?") if mine else "queued",
-                "started_s": float(x.started_s) if mine else math.nan,
-                "ended_s": float(x.ended_s) if mine else math.nan,
-                "activations": int(x.activations) if mine else 0,
-                "hits": int(x.hits) if mine else 0})
-        return out
-
-    def report(self, stats: Any = None) -> dict:
-        """For the run's JSON report: the faults set, every event, the ring's
-        counters (plant times not reached are None)."""
-        def clean(d: dict) -> dict:
-            return {k: (None if isinstance(v, float) and math.isnan(v) else v)
-                    for k, v in d.items()}
-        return {"set": [clean(x) for x in self.status(stats)], "events": self.events(),
-                **self.counters()}
-
-    def counters(self) -> dict:
-        r = self.loop.fault_cmds
-        return {"commands_applied": int(r.applied), "commands_refused": int(r.refused),
-                "commands_dropped": int(r.dropped),
-                "events_dropped": int(self.loop.fault_events.dropped)}
-
-    def slot_of(self, fault_id: int) -> int | None:
-        with self._lock:
-            return self._slots.get(fault_id)
-
-    def fault(self, fault_id: int) -> Fault | None:
-        return self._faults.get(fault_id)
