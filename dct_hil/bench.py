@@ -427,7 +427,7 @@ class Bench:
             try:
                 self._tcu.stop()
                 self.tcu_report = self._tcu.report()
-            except Exception as e:
+            except Exception as e:  # the server still stops
                 errors.append(e)
             self._tcu = None
         try:

@@ -374,7 +374,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
             offline = offline_shifts(maneuver, end_s)
         except KeyboardInterrupt:
             not_compared, interrupted = "interrupted while computing the offline run", True
-        except Exception as e:
+        except Exception as e:  # the verdict says why; the run's files stand
             not_compared = f"the offline run failed: {type(e).__name__}: {' '.join(str(e).split())}"
     verdict = vd.demo_verdict(report, tcu_report, shifts, offline, not_compared)
     summary = {

@@ -122,7 +122,7 @@ def load_params(path: str | os.PathLike | None = None, ffi: Any = None,
     ``ParamError`` on the first problem found.
     """
     if ffi is None:
-        from plant._dct_plant import ffi
+        from plant._dct_plant import ffi  # the compiled module
 
     default_file = Path(DEFAULT_PARAMS)
     default_raw = _read_toml(default_file)

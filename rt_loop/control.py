@@ -304,7 +304,7 @@ class ControlServer:
         except self._FaultError as e:
             self.counts["refused"] += 1
             return {"ok": False, "error": _one_line(e)}
-        except Exception as e:
+        except Exception as e:  # the channel keeps serving
             self.counts["refused"] += 1
             return {"ok": False, "error": f"{type(e).__name__}: {_one_line(e)}"}
 

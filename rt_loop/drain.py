@@ -70,7 +70,7 @@ class RingDrain:
             try:
                 self._write(self._buf, n)
                 self.written += n
-            except Exception as e:
+            except Exception as e:  # reported, not fatal to the loop
                 self.error = f"{self.path}: {_cause(e)}"
         return n
 
@@ -87,7 +87,7 @@ class RingDrain:
             self._thread.join()
         try:
             self._close()
-        except Exception as e:
+        except Exception as e:  # reported
             self.error = self.error or f"{self.path}: closing: {_cause(e)}"
 
     def counters(self) -> dict:

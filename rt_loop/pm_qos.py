@@ -109,5 +109,5 @@ class PmQos:
     def __del__(self) -> None:
         try:
             self.release()
-        except Exception:
+        except Exception:  # interpreter shutdown
             pass

@@ -104,13 +104,13 @@ def _stop_live_servers() -> None:
     for server in list(_LIVE):
         try:
             server.stop()
-        except Exception:
+        except Exception:  # exiting anyway
             pass
 
 
 def _extension() -> tuple[Any, Any]:
     try:
-        from rt_loop._rt_loop import ffi, lib
+        from rt_loop._rt_loop import ffi, lib  # compiled module
     except ImportError as e:
         raise ServerError(f"the real-time loop is not built ({e}); run scripts/setup") from None
     return ffi, lib
@@ -615,7 +615,7 @@ class Server:
     def _run(self) -> None:
         try:
             self._final_state = self._lib.rt_loop_run(self._l)
-        except BaseException as e:
+        except BaseException as e:  # reported by stop()/report()
             self._loop_error = f"{type(e).__name__}: {_one_line(e)}"
         finally:
             self._t_end = time.monotonic()
@@ -715,7 +715,7 @@ class Server:
         for hook in reversed(hooks):          # what reads the loop stops while it still runs
             try:
                 hook()
-            except Exception as e:
+            except Exception as e:  # the server stops anyway; raised below
                 hook_errors.append(e)
         if self._thread is not None:
             self._lib.rt_loop_request_stop(self._l)
@@ -733,7 +733,7 @@ class Server:
                      self._stop_recorder, self._close_transport, self._release_cpu):
             try:
                 step()
-            except Exception as e:
+            except Exception as e:  # every step runs; the first error is raised
                 errors.append(e)
         with self._read_lock:
             self.stats.read()
@@ -1039,7 +1039,7 @@ class Server:
         for t in self.transports:
             try:
                 t.close()
-            except Exception as e:
+            except Exception as e:  # every bus is closed; the first error raised
                 errors.append(e)
         if errors:
             raise errors[0]

@@ -165,7 +165,7 @@ def default_interface(channel: str) -> tuple[str, str]:
 
 def valid_interfaces() -> list[str]:
     """Every interface name ``open_transport`` accepts."""
-    import can
+    import can  # only when asked
 
     return sorted(set(can.interfaces.VALID_INTERFACES) | {"socketcan"})
 
@@ -459,7 +459,7 @@ def _bus_udp_sockets(bus: Any) -> list[socket.socket]:
                     continue
     try:
         fds.append(int(bus.fileno()))
-    except Exception:
+    except Exception:  # BusABC.fileno raises NotImplementedError; others anything
         pass
     sockets: list[socket.socket] = []
     seen = set()
@@ -607,7 +607,7 @@ class BusWatch:
         except NotImplementedError:
             self._state_reported = False
             return None
-        except Exception as e:
+        except Exception as e:  # a backend may raise anything
             self._error("bus state", e)
             return self.bus_state
 
@@ -618,7 +618,7 @@ class BusWatch:
         try:
             value = getattr(get_stats(), "overruns", None)
             return None if value is None else int(value)
-        except Exception:
+        except Exception:  # no statistics: not counted
             return None
 
     def poll(self) -> None:
@@ -743,7 +743,7 @@ class BridgeTransport(Transport):
             raise TransportError(f"interface {interface}: {_NOT_BRIDGED[interface]}")
         check_interface(interface)
         rcvbuf_bytes = _check_rcvbuf(rcvbuf_bytes)
-        import can
+        import can  # python-can only for the bridge
 
         self._can = can
         try:
@@ -766,7 +766,7 @@ class BridgeTransport(Transport):
         self.own = OwnFrames(channel) if interface in ECHOING_INTERFACES else None
         try:
             self.watch = BusWatch(self.bus, can, rcvbuf_bytes, on_error=self._watch_error)
-        except Exception as e:
+        except Exception as e:  # the bridge goes on
             self.bus.shutdown()
             raise TransportError(f"python-can {interface} channel {channel}: cannot watch "
                                  f"the bus: {_one_line(e)}") from None
@@ -913,7 +913,7 @@ class BridgeTransport(Transport):
     def _poll_watch(self) -> None:
         try:
             self.watch.poll()
-        except Exception as e:
+        except Exception as e:  # counted; the bus is closed next
             self._watch_error(f"{type(e).__name__}: {_one_line(e)}")
 
     def _count_unread(self) -> None:

@@ -158,7 +158,7 @@ class Engine:
                 i = index[fut.key]
                 try:
                     result = fut.result()
-                except Exception as e:
+                except Exception as e:  # a worker lost, a task that raised
                     reason = " ".join(str(e).split()) or type(e).__name__
                     result = {"error": f"{type(e).__name__}: {reason}"}
                 fut.release()

@@ -132,7 +132,7 @@ def tcu_constants() -> dict[str, Any]:
         assigned.update(t.id for t in targets if isinstance(t, ast.Name))
     try:
         from tcu_stub.fast import CALIBRATION_NAMES as named
-    except Exception:
+    except Exception:  # no such module, or not built: the heuristics alone
         named = None
     out = {}
     for name, value in vars(logic).items():

@@ -177,7 +177,7 @@ def _mdf(p: Path, needed: list[str], mapping: ChannelMap):
         raise StudyError(f"{p}: reading MF4 needs asammdf (pip install asammdf)") from None
     try:
         mdf = MDF(str(p))
-    except Exception as e:
+    except Exception as e:  # asammdf raises many kinds
         raise StudyError(f"{p}: cannot read as MDF: {' '.join(str(e).split())}") from None
     available = sorted({name for name in mdf.channels_db if name and name != "time"})
     cache: dict = {}

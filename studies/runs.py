@@ -290,7 +290,7 @@ def evaluate(task: dict) -> dict:
         rec, shifts = simulate(task["case"], task.get("overrides"), task.get("calibration"))
         figs = figures(task["case"], rec, shifts)
         error = None
-    except Exception as e:
+    except Exception as e:  # a failed run is a result
         figs, error = None, one_line(e)
     return {"figures": figs, "error": error, "wall_s": time.perf_counter() - t0,
             "worker": worker_name()}

@@ -49,7 +49,7 @@ def _module(frozen: tuple) -> types.ModuleType:
     name = f"tcu_stub._calibrated_{next(_serial)}"
     mod = types.ModuleType(name, logic.__doc__)
     mod.__file__ = logic.__file__
-    exec(compile(tree, logic.__file__, "exec"), mod.__dict__)
+    exec(compile(tree, logic.__file__, "exec"), mod.__dict__)  # the project's own file
     return mod
 
 

@@ -521,7 +521,7 @@ class MappedPeer:
         while not self._stop.is_set():
             try:
                 msg = bus.recv(timeout=0.05)
-            except Exception:
+            except Exception:  # a bus going down while stopping
                 if self._stop.is_set():
                     return
                 time.sleep(0.01)
@@ -897,7 +897,7 @@ class CanTcu:
                 self._late_us.add(late * 1e6)
                 self._exec_us.add((time.monotonic() - now) * 1e6)
                 k += 1
-        except Exception as e:
+        except Exception as e:  # the task stops; stop() sends the safe frames
             self.error = f"TCU task stopped at {k * PERIOD_S:.3f} s: {type(e).__name__}: {_one_line(e)}"
             self._send_safe()                           # the last commands on the bus are safe
         finally:
@@ -931,7 +931,7 @@ class CanTcu:
                     self._tick(k, now, snap)
                     self._exec_us.add((time.monotonic() - now) * 1e6)
                     k += 1
-        except Exception as e:
+        except Exception as e:  # the task stops; stop() sends the safe frames
             self.error = f"TCU task stopped at {k * PERIOD_S:.3f} s: {type(e).__name__}: {_one_line(e)}"
             self._send_safe()
         finally:

@@ -895,7 +895,7 @@ def main(argv=None) -> int:
         print(f"validate: {fn.__name__} ...", file=sys.stderr, flush=True)
         try:
             sec = fn(args.quick, plots, doc.parent)
-        except Exception as e:
+        except Exception as e:  # the report says what failed, the exit code too
             sec = Section(fn.__name__, [f"Failed: {type(e).__name__}: {e}", "", "```",
                                         traceback.format_exc(limit=4), "```"],
                           [Check(f"{fn.__name__} ran", None, "runs", False)])

@@ -243,7 +243,7 @@ class BenchView:
         doc.title = ui.title
         sheet = InlineStyleSheet(css=_CSS)
 
-        def Div(**kw: Any) -> Any:
+        def Div(**kw: Any) -> Any:  # every Div with the page's style sheet
             return _Div(stylesheets=[sheet], **kw)
 
         # ---- header and the one-line message
@@ -500,7 +500,7 @@ class BenchView:
             self._syncing = False
         try:
             self._retrace(wanted)
-        except Exception as e:
+        except Exception as e:  # e.g. 32 values traced by other pages
             self.say(str(e), ok=False)
             self._set_picker([])
 
@@ -513,7 +513,7 @@ class BenchView:
             return
         try:
             self._retrace(list(new))
-        except Exception as e:
+        except Exception as e:  # ScopeError and the like: one line, old set kept
             self.say(str(e), ok=False)
             self._set_picker(self.traced)
 
@@ -730,7 +730,7 @@ class BenchView:
             return False, None
         try:
             return True, fn()
-        except Exception as e:
+        except Exception as e:  # ServerError and the like: one line
             self.say(f"{what}: {e}", ok=False)
             return False, None
 
@@ -784,6 +784,6 @@ class BenchView:
         if self.scope is not None and self.traced:
             try:
                 self.scope.remove(self.traced)
-            except Exception:
+            except Exception:  # the scope may be stopped already
                 pass
         self.traced = []

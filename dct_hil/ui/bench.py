@@ -76,7 +76,7 @@ def _page_streams(driver: Any, timeout_s: float = 60.0) -> None:
     while time.monotonic() < end:
         try:
             t = driver.execute_script(script)
-        except Exception:
+        except Exception:  # the page is still loading
             t = None
         if t is not None:
             if first is None:
@@ -102,7 +102,7 @@ def updates_per_s(driver: Any, seconds: float = 3.0) -> float | None:
             "}, 2);")
         time.sleep(seconds)
         n = driver.execute_script("clearInterval(window.__dct_timer); return window.__dct_updates;")
-    except Exception:
+    except Exception:  # a browser too busy to answer: not measured
         return None
     return max(0.0, float(n) - 1.0) / seconds
 
@@ -192,7 +192,7 @@ def _loop_round(args: Any, browsers: int, stop: threading.Event) -> dict:
         for drv in drivers:
             try:
                 drv.quit()
-            except Exception:
+            except Exception:  # the round's figures are taken
                 pass
         if ui is not None:
             ui.stop()

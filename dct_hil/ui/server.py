@@ -291,7 +291,7 @@ class UiServer:
                 keep_alive_milliseconds=10000,
                 **kwargs)
             self._bokeh.start()
-        except BaseException as e:
+        except BaseException as e:  # reported by start()
             self._error = e
             self._ready.set()
             loop.close(all_fds=True)
@@ -302,7 +302,7 @@ class UiServer:
         finally:
             try:
                 loop.close(all_fds=True)
-            except Exception:
+            except Exception:  # closing anyway
                 pass
 
     def freeze(self) -> None:
@@ -323,7 +323,7 @@ class UiServer:
         self.recording_path = None
         try:
             final = self.server.stop_recording()
-        except Exception as e:
+        except Exception as e:  # told, the UI still stops
             self._log(f"UI: stopping the recording {path}: {_one_line(e)}")
             return None
         final = os.fspath(final) if final else path
@@ -350,7 +350,7 @@ class UiServer:
                     self._bokeh.stop(wait=False)
                     http = self._bokeh._http
                     await asyncio.wait_for(http.close_all_connections(), 2.0)
-            except Exception:
+            except Exception:  # stopping anyway
                 pass
             finally:
                 done.set()

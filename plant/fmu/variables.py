@@ -111,7 +111,7 @@ class Model:
 
 
 def _ffi():
-    from plant._dct_plant import ffi
+    from plant._dct_plant import ffi  # the compiled module
     return ffi
 
 

@@ -107,7 +107,7 @@ _HEADER = os.path.join(os.path.dirname(os.path.abspath(plant.__file__)), "csrc",
 
 def _asammdf() -> Any:
     try:
-        import asammdf
+        import asammdf  # optional: only MF4 recordings need it
     except ImportError as e:
         raise ImportError(f"MF4 recordings need the asammdf package ({one_line(e)}); "
                           "pip install asammdf") from None
@@ -322,7 +322,7 @@ class MdfRecorder(RingDrain):
         folder = os.path.dirname(os.path.abspath(self.path))
         try:
             os.makedirs(folder, exist_ok=True)
-            self._f = open(self.path, "w+b")
+            self._f = open(self.path, "w+b")  # closed by stop()
         except OSError as e:
             raise OSError(f"recording {self.path}: {e.strerror}") from None
 
@@ -507,7 +507,7 @@ class MdfRecorder(RingDrain):
                         or self._file.pending_bytes >= _MAX_PENDING_BYTES):
                     self._flush()
                     self._last_flush = now
-            except Exception as e:
+            except Exception as e:  # reported, not fatal to the loop
                 self.error = f"{self.path}: {_cause(e)}"
         return n
 

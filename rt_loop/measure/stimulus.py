@@ -257,7 +257,7 @@ def _load_csv(path: str, writable: dict, channels: list[str] | None) -> dict:
 
 def _load_mdf(path: str, writable: dict, channels: list[str] | None) -> dict:
     try:
-        from asammdf import MDF
+        from asammdf import MDF  # optional: only MDF stimuli need it
     except ImportError:
         raise StimulusError(f"stimulus {path}: MDF files need the asammdf package "
                             "(pip install asammdf)") from None
@@ -268,7 +268,7 @@ def _load_mdf(path: str, writable: dict, channels: list[str] | None) -> dict:
         raise StimulusError(f"stimulus {path}: the file is empty")
     try:
         mdf = MDF(path)
-    except Exception as e:
+    except Exception as e:  # asammdf raises many kinds for a bad file
         raise StimulusError(f"stimulus {path}: not a readable MDF file "
                             f"({type(e).__name__}: {_one_line(e)})") from None
     try:
@@ -401,7 +401,7 @@ class StimulusPlayer:
                 if self.t0_s is not None:
                     self._queue(float(loop.stats.sim_time_s))
                 self._stop.wait(self.poll_s)
-        except Exception as e:
+        except Exception as e:  # reported by counters()
             self.error = f"stimulus {self.stimulus.path}: {type(e).__name__}: {_one_line(e)}"
 
     def _find_maneuver_start(self) -> None:

@@ -1413,7 +1413,7 @@ def run_doctor(root: str = "/", cpu: int | None = None, channel: str | None = No
                 item = fn(ctx, can)
             else:
                 item = fn(ctx)
-        except Exception as e:
+        except Exception as e:  # one odd file must not take the report down
             item = _unknown(key, title, f"the check failed ({type(e).__name__}: {e})",
                             "run dct-hil doctor --json - and report the output")
         items.append(item)

@@ -261,7 +261,7 @@ class Sender:
         try:
             self.bus = can.Bus(interface=iface, channel=channel, receive_own_messages=False,
                                **kwargs)
-        except Exception as e:
+        except Exception as e:  # python-can raises many kinds
             raise FuzzError(f"cannot open the sender's {iface} bus on {channel}: "
                             f"{' '.join(str(e).split())}") from None
         self.send_errors = 0
@@ -292,7 +292,7 @@ class Sender:
             try:
                 self.bus.send(msg, timeout=0.05)
                 return True
-            except Exception as e:
+            except Exception as e:  # a full queue: ENOBUFS on SocketCAN
                 self.last_error = " ".join(str(e).split())
                 if "No buffer space" in self.last_error or "ENOBUFS" in self.last_error \
                         or "Resource temporarily" in self.last_error:
@@ -307,7 +307,7 @@ class Sender:
         try:
             while self.bus.recv(timeout=0.0) is not None:
                 pass
-        except Exception:
+        except Exception:  # nothing of ours
             pass
 
     def close(self) -> None:
@@ -445,7 +445,7 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
                         time_scale=args.time_scale, xcp=xcp, pm_qos_us=None)
     except (ServerError, TransportError) as e:
         raise FuzzError(str(e)) from None
-    except Exception as e:
+    except Exception as e:  # the plant's parameters, the build: one line
         raise FuzzError(f"the server cannot be set up: {type(e).__name__}: "
                         f"{' '.join(str(e).split())}") from None
     stop = threading.Event()

@@ -105,7 +105,7 @@ def _fill(ring: Any) -> int:
 
 
 def _sample(server: Any, t0: float, cycles: int, mf4: Path) -> dict:
-    loop = server._l
+    loop = server._l  # read-only look at the rings' indices
     snap = server.snapshot()
     c = snap["counts"]
     row: dict[str, Any] = {"t_s": round(time.monotonic() - t0, 3), **proc_figures()}
@@ -289,7 +289,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             server.start(cancel=stop)
         except (ServerError, TransportError) as e:
             raise SoakError(str(e)) from None
-        except Exception as e:
+        except Exception as e:  # the plant's parameters, the build: one line
             raise SoakError(f"the server cannot be set up: {type(e).__name__}: "
                             f"{' '.join(str(e).split())}") from None
         from tcu_stub.can_tcu import CanTcu
@@ -370,7 +370,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
                 tcu.stop()
                 tcu.write_report(paths["tcu_report"])
                 tcu.close()
-            except Exception as e:
+            except Exception as e:  # the run's files stand; said in the JSON
                 run["tcu_error"] = " ".join(str(e).split())
         if server is not None:
             try:
@@ -395,7 +395,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
         try:
             plot(rows, paths["png"], f"soak: {rows[-1]['t_s'] / 60.0:.0f} min of {MANEUVER}, "
                  "embedded transport, MF4 recording")
-        except Exception as e:
+        except Exception as e:  # a plot is not worth the verdict
             print(f"soak: warning: no plot: {' '.join(str(e).split())}", file=err)
     _print_summary(doc, paths, out)
     v = doc["verdict"]

@@ -48,7 +48,7 @@ CLUTCH_DRIVES = ("TCU_ClutchCmd.SolenoidCurrent1 > 0.3 or "
                  "TCU_ClutchCmd.SolenoidCurrent2 > 0.3")
 
 
-def DTC(name: str) -> str:
+def DTC(name: str) -> str:  # reads like the table it names
     """A DTC's name as the TCU reports it (``tcu_status()["dtcs"]``), checked
     against the TCU's table when it has one."""
     assert name in diagnostics.DTC_NAMES, f"{name!r} is not in the TCU's DTC table"

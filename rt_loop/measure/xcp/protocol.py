@@ -272,7 +272,7 @@ def compute_key(secret: bytes, seed: bytes) -> bytes:
 def seed_n_key_function(secret: bytes) -> Callable[[int, bytes], bytes]:
     """The master's side, as pyxcp's ``General.seed_n_key_function`` takes it."""
 
-    def key_for(resource: int, seed: bytes) -> bytes:
+    def key_for(resource: int, seed: bytes) -> bytes:  # same key for every resource
         return compute_key(secret, bytes(seed))
 
     return key_for
@@ -495,7 +495,7 @@ class Slave:
                 payload = method(cto)
             except _Refused as e:
                 return [self._error(e.code)]
-            except Exception:
+            except Exception:  # a backend's bug must not stop the slave
                 self._bump(self._ignored, "internal_error")
                 return [self._error(ERR_GENERIC)]
             if payload is None:

@@ -168,7 +168,7 @@ class _Server:
         def run() -> None:
             try:
                 target()
-            except Exception as e:
+            except Exception as e:  # reported in counters, never fatal to the loop
                 self.error = f"{type(e).__name__}: {e}"
         return run
 
