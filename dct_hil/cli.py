@@ -1153,8 +1153,8 @@ def main(argv=None):
         print(f"dct-hil: error: {_one_line(message)}", file=sys.stderr)
         return 2
 
-    parser = build_parser()
     try:
+        parser = build_parser()     # a Ctrl-C this early is one line too
         args = parser.parse_args(argv)
         if args.command is None:
             raise UserError("choose a command: demo, simulate, serve, tcu, bench, valve, doctor, "

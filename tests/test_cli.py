@@ -1,6 +1,8 @@
 """dct-hil command line: simulate, bench, and one-line user errors."""
 
 import json
+import os
+import resource
 import signal
 import subprocess
 import sys
@@ -225,30 +227,36 @@ def test_plant_error_is_a_user_error(capsys, tiny, tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_sigint_exits_130_with_a_partial_csv(tmp_path):
-    # a real Ctrl-C on a real process: a long run, interrupted once it has started
-    from plant.model import Plant
-    from plant.scenario import load_scenario
-    from plant.simulate import run
+def _cpu_s(pid):
+    """CPU seconds a process has used so far (Linux: /proc/PID/stat)."""
+    with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
-    t0 = time.perf_counter()
+
+def test_sigint_exits_130_with_a_partial_csv(tmp_path):
+    # A real Ctrl-C on a real process, once its run has started: the signal comes
+    # when the process has used a second of CPU more than its start-up (the imports,
+    # measured first), a measure of its progress that a loaded machine does not move
+    # the way it moves wall time (a wall-clock wait sent the signal during the
+    # imports on one run and after the run's end on another).
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     subprocess.run([sys.executable, "-c", "import dct_hil.cli, plant.model, plant.simulate"],
                    check=True, timeout=120)
-    startup_s = time.perf_counter() - t0
-    wait_s = 1.0 + 3 * startup_s          # the signal comes once the run has started
-    # long enough that this machine, at its speed now, is still running when the
-    # signal comes (a fixed 3600 s of plant ran to its end first on a loaded machine
-    # whose start-up was slow: the wait grew, the plant's speed did not shrink alike)
-    speed = run(Plant(), load_scenario("coastdown"), duration_s=20.0).real_time_factor
-    duration_s = max(3600.0, 1.5 * speed * (wait_s + 5.0))
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    startup_cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     out_csv = tmp_path / "long.csv"
     proc = subprocess.Popen(
         [sys.executable, "-m", "dct_hil.cli", "simulate", "--scenario", "coastdown",
-         "--duration", f"{duration_s:.0f}", "--out", str(out_csv)],
+         "--duration", "3600", "--out", str(out_csv)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
-        time.sleep(wait_s)
+        deadline = time.monotonic() + 120
+        while proc.poll() is None and _cpu_s(proc.pid) < startup_cpu_s + 1.0:
+            assert time.monotonic() < deadline, "the run did not get going in 120 s"
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run ended before it could be interrupted"
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     finally:
