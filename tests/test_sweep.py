@@ -192,6 +192,12 @@ def test_the_same_sweep_on_a_separate_scheduler_and_worker(tmp_path):
                                                  "--no-dashboard"],
                                   stdout=log, stderr=subprocess.STDOUT, env=env,
                                   cwd=str(tmp_path))
+        # both workers up before the sweep connects (the sweep itself waits for one;
+        # on a loaded machine the second joined after it had counted them)
+        from distributed import Client
+
+        with Client(address, timeout=120) as client:
+            client.wait_for_workers(2, timeout=120)
         spec = _write(tmp_path, SPEC_32)
         out = tmp_path / "out"
         cmd = [sys.executable, "-m", "dct_hil.cli", "sweep", str(spec), "--scheduler", address,
