@@ -250,6 +250,10 @@ def test_sigint_exits_130_with_a_partial_csv(tmp_path):
         [sys.executable, "-m", "dct_hil.cli", "simulate", "--scenario", "coastdown",
          "--duration", "3600", "--out", str(out_csv)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # Ctrl-C as a terminal delivers it: a suite started in the background of a
+        # shell without job control (nohup, a CI runner) passes SIGINT on ignored,
+        # and Python then installs no KeyboardInterrupt for it
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         deadline = time.monotonic() + 120
