@@ -31,29 +31,13 @@ import threading
 import time
 
 from . import codec
+from .node import ReceivingNode, RxStats
 from .own_frames import OwnFrames, is_echoing_bus
 
 SIDES = {"tcu": ("TCU", "PLANT"), "plant": ("PLANT", "TCU")}
 
 
-class _RxStats:
-    __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last", "last_t_any",
-                 "rejects_in_row", "last_reject")
-
-    def __init__(self):
-        self.received = 0
-        self.accepted = 0
-        self.rejected = {r: 0 for r in codec.REJECTS}
-        self.first_t = None           # receive time of the first accepted frame
-        self.last_t = None            # ... of the last one
-        self.max_interval_s = 0.0
-        self.last = None              # decoded values of the last accepted frame
-        self.last_t_any = None
-        self.rejects_in_row = 0       # frames rejected since the last accepted one
-        self.last_reject = None       # why the last of them was (bad_length, bad_crc, bad_counter)
-
-
-class CanPeer:
+class CanPeer(ReceivingNode):
     """One node on a python-can bus, sending and receiving with E2E protection.
 
     bus     an open python-can Bus (``CanPeer.open`` makes one); the peer
@@ -94,7 +78,7 @@ class CanPeer:
         # send and drop the echoes before they count as received traffic
         self._own = OwnFrames(str(getattr(bus, "channel_info", "") or side)) \
             if is_echoing_bus(bus) else None
-        self._rx_stats = {name: _RxStats() for name in self.rx.names}
+        self._rx_stats = {name: RxStats() for name in self.rx.names}
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()   # one frame at a time: send thread and send_now share counters
         self._changed = threading.Condition(self._lock)
@@ -235,8 +219,7 @@ class CanPeer:
         message, in one consistent copy. The value dicts are the peer's own (never changed after they
         were stored): read them, do not modify them."""
         with self._lock:
-            return {name: (st.last, st.last_t, st.rejects_in_row, st.last_reject)
-                    for name, st in self._rx_stats.items()}
+            return {name: st.snapshot() for name, st in self._rx_stats.items()}
 
     def last(self, message):
         """Decoded values of the last accepted frame of a received message (None before the first)."""
@@ -254,24 +237,12 @@ class CanPeer:
             st = self._rx_stats.get(name)
             if st is None:
                 raise ValueError(f"{name} is not a message the {self.node} receives")
-            return {"received": st.received, "accepted": st.accepted, **st.rejected}
+            return st.counts()
 
     @property
     def unknown_frames(self):
         with self._lock:
             return self.rx.unknown
-
-    def wait_for(self, predicate, timeout=5.0):
-        """Waits until ``predicate(self)`` is true (checked after every received
-        frame) or ``timeout`` seconds passed; returns the predicate's value."""
-        deadline = time.monotonic() + timeout
-        while True:
-            ok = predicate(self)
-            left = deadline - time.monotonic()
-            if ok or left <= 0:
-                return ok
-            with self._changed:
-                self._changed.wait(min(left, 0.05))
 
     def report(self):
         """Everything counted so far, as JSON-ready data."""
@@ -279,19 +250,8 @@ class CanPeer:
             end = self.stopped_at if self.stopped_at is not None else time.monotonic()
             received = {}
             for name, st in self._rx_stats.items():
-                mean = None
-                if st.accepted >= 2 and st.last_t is not None:
-                    mean = (st.last_t - st.first_t) / (st.accepted - 1) * 1000.0
-                received[name] = {
-                    "frame_id": codec.message(name).frame_id,
-                    "cycle_ms": codec.message(name).cycle_time,
-                    "received": st.received,
-                    "accepted": st.accepted,
-                    "rejected": dict(st.rejected),
-                    "mean_interval_ms": mean,
-                    "max_interval_ms": st.max_interval_s * 1000.0 if st.accepted >= 2 else None,
-                    "last": dict(st.last) if st.last is not None else None,
-                }
+                m = codec.message(name)
+                received[name] = {"frame_id": m.frame_id, "cycle_ms": m.cycle_time, **st.figures()}
             sent = {name: {"frame_id": codec.message(name).frame_id, "frames": self.sent[name],
                            "errors": self.send_errors[name], "skipped": self.skipped[name],
                            "values": dict(self._values[name])}
@@ -390,22 +350,7 @@ class CanPeer:
                 data = b"" if msg.is_remote_frame else bytes(msg.data)
                 status, name, values = self.rx.receive(msg.arbitration_id, data, msg.is_extended_id)
                 if name is not None:
-                    st = self._rx_stats[name]
-                    st.received += 1
-                    st.last_t_any = t
-                    if status == codec.OK:
-                        st.rejects_in_row = 0
-                        st.accepted += 1
-                        if st.last_t is not None:
-                            st.max_interval_s = max(st.max_interval_s, t - st.last_t)
-                        else:
-                            st.first_t = t
-                        st.last_t = t
-                        st.last = values
-                    else:
-                        st.rejects_in_row += 1
-                        st.rejected[status] += 1
-                        st.last_reject = status
+                    self._rx_stats[name].frame(t, status, values)
                 self._changed.notify_all()
 
 

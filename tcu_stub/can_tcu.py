@@ -153,6 +153,7 @@ import threading
 import time
 
 from can_dbc import codec
+from can_dbc.node import ReceivingNode, RxStats
 from can_dbc.own_frames import OwnFrames, is_echoing_bus
 from can_dbc.peer import CanPeer
 from plant import argtypes
@@ -291,24 +292,6 @@ class _Histogram:
                 "p99": self.percentile(99), "p99_9": self.percentile(99.9), "max": round(self.max, 1)}
 
 
-class _MappedRx:
-    """Reception of one message the plant sends on a mapped bus."""
-    __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last",
-                 "rejects_in_row", "last_reject", "state")
-
-    def __init__(self, state):
-        self.received = 0
-        self.accepted = 0
-        self.rejected = {r: 0 for r in codec.REJECTS}
-        self.first_t = None
-        self.last_t = None
-        self.max_interval_s = 0.0
-        self.last = None
-        self.rejects_in_row = 0
-        self.last_reject = None       # why the last rejected frame was
-        self.state = state            # the table codec's receive state (last counter)
-
-
 class MappedSetup:
     """Everything a mapped TCU node needs before a bus is opened: the mapping,
     the TCU's signals in it (``TcuMatrix``: ``MissingSignalError`` when one is
@@ -328,7 +311,7 @@ class MappedSetup:
                 self.tables[b.name] = (CodecTable([(m.message, m.protection) for m in msgs]), msgs)
 
 
-class MappedPeer:
+class MappedPeer(ReceivingNode):
     """The reference TCU's side of a mapping file on one python-can bus per
     mapping bus: receives the messages the plant sends (``direction ==
     "send"``), checks each frame with the table codec (``CodecTable.check``,
@@ -354,7 +337,7 @@ class MappedPeer:
         self.rx_messages = {message_key(m): m for m in self.matrix.sent}
         self.tx_messages = {message_key(m): m for m in self.matrix.received}
         self._fd_brs = {b.name: bool(b.fd and b.data_bitrate) for b in setup.mapping.buses}
-        self._rx = {k: _MappedRx(setup.tables[m.bus][0].new_state()) for k, m in self.rx_messages.items()}
+        self._rx = {k: RxStats(setup.tables[m.bus][0].new_state()) for k, m in self.rx_messages.items()}
         self._counter = {k: 0 for k in self.tx_messages}
         self.sent = {k: 0 for k in self.tx_messages}
         self.send_errors = {k: 0 for k in self.tx_messages}
@@ -447,7 +430,7 @@ class MappedPeer:
         time it was received or None, frames rejected since then, why the last
         of those was rejected or None)}."""
         with self._lock:
-            return {k: (st.last, st.last_t, st.rejects_in_row, st.last_reject) for k, st in self._rx.items()}
+            return {k: st.snapshot() for k, st in self._rx.items()}
 
     def counts(self, key):
         """{received, accepted, bad_length, bad_crc, bad_counter} of a received message."""
@@ -455,7 +438,7 @@ class MappedPeer:
             st = self._rx.get(key)
             if st is None:
                 raise ValueError(f"{key} is not a message the TCU receives")
-            return {"received": st.received, "accepted": st.accepted, **st.rejected}
+            return st.counts()
 
     @property
     def unknown_frames(self):
@@ -471,34 +454,14 @@ class MappedPeer:
     def own_echoes(self):
         return sum(o.echoes for o in self._own.values() if o is not None)
 
-    def wait_for(self, predicate, timeout=5.0):
-        """Waits until ``predicate(self)`` is true (checked after every received
-        frame) or ``timeout`` seconds passed; returns the predicate's value."""
-        deadline = time.monotonic() + timeout
-        while True:
-            ok = predicate(self)
-            left = deadline - time.monotonic()
-            if ok or left <= 0:
-                return ok
-            with self._changed:
-                self._changed.wait(min(left, 0.05))
-
     def report(self):
         """Everything counted so far, as JSON-ready data."""
         with self._lock:
             received = {}
             for k, st in self._rx.items():
                 m = self.rx_messages[k]
-                mean = None
-                if st.accepted >= 2 and st.last_t is not None:
-                    mean = (st.last_t - st.first_t) / (st.accepted - 1) * 1000.0
-                received[k] = {
-                    "bus": m.bus, "message": m.name, "frame_id": m.frame_id, "cycle_ms": m.cycle_ms,
-                    "received": st.received, "accepted": st.accepted, "rejected": dict(st.rejected),
-                    "mean_interval_ms": mean,
-                    "max_interval_ms": st.max_interval_s * 1000.0 if st.accepted >= 2 else None,
-                    "last": dict(st.last) if st.last is not None else None,
-                }
+                received[k] = {"bus": m.bus, "message": m.name, "frame_id": m.frame_id,
+                               "cycle_ms": m.cycle_ms, **st.figures()}
             sent = {k: {"bus": m.bus, "message": m.name, "frame_id": m.frame_id, "cycle_ms": m.cycle_ms,
                         "frames": self.sent[k], "errors": self.send_errors[k]}
                     for k, m in self.tx_messages.items()}
@@ -545,20 +508,7 @@ class MappedPeer:
                 data = b"" if msg.is_remote_frame else bytes(msg.data)
                 st = self._rx[key]
                 status = table.check(i, data, st.state)
-                st.received += 1
-                if status == codec.OK:
-                    st.rejects_in_row = 0
-                    st.accepted += 1
-                    if st.last_t is not None:
-                        st.max_interval_s = max(st.max_interval_s, t - st.last_t)
-                    else:
-                        st.first_t = t
-                    st.last_t = t
-                    st.last = table.decode(i, data)
-                else:
-                    st.rejects_in_row += 1
-                    st.rejected[status] += 1
-                    st.last_reject = status
+                st.frame(t, status, table.decode(i, data) if status == codec.OK else None)
                 self._changed.notify_all()
 
 

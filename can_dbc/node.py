@@ -1,0 +1,93 @@
+"""What every CAN node of the project keeps of the messages it receives, written
+once: per message the counts, the intervals and the last accepted values
+(``RxStats``), and the wait on a condition over them (``ReceivingNode``).
+
+Used by ``can_dbc.peer.CanPeer`` (the contract's messages, either side) and
+``tcu_stub.can_tcu.MappedPeer`` (a vehicle matrix's messages, the TCU's side).
+A node holds its ``RxStats`` under its own lock, notifies its ``_changed``
+condition (built on that lock) after every received frame, and reads them
+through the methods below while holding the lock."""
+
+import time
+
+from . import codec
+
+
+class RxStats:
+    """Reception of one message: counts, intervals, the last accepted values."""
+
+    __slots__ = ("received", "accepted", "rejected", "first_t", "last_t", "max_interval_s", "last",
+                 "last_t_any", "rejects_in_row", "last_reject", "state")
+
+    def __init__(self, state=None):
+        self.received = 0
+        self.accepted = 0
+        self.rejected = {r: 0 for r in codec.REJECTS}
+        self.first_t = None           # receive time of the first accepted frame
+        self.last_t = None            # ... of the last one
+        self.max_interval_s = 0.0
+        self.last = None              # decoded values of the last accepted frame
+        self.last_t_any = None        # receive time of the last frame, accepted or not
+        self.rejects_in_row = 0       # frames rejected since the last accepted one
+        self.last_reject = None       # why the last of them was (bad_length, bad_crc, bad_counter)
+        self.state = state            # a codec's receive state (the last counter), if it keeps one
+
+    def frame(self, t, status, values):
+        """One frame received at monotonic time ``t``: ``status`` codec.OK
+        (``values`` its decoded signals) or the reason it was rejected."""
+        self.received += 1
+        self.last_t_any = t
+        if status == codec.OK:
+            self.rejects_in_row = 0
+            self.accepted += 1
+            if self.last_t is not None:
+                self.max_interval_s = max(self.max_interval_s, t - self.last_t)
+            else:
+                self.first_t = t
+            self.last_t = t
+            self.last = values
+        else:
+            self.rejects_in_row += 1
+            self.rejected[status] += 1
+            self.last_reject = status
+
+    def snapshot(self):
+        """(last values or None, their receive time or None, frames rejected
+        since, why the last of those was or None)."""
+        return self.last, self.last_t, self.rejects_in_row, self.last_reject
+
+    def counts(self):
+        """{received, accepted, bad_length, bad_crc, bad_counter}."""
+        return {"received": self.received, "accepted": self.accepted, **self.rejected}
+
+    def figures(self):
+        """The counts, the mean and largest interval between accepted frames
+        (ms; None before the second) and the last values, JSON-ready."""
+        mean = None
+        if self.accepted >= 2 and self.last_t is not None:
+            mean = (self.last_t - self.first_t) / (self.accepted - 1) * 1000.0
+        return {
+            "received": self.received,
+            "accepted": self.accepted,
+            "rejected": dict(self.rejected),
+            "mean_interval_ms": mean,
+            "max_interval_ms": self.max_interval_s * 1000.0 if self.accepted >= 2 else None,
+            "last": dict(self.last) if self.last is not None else None,
+        }
+
+
+class ReceivingNode:
+    """The waiting side of a node: ``_changed`` is a threading.Condition the
+    receive threads notify after every frame."""
+
+    def wait_for(self, predicate, timeout=5.0):
+        """Waits until ``predicate(self)`` is true (checked after every received
+        frame) or ``timeout`` seconds passed; returns the predicate's value."""
+        deadline = time.monotonic() + timeout
+        while True:
+            ok = predicate(self)
+            left = deadline - time.monotonic()
+            if ok or left <= 0:
+                return ok
+            with self._changed:
+                self._changed.wait(min(left, 0.05))
