@@ -17,7 +17,8 @@ low-speed maneuvers                   creep 3-8 km/h, rollback <= 0.1 m, ...
 ``--quick`` runs the same comparisons shorter (the first seconds of
 paper-cycle, fewer synchronizer cases, short benchmarks; bounds where they
 apply) in under a minute and writes into out/validation-quick/ so that the
-committed document keeps the full figures.
+committed document keeps the full figures. A full run also writes the maneuvers'
+figures table of the manual's validation page (docs/validate.md).
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ class Section:
     checks: list = field(default_factory=list)
     plots: list = field(default_factory=list)
     wall_s: float = 0.0
-    figures: list = field(default_factory=list)    # rows of the README's figures table
+    figures: list = field(default_factory=list)    # rows of the maneuvers' figures table
 
 
 def _check_le(name, value, bound, unit=""):
@@ -719,8 +720,8 @@ def speed(quick: bool, plots: Path, doc_dir: Path) -> Section:
     sec.lines += ["", f"Loop benchmark (`python -m rt_loop.tools.bench {' '.join(cmd)}`: the server at "
                   "2 kHz, SCHED_FIFO, PM QoS, bridge transport with a test TCU, in rounds between "
                   "rounds of the machine's wake-up floor measured alone (the C floor loop, "
-                  "`rt_loop/floor.py`); the README's figures come from longer runs of the same "
-                  "method):", ""]
+                  "`rt_loop/floor.py`); the manual's figures (docs/realtime-pc.md) come from longer "
+                  "runs of the same method):", ""]
     if rep is None:
         sec.lines.append(f"not run: {(proc.stderr or proc.stdout).strip().splitlines()[-1:]}")
     else:
@@ -854,23 +855,26 @@ def write_document(path: Path, sections: list, quick: bool, wall_s: float) -> No
     path.write_text("\n".join(lines) + "\n")
 
 
-README_BEGIN = "<!-- figures: written by scripts/validate, do not edit by hand -->"
-README_END = "<!-- end of figures -->"
+#: the manual's validation page: the maneuvers' figures table between the markers
+FIGURES_PAGE = REPO / "docs" / "validate.md"
+FIGURES_BEGIN = "<!-- figures: written by scripts/validate, do not edit by hand -->"
+FIGURES_END = "<!-- end of figures -->"
 
 
-def write_readme_figures(readme: Path, sections: list) -> bool:
-    """The README's figures table (between README_BEGIN and README_END) from the
-    sections' figures; False when the README has no such block."""
-    text = readme.read_text()
-    a, b = text.find(README_BEGIN), text.find(README_END)
+def write_figures_table(page: Path, sections: list) -> bool:
+    """The maneuvers' figures table of the manual's validation page (between
+    FIGURES_BEGIN and FIGURES_END) from the sections' figures; False when the page
+    has no such block."""
+    text = page.read_text()
+    a, b = text.find(FIGURES_BEGIN), text.find(FIGURES_END)
     if a < 0 or b < a:
         return False
     rows = [r for s in sections for r in s.figures]
     table = ["| maneuver | figure | model | published |", "|---|---|---|---|",
              *[f"| {' | '.join(r)} |" for r in rows]]
     indent = text[text.rfind("\n", 0, a) + 1:a]
-    block = README_BEGIN + "\n" + "".join(f"{indent}{line}\n" for line in table) + indent
-    readme.write_text(text[:a] + block + text[b:])
+    block = FIGURES_BEGIN + "\n" + "".join(f"{indent}{line}\n" for line in table) + indent
+    page.write_text(text[:a] + block + text[b:])
     return True
 
 
@@ -907,8 +911,8 @@ def main(argv=None) -> int:
                   file=sys.stderr, flush=True)
     wall = time.perf_counter() - t_all
     write_document(doc, sections, args.quick, wall)
-    if not args.quick and not args.out and write_readme_figures(REPO / "README.md", sections):
-        print("validate: README.md's figures table written", file=sys.stderr)
+    if not args.quick and not args.out and write_figures_table(FIGURES_PAGE, sections):
+        print(f"validate: {FIGURES_PAGE.relative_to(REPO)}'s figures table written", file=sys.stderr)
     failed = [c for s in sections for c in s.checks if not c.ok]
     print(f"validate: wrote {doc} in {wall:.0f} s; "
           + (f"{len(failed)} figure(s) missed their bound" if failed else "every bound met"))
