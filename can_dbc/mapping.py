@@ -1589,7 +1589,8 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
     w = L.append
     w(f"# dct-hil mapping file for {os.path.basename(dbc_path)}: what the plant sends and receives.")
     w("# Written by `dct-hil mapping template`; fill it in, then `dct-hil mapping check FILE`.")
-    w("# The format: README.md (\"Vehicle CAN matrices\") and can_dbc/mapping.py.")
+    w("# The format: docs/reference/mapping-format.md (from can_dbc/mapping.py); how to serve a")
+    w("# vehicle matrix: docs/can-matrices.md.")
     w("#")
     w("# Sent signal:     Name = { output = \"<dct_outputs field>\" }   (unit = \"...\", reference, factor,")
     w("#                  offset, table = { \"0\" = 0, default = 15 }), or { status = \"sim_time_s\" },")
