@@ -22,19 +22,6 @@ static void emit3(const fmu_logger *lg, fmu_status status, const char *category,
     log_message(lg->environment, (fmi3Status)status, category, message);
 }
 
-/* the instance behind it, or NULL (nothing to log with) */
-static fmu_instance *get_instance(fmi3Instance instance)
-{
-    fmu_instance *inst = instance;
-    return fmu_instance_ok(inst) ? inst : NULL;
-}
-
-static fmi3Status fail(fmu_instance *inst, const char *fn, const char *what)
-{
-    fmu_log(&inst->logger, FMU_ERROR, fn, "%s", what);
-    return fmi3Error;
-}
-
 /* the logger of an instantiation; a NULL logMessage is allowed (no messages) */
 static void logger_init(fmu_logger *lg, fmi3String instanceName, fmi3Boolean loggingOn,
                         fmi3InstanceEnvironment env, fmi3LogMessageCallback logMessage)
@@ -51,10 +38,7 @@ static void logger_init(fmu_logger *lg, fmi3String instanceName, fmi3Boolean log
 /* the refusal of a function of another interface type, or unsupported */
 static fmi3Status unsupported(fmi3Instance instance, const char *fn, const char *why)
 {
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_unsupported(inst, fn, why);
+    return (fmi3Status)fmu_unsupported(instance, fn, why);
 }
 
 #define CS_ONLY "a model-exchange function; this FMU is for co-simulation only"
@@ -73,11 +57,8 @@ const char *fmi3GetVersion(void)
 fmi3Status fmi3SetDebugLogging(fmi3Instance instance, fmi3Boolean loggingOn, size_t nCategories,
                                const fmi3String categories[])
 {
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_set_debug_logging(inst, "fmi3SetDebugLogging", loggingOn, nCategories,
-                                             categories);
+    return (fmi3Status)fmu_set_debug_logging(instance, "fmi3SetDebugLogging", loggingOn,
+                                             nCategories, categories);
 }
 
 fmi3Instance fmi3InstantiateModelExchange(fmi3String instanceName, fmi3String instantiationToken,
@@ -142,7 +123,7 @@ fmi3Instance fmi3InstantiateScheduledExecution(
 
 void fmi3FreeInstance(fmi3Instance instance)
 {
-    fmu_instance_free(get_instance(instance));
+    fmu_instance_free(instance);
 }
 
 fmi3Status fmi3EnterInitializationMode(fmi3Instance instance, fmi3Boolean toleranceDefined,
@@ -152,21 +133,15 @@ fmi3Status fmi3EnterInitializationMode(fmi3Instance instance, fmi3Boolean tolera
     static const char fn[] = "fmi3EnterInitializationMode";
     (void)toleranceDefined; /* fixed-step explicit Euler: no tolerance to meet */
     (void)tolerance;
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    fmu_status st = fmu_setup_experiment(inst, fn, startTime, stopTimeDefined, stopTime);
+    fmu_status st = fmu_setup_experiment(instance, fn, startTime, stopTimeDefined, stopTime);
     if (st != FMU_OK)
         return (fmi3Status)st;
-    return (fmi3Status)fmu_enter_initialization(inst, fn);
+    return (fmi3Status)fmu_enter_initialization(instance, fn);
 }
 
 fmi3Status fmi3ExitInitializationMode(fmi3Instance instance)
 {
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_exit_initialization(inst, "fmi3ExitInitializationMode");
+    return (fmi3Status)fmu_exit_initialization(instance, "fmi3ExitInitializationMode");
 }
 
 fmi3Status fmi3EnterEventMode(fmi3Instance instance)
@@ -176,18 +151,12 @@ fmi3Status fmi3EnterEventMode(fmi3Instance instance)
 
 fmi3Status fmi3Terminate(fmi3Instance instance)
 {
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_terminate(inst, "fmi3Terminate");
+    return (fmi3Status)fmu_terminate(instance, "fmi3Terminate");
 }
 
 fmi3Status fmi3Reset(fmi3Instance instance)
 {
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_reset(inst, "fmi3Reset");
+    return (fmi3Status)fmu_reset(instance, "fmi3Reset");
 }
 
 /* ------------------------------------------------------------------ */
@@ -195,17 +164,20 @@ fmi3Status fmi3Reset(fmi3Instance instance)
 /* ------------------------------------------------------------------ */
 
 /* every variable is a scalar: as many values as value references */
-static fmi3Status shape_ok(fmu_instance *inst, const char *fn, const void *vrs, size_t nvr,
+static fmi3Status shape_ok(fmi3Instance instance, const char *fn, const void *vrs, size_t nvr,
                            const void *values, size_t n_values)
 {
+    if (!fmu_instance_ok(instance))
+        return fmi3Error;
     if (n_values != nvr) {
+        fmu_instance *inst = instance;
         fmu_log(&inst->logger, FMU_ERROR, fn,
                 "nValues = %zu is not nValueReferences = %zu (every variable is a scalar)",
                 n_values, nvr);
         return fmi3Error;
     }
     if (nvr > 0 && (vrs == NULL || values == NULL))
-        return fail(inst, fn, "valueReferences or values is NULL");
+        return (fmi3Status)fmu_error(instance, fn, "valueReferences or values is NULL");
     return fmi3OK;
 }
 
@@ -213,41 +185,18 @@ fmi3Status fmi3GetFloat64(fmi3Instance instance, const fmi3ValueReference valueR
                           size_t nValueReferences, fmi3Float64 values[], size_t nValues)
 {
     static const char fn[] = "fmi3GetFloat64";
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
+    if (shape_ok(instance, fn, valueReferences, nValueReferences, values, nValues) != fmi3OK)
         return fmi3Error;
-    if (shape_ok(inst, fn, valueReferences, nValueReferences, values, nValues) != fmi3OK)
-        return fmi3Error;
-    for (size_t i = 0; i < nValueReferences; i++) {
-        fmu_status st = fmu_get_real(inst, fn, valueReferences[i], &values[i]);
-        if (st != FMU_OK)
-            return (fmi3Status)st;
-    }
-    return fmi3OK;
+    return (fmi3Status)fmu_get_reals(instance, fn, valueReferences, nValueReferences, values);
 }
 
 fmi3Status fmi3SetFloat64(fmi3Instance instance, const fmi3ValueReference valueReferences[],
                           size_t nValueReferences, const fmi3Float64 values[], size_t nValues)
 {
     static const char fn[] = "fmi3SetFloat64";
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
+    if (shape_ok(instance, fn, valueReferences, nValueReferences, values, nValues) != fmi3OK)
         return fmi3Error;
-    if (shape_ok(inst, fn, valueReferences, nValueReferences, values, nValues) != fmi3OK)
-        return fmi3Error;
-    /* all checked before any is written: a refused call changes nothing
-     * (but a tunable parameter the plant's check refuses, see fmu_put_real) */
-    for (size_t i = 0; i < nValueReferences; i++) {
-        fmu_status st = fmu_check_real(inst, fn, valueReferences[i], values[i]);
-        if (st != FMU_OK)
-            return (fmi3Status)st;
-    }
-    for (size_t i = 0; i < nValueReferences; i++) {
-        fmu_status st = fmu_put_real(inst, fn, valueReferences[i], values[i]);
-        if (st != FMU_OK)
-            return (fmi3Status)st;
-    }
-    return fmi3OK;
+    return (fmi3Status)fmu_set_reals(instance, fn, valueReferences, nValueReferences, values);
 }
 
 /* This FMU has Float64 variables only: a value reference given to any
@@ -255,14 +204,8 @@ fmi3Status fmi3SetFloat64(fmi3Instance instance, const fmi3ValueReference valueR
 static fmi3Status no_variables(fmi3Instance instance, const char *fn,
                                const fmi3ValueReference vrs[], size_t nvr, const char *type)
 {
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    if (nvr == 0)
-        return fmi3OK;
-    if (vrs == NULL)
-        return fail(inst, fn, "valueReferences is NULL");
-    return (fmi3Status)fmu_no_variable(inst, fn, vrs[0], type, "Float64");
+    return (fmi3Status)fmu_no_variables(instance, fn, vrs, nvr, "valueReferences", type,
+                                        "Float64");
 }
 
 #define NO_VARIABLES(Type, CType)                                                              \
@@ -313,19 +256,33 @@ fmi3Status fmi3SetBinary(fmi3Instance instance, const fmi3ValueReference valueRe
 /* Clocks: the FMU has none                                            */
 /* ------------------------------------------------------------------ */
 
-fmi3Status fmi3GetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[],
-                        size_t nValueReferences, fmi3Clock values[])
-{
-    (void)values;
-    return no_variables(instance, "fmi3GetClock", valueReferences, nValueReferences, "Clock");
-}
+/* the clock functions with one array, or two of one type, beside the value references */
+#define NO_CLOCKS(Name, Element)                                                              \
+    fmi3Status fmi3##Name(fmi3Instance instance, const fmi3ValueReference valueReferences[], \
+                          size_t nValueReferences, Element values[])                         \
+    {                                                                                        \
+        (void)values;                                                                        \
+        return no_variables(instance, "fmi3" #Name, valueReferences, nValueReferences,       \
+                            "Clock");                                                        \
+    }
+#define NO_CLOCKS_FRACTION(Name, Element)                                                     \
+    fmi3Status fmi3##Name(fmi3Instance instance, const fmi3ValueReference valueReferences[], \
+                          size_t nValueReferences, Element counters[],                       \
+                          Element resolutions[])                                             \
+    {                                                                                        \
+        (void)counters, (void)resolutions;                                                   \
+        return no_variables(instance, "fmi3" #Name, valueReferences, nValueReferences,       \
+                            "Clock");                                                        \
+    }
 
-fmi3Status fmi3SetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[],
-                        size_t nValueReferences, const fmi3Clock values[])
-{
-    (void)values;
-    return no_variables(instance, "fmi3SetClock", valueReferences, nValueReferences, "Clock");
-}
+NO_CLOCKS(GetClock, fmi3Clock)
+NO_CLOCKS(SetClock, const fmi3Clock)
+NO_CLOCKS(GetShiftDecimal, fmi3Float64)
+NO_CLOCKS(SetIntervalDecimal, const fmi3Float64)
+NO_CLOCKS(SetShiftDecimal, const fmi3Float64)
+NO_CLOCKS_FRACTION(GetShiftFraction, fmi3UInt64)
+NO_CLOCKS_FRACTION(SetIntervalFraction, const fmi3UInt64)
+NO_CLOCKS_FRACTION(SetShiftFraction, const fmi3UInt64)
 
 fmi3Status fmi3GetIntervalDecimal(fmi3Instance instance,
                                   const fmi3ValueReference valueReferences[],
@@ -344,59 +301,6 @@ fmi3Status fmi3GetIntervalFraction(fmi3Instance instance,
 {
     (void)counters, (void)resolutions, (void)qualifiers;
     return no_variables(instance, "fmi3GetIntervalFraction", valueReferences, nValueReferences,
-                        "Clock");
-}
-
-fmi3Status fmi3GetShiftDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[],
-                               size_t nValueReferences, fmi3Float64 shifts[])
-{
-    (void)shifts;
-    return no_variables(instance, "fmi3GetShiftDecimal", valueReferences, nValueReferences,
-                        "Clock");
-}
-
-fmi3Status fmi3GetShiftFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[],
-                                size_t nValueReferences, fmi3UInt64 counters[],
-                                fmi3UInt64 resolutions[])
-{
-    (void)counters, (void)resolutions;
-    return no_variables(instance, "fmi3GetShiftFraction", valueReferences, nValueReferences,
-                        "Clock");
-}
-
-fmi3Status fmi3SetIntervalDecimal(fmi3Instance instance,
-                                  const fmi3ValueReference valueReferences[],
-                                  size_t nValueReferences, const fmi3Float64 intervals[])
-{
-    (void)intervals;
-    return no_variables(instance, "fmi3SetIntervalDecimal", valueReferences, nValueReferences,
-                        "Clock");
-}
-
-fmi3Status fmi3SetIntervalFraction(fmi3Instance instance,
-                                   const fmi3ValueReference valueReferences[],
-                                   size_t nValueReferences, const fmi3UInt64 counters[],
-                                   const fmi3UInt64 resolutions[])
-{
-    (void)counters, (void)resolutions;
-    return no_variables(instance, "fmi3SetIntervalFraction", valueReferences, nValueReferences,
-                        "Clock");
-}
-
-fmi3Status fmi3SetShiftDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[],
-                               size_t nValueReferences, const fmi3Float64 shifts[])
-{
-    (void)shifts;
-    return no_variables(instance, "fmi3SetShiftDecimal", valueReferences, nValueReferences,
-                        "Clock");
-}
-
-fmi3Status fmi3SetShiftFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[],
-                                size_t nValueReferences, const fmi3UInt64 counters[],
-                                const fmi3UInt64 resolutions[])
-{
-    (void)counters, (void)resolutions;
-    return no_variables(instance, "fmi3SetShiftFraction", valueReferences, nValueReferences,
                         "Clock");
 }
 
@@ -425,27 +329,20 @@ fmi3Status fmi3GetVariableDependencies(fmi3Instance instance, fmi3ValueReference
                        "the FMU provides no per-element dependencies");
 }
 
-fmi3Status fmi3GetDirectionalDerivative(fmi3Instance instance, const fmi3ValueReference unknowns[],
-                                        size_t nUnknowns, const fmi3ValueReference knowns[],
-                                        size_t nKnowns, const fmi3Float64 seed[], size_t nSeed,
-                                        fmi3Float64 sensitivity[], size_t nSensitivity)
-{
-    (void)unknowns, (void)nUnknowns, (void)knowns, (void)nKnowns, (void)seed, (void)nSeed,
-        (void)sensitivity, (void)nSensitivity;
-    return unsupported(instance, "fmi3GetDirectionalDerivative",
-                       "the FMU provides no directional derivatives");
-}
+/* the directional and the adjoint derivatives: the same arguments, neither provided */
+#define NO_DERIVATIVES(Name, kind)                                                           \
+    fmi3Status fmi3##Name(fmi3Instance instance, const fmi3ValueReference unknowns[],      \
+                          size_t nUnknowns, const fmi3ValueReference knowns[],             \
+                          size_t nKnowns, const fmi3Float64 seed[], size_t nSeed,          \
+                          fmi3Float64 sensitivity[], size_t nSensitivity)                  \
+    {                                                                                      \
+        (void)unknowns, (void)nUnknowns, (void)knowns, (void)nKnowns, (void)seed,          \
+            (void)nSeed, (void)sensitivity, (void)nSensitivity;                            \
+        return unsupported(instance, "fmi3" #Name, "the FMU provides no " kind " derivatives"); \
+    }
 
-fmi3Status fmi3GetAdjointDerivative(fmi3Instance instance, const fmi3ValueReference unknowns[],
-                                    size_t nUnknowns, const fmi3ValueReference knowns[],
-                                    size_t nKnowns, const fmi3Float64 seed[], size_t nSeed,
-                                    fmi3Float64 sensitivity[], size_t nSensitivity)
-{
-    (void)unknowns, (void)nUnknowns, (void)knowns, (void)nKnowns, (void)seed, (void)nSeed,
-        (void)sensitivity, (void)nSensitivity;
-    return unsupported(instance, "fmi3GetAdjointDerivative",
-                       "the FMU provides no adjoint derivatives");
-}
+NO_DERIVATIVES(GetDirectionalDerivative, "directional")
+NO_DERIVATIVES(GetAdjointDerivative, "adjoint")
 
 fmi3Status fmi3EnterConfigurationMode(fmi3Instance instance)
 {
@@ -480,57 +377,9 @@ fmi3Status fmi3UpdateDiscreteStates(fmi3Instance instance, fmi3Boolean *discrete
 /* FMU states                                                          */
 /* ------------------------------------------------------------------ */
 
-fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState)
-{
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_state_get(inst, "fmi3GetFMUState", FMUState);
-}
-
-fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState)
-{
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_state_set(inst, "fmi3SetFMUState", FMUState);
-}
-
-fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState *FMUState)
-{
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_state_free(inst, "fmi3FreeFMUState", FMUState);
-}
-
-fmi3Status fmi3SerializedFMUStateSize(fmi3Instance instance, fmi3FMUState FMUState, size_t *size)
-{
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_state_size(inst, "fmi3SerializedFMUStateSize", FMUState, size);
-}
-
-fmi3Status fmi3SerializeFMUState(fmi3Instance instance, fmi3FMUState FMUState,
-                                 fmi3Byte serializedState[], size_t size)
-{
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_state_serialize(inst, "fmi3SerializeFMUState", FMUState,
-                                           serializedState, size);
-}
-
-fmi3Status fmi3DeserializeFMUState(fmi3Instance instance, const fmi3Byte serializedState[],
-                                   size_t size, fmi3FMUState *FMUState)
-{
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    return (fmi3Status)fmu_state_deserialize(inst, "fmi3DeserializeFMUState", serializedState,
-                                             size, FMUState);
-}
+FMU_STATE_FUNCTIONS(fmi3Status, fmi3Instance, fmi3FMUState, fmi3Byte, fmi3GetFMUState,
+                    fmi3SetFMUState, fmi3FreeFMUState, fmi3SerializedFMUStateSize,
+                    fmi3SerializeFMUState, fmi3DeserializeFMUState)
 
 /* ------------------------------------------------------------------ */
 /* Model exchange: refused                                             */
@@ -556,40 +405,19 @@ fmi3Status fmi3SetTime(fmi3Instance instance, fmi3Float64 time)
     return unsupported(instance, "fmi3SetTime", CS_ONLY);
 }
 
-fmi3Status fmi3SetContinuousStates(fmi3Instance instance, const fmi3Float64 continuousStates[],
-                                   size_t nContinuousStates)
-{
-    (void)continuousStates, (void)nContinuousStates;
-    return unsupported(instance, "fmi3SetContinuousStates", CS_ONLY);
-}
+/* the model-exchange functions that take an array of Float64 and its length */
+#define CS_ONLY_ARRAY(Name, Element)                                                  \
+    fmi3Status fmi3##Name(fmi3Instance instance, Element values[], size_t nValues) \
+    {                                                                               \
+        (void)values, (void)nValues;                                                \
+        return unsupported(instance, "fmi3" #Name, CS_ONLY);                        \
+    }
 
-fmi3Status fmi3GetContinuousStateDerivatives(fmi3Instance instance, fmi3Float64 derivatives[],
-                                             size_t nContinuousStates)
-{
-    (void)derivatives, (void)nContinuousStates;
-    return unsupported(instance, "fmi3GetContinuousStateDerivatives", CS_ONLY);
-}
-
-fmi3Status fmi3GetEventIndicators(fmi3Instance instance, fmi3Float64 eventIndicators[],
-                                  size_t nEventIndicators)
-{
-    (void)eventIndicators, (void)nEventIndicators;
-    return unsupported(instance, "fmi3GetEventIndicators", CS_ONLY);
-}
-
-fmi3Status fmi3GetContinuousStates(fmi3Instance instance, fmi3Float64 continuousStates[],
-                                   size_t nContinuousStates)
-{
-    (void)continuousStates, (void)nContinuousStates;
-    return unsupported(instance, "fmi3GetContinuousStates", CS_ONLY);
-}
-
-fmi3Status fmi3GetNominalsOfContinuousStates(fmi3Instance instance, fmi3Float64 nominals[],
-                                             size_t nContinuousStates)
-{
-    (void)nominals, (void)nContinuousStates;
-    return unsupported(instance, "fmi3GetNominalsOfContinuousStates", CS_ONLY);
-}
+CS_ONLY_ARRAY(SetContinuousStates, const fmi3Float64)
+CS_ONLY_ARRAY(GetContinuousStateDerivatives, fmi3Float64)
+CS_ONLY_ARRAY(GetEventIndicators, fmi3Float64)
+CS_ONLY_ARRAY(GetContinuousStates, fmi3Float64)
+CS_ONLY_ARRAY(GetNominalsOfContinuousStates, fmi3Float64)
 
 fmi3Status fmi3GetNumberOfEventIndicators(fmi3Instance instance, size_t *nEventIndicators)
 {
@@ -620,12 +448,9 @@ fmi3Status fmi3GetOutputDerivatives(fmi3Instance instance,
                                     fmi3Float64 values[], size_t nValues)
 {
     (void)valueReferences, (void)orders, (void)values, (void)nValues;
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
-        return fmi3Error;
-    if (nValueReferences == 0)
+    if (nValueReferences == 0 && fmu_instance_ok(instance))
         return fmi3OK;
-    return (fmi3Status)fmu_unsupported(inst, "fmi3GetOutputDerivatives",
+    return (fmi3Status)fmu_unsupported(instance, "fmi3GetOutputDerivatives",
                                        "the FMU provides no output derivatives "
                                        "(maxOutputDerivativeOrder is 0)");
 }
@@ -637,8 +462,7 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
                       fmi3Boolean *earlyReturn, fmi3Float64 *lastSuccessfulTime)
 {
     (void)noSetFMUStatePriorToCurrentPoint; /* a saved state is a full copy: nothing to drop */
-    fmu_instance *inst = get_instance(instance);
-    if (inst == NULL)
+    if (!fmu_instance_ok(instance))
         return fmi3Error;
     /* no events, no reason to stop, a step always runs to its end */
     if (eventHandlingNeeded != NULL)
@@ -648,7 +472,7 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     if (earlyReturn != NULL)
         *earlyReturn = fmi3False;
     double reached;
-    fmu_status st = fmu_do_step(inst, "fmi3DoStep", currentCommunicationPoint,
+    fmu_status st = fmu_do_step(instance, "fmi3DoStep", currentCommunicationPoint,
                                 communicationStepSize, &reached);
     if (lastSuccessfulTime != NULL)
         *lastSuccessfulTime = reached;

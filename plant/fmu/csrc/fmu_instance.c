@@ -247,6 +247,8 @@ int fmu_instance_ok(const fmu_instance *inst)
 fmu_status fmu_set_debug_logging(fmu_instance *inst, const char *fn, int logging_on,
                                  size_t n_categories, const char *const categories[])
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     if (n_categories > 0 && categories == NULL)
         return fail(inst, fn, "categories is NULL with nCategories = %zu", n_categories);
     fmu_status st = FMU_OK;
@@ -270,6 +272,8 @@ fmu_status fmu_set_debug_logging(fmu_instance *inst, const char *fn, int logging
 
 fmu_status fmu_not_in_mode(fmu_instance *inst, const char *fn)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     switch (inst->core.mode) {
     case FMU_MODE_INSTANTIATED:
         return fail(inst, fn, "not allowed before initialization (the instance is only instantiated)");
@@ -287,7 +291,16 @@ fmu_status fmu_not_in_mode(fmu_instance *inst, const char *fn)
 
 fmu_status fmu_unsupported(fmu_instance *inst, const char *fn, const char *why)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     return fail(inst, fn, "not supported: %s", why);
+}
+
+fmu_status fmu_error(fmu_instance *inst, const char *fn, const char *what)
+{
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
+    return fail(inst, fn, "%s", what);
 }
 
 /* ------------------------------------------------------------------ */
@@ -303,6 +316,8 @@ double fmu_time(const fmu_instance *inst)
 fmu_status fmu_setup_experiment(fmu_instance *inst, const char *fn, double start_time,
                                 int stop_time_defined, double stop_time)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     fmu_core *c = &inst->core;
     if (c->mode != FMU_MODE_INSTANTIATED)
         return fmu_not_in_mode(inst, fn);
@@ -318,12 +333,20 @@ fmu_status fmu_setup_experiment(fmu_instance *inst, const char *fn, double start
     return FMU_OK;
 }
 
+/* from mode `from` to mode `to`; in any other mode an error */
+static fmu_status change_mode(fmu_instance *inst, const char *fn, fmu_mode from, fmu_mode to)
+{
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
+    if (inst->core.mode != (int)from)
+        return fmu_not_in_mode(inst, fn);
+    inst->core.mode = to;
+    return FMU_OK;
+}
+
 fmu_status fmu_enter_initialization(fmu_instance *inst, const char *fn)
 {
-    if (inst->core.mode != FMU_MODE_INSTANTIATED)
-        return fmu_not_in_mode(inst, fn);
-    inst->core.mode = FMU_MODE_INITIALIZATION;
-    return FMU_OK;
+    return change_mode(inst, fn, FMU_MODE_INSTANTIATED, FMU_MODE_INITIALIZATION);
 }
 
 /* "changed: a = 1, b = 2" of the parameters that differ from fmu_params
@@ -362,6 +385,8 @@ static void changed_params(const fmu_core *c, char *buf, size_t size)
 
 fmu_status fmu_exit_initialization(fmu_instance *inst, const char *fn)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     fmu_core *c = &inst->core;
     if (c->mode != FMU_MODE_INITIALIZATION)
         return fmu_not_in_mode(inst, fn);
@@ -401,15 +426,16 @@ fmu_status fmu_exit_initialization(fmu_instance *inst, const char *fn)
 
 fmu_status fmu_terminate(fmu_instance *inst, const char *fn)
 {
-    if (inst->core.mode != FMU_MODE_STEP)
-        return fmu_not_in_mode(inst, fn);
-    inst->core.mode = FMU_MODE_TERMINATED;
-    fmu_log(&inst->logger, FMU_OK, fn, "terminated at t=%g s", fmu_time(inst));
-    return FMU_OK;
+    fmu_status st = change_mode(inst, fn, FMU_MODE_STEP, FMU_MODE_TERMINATED);
+    if (st == FMU_OK)
+        fmu_log(&inst->logger, FMU_OK, fn, "terminated at t=%g s", fmu_time(inst));
+    return st;
 }
 
 fmu_status fmu_reset(fmu_instance *inst, const char *fn)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     int st = core_init(&inst->core);
     if (st != DCT_OK) {
         inst->core.mode = FMU_MODE_ERROR;
@@ -429,7 +455,7 @@ static fmu_status no_such_vr(fmu_instance *inst, const char *fn, unsigned long v
                 fmu_n_vars - 1);
 }
 
-fmu_status fmu_get_real(fmu_instance *inst, const char *fn, unsigned long vr, double *value)
+static fmu_status get_real(fmu_instance *inst, const char *fn, unsigned long vr, double *value)
 {
     if (vr >= fmu_n_vars)
         return no_such_vr(inst, fn, vr);
@@ -438,7 +464,7 @@ fmu_status fmu_get_real(fmu_instance *inst, const char *fn, unsigned long vr, do
     return FMU_OK;
 }
 
-fmu_status fmu_check_real(fmu_instance *inst, const char *fn, unsigned long vr, double value)
+static fmu_status check_real(fmu_instance *inst, const char *fn, unsigned long vr, double value)
 {
     const fmu_core *c = &inst->core;
     if (vr >= fmu_n_vars)
@@ -471,7 +497,9 @@ fmu_status fmu_check_real(fmu_instance *inst, const char *fn, unsigned long vr, 
     return FMU_OK;
 }
 
-fmu_status fmu_put_real(fmu_instance *inst, const char *fn, unsigned long vr, double value)
+/* writes a value check_real accepted; a tunable parameter while stepping goes
+ * through dct_plant_prepare (refused: the old value back) */
+static fmu_status put_real(fmu_instance *inst, const char *fn, unsigned long vr, double value)
 {
     fmu_core *c = &inst->core;
     const fmu_var *v = &fmu_vars[vr];
@@ -507,9 +535,49 @@ fmu_status fmu_put_real(fmu_instance *inst, const char *fn, unsigned long vr, do
     return FMU_OK;
 }
 
-fmu_status fmu_no_variable(fmu_instance *inst, const char *fn, unsigned long vr,
-                           const char *type, const char *real_type)
+fmu_status fmu_get_reals(fmu_instance *inst, const char *fn, const uint32_t vrs[], size_t nvr,
+                         double values[])
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
+    for (size_t i = 0; i < nvr; i++) {
+        fmu_status st = get_real(inst, fn, vrs[i], &values[i]);
+        if (st != FMU_OK)
+            return st;
+    }
+    return FMU_OK;
+}
+
+fmu_status fmu_set_reals(fmu_instance *inst, const char *fn, const uint32_t vrs[], size_t nvr,
+                         const double values[])
+{
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
+    /* all checked before any is written: a refused call changes nothing
+     * (but a tunable parameter the plant's check refuses, see put_real) */
+    for (size_t i = 0; i < nvr; i++) {
+        fmu_status st = check_real(inst, fn, vrs[i], values[i]);
+        if (st != FMU_OK)
+            return st;
+    }
+    for (size_t i = 0; i < nvr; i++) {
+        fmu_status st = put_real(inst, fn, vrs[i], values[i]);
+        if (st != FMU_OK)
+            return st;
+    }
+    return FMU_OK;
+}
+
+fmu_status fmu_no_variables(fmu_instance *inst, const char *fn, const uint32_t vrs[], size_t nvr,
+                            const char *vrs_name, const char *type, const char *real_type)
+{
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
+    if (nvr == 0)
+        return FMU_OK;
+    if (vrs == NULL)
+        return fail(inst, fn, "%s is NULL", vrs_name);
+    unsigned long vr = vrs[0];
     if (vr >= fmu_n_vars)
         return no_such_vr(inst, fn, vr);
     return fail(inst, fn,
@@ -549,6 +617,8 @@ static void plant_error_message(fmu_instance *inst, const char *fn, int st, doub
 
 fmu_status fmu_do_step(fmu_instance *inst, const char *fn, double t, double h, double *reached)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     fmu_core *c = &inst->core;
     *reached = fmu_time(inst);
     if (c->mode != FMU_MODE_STEP)
@@ -610,6 +680,8 @@ static int saved_ok(const void *state)
 
 fmu_status fmu_state_get(fmu_instance *inst, const char *fn, void **state)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     if (state == NULL)
         return fail(inst, fn, "FMUstate is NULL");
     if (inst->core.mode == FMU_MODE_ERROR)
@@ -630,6 +702,8 @@ fmu_status fmu_state_get(fmu_instance *inst, const char *fn, void **state)
 
 fmu_status fmu_state_set(fmu_instance *inst, const char *fn, const void *state)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     if (!saved_ok(state))
         return fail(inst, fn, "FMUstate is not a state of this FMU (NULL, freed or foreign)");
     const fmu_saved *s = state;
@@ -639,6 +713,8 @@ fmu_status fmu_state_set(fmu_instance *inst, const char *fn, const void *state)
 
 fmu_status fmu_state_free(fmu_instance *inst, const char *fn, void **state)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     if (state == NULL || *state == NULL)
         return FMU_OK;
     if (!saved_ok(*state))
@@ -695,6 +771,8 @@ static uint64_t get_u64(const unsigned char *p)
 
 fmu_status fmu_state_size(fmu_instance *inst, const char *fn, const void *state, size_t *size)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     if (!saved_ok(state))
         return fail(inst, fn, "FMUstate is not a state of this FMU (NULL, freed or foreign)");
     if (size == NULL)
@@ -706,6 +784,8 @@ fmu_status fmu_state_size(fmu_instance *inst, const char *fn, const void *state,
 fmu_status fmu_state_serialize(fmu_instance *inst, const char *fn, const void *state,
                                unsigned char *buf, size_t size)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     if (!saved_ok(state))
         return fail(inst, fn, "FMUstate is not a state of this FMU (NULL, freed or foreign)");
     const size_t need = ser_size();
@@ -728,6 +808,8 @@ fmu_status fmu_state_serialize(fmu_instance *inst, const char *fn, const void *s
 fmu_status fmu_state_deserialize(fmu_instance *inst, const char *fn, const unsigned char *buf,
                                  size_t size, void **state)
 {
+    if (!fmu_instance_ok(inst))
+        return FMU_ERROR;
     if (state == NULL)
         return fail(inst, fn, "FMUstate is NULL");
     if (*state != NULL && !saved_ok(*state))

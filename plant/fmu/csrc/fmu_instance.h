@@ -10,7 +10,10 @@
  *
  * Every function that can fail logs one line "<FMI function>: <cause>"
  * through the instance's logger and returns FMU_ERROR; `fn` is the FMI
- * function's name for that line.
+ * function's name for that line. Every function that returns an fmu_status
+ * checks its instance first: a handle that is not a live instance (NULL,
+ * freed, foreign) is FMU_ERROR without a message, there being no logger to
+ * tell it with; so fmi2.c and fmi3.c pass the importer's handle on as it is.
  */
 #ifndef FMU_INSTANCE_H
 #define FMU_INSTANCE_H
@@ -126,22 +129,24 @@ fmu_status fmu_terminate(fmu_instance *inst, const char *fn);
 /* back to the instantiated state: fmu_params, fmu_initial, default inputs */
 fmu_status fmu_reset(fmu_instance *inst, const char *fn);
 
-/* the instance's time: start time + steps * the plant's step */
+/* the instance's time: start time + steps * the plant's step (inst live) */
 double fmu_time(const fmu_instance *inst);
 
-/* One Float64 (FMI 2 Real) variable. Setting is two calls so that a call
- * with several values checks them all before writing any: fmu_check_real
- * (mode, kind, finite, range), then fmu_put_real (writes; a tunable
- * parameter while stepping goes through dct_plant_prepare, refused: the old
- * value back). */
-fmu_status fmu_get_real(fmu_instance *inst, const char *fn, unsigned long vr, double *value);
-fmu_status fmu_check_real(fmu_instance *inst, const char *fn, unsigned long vr, double value);
-fmu_status fmu_put_real(fmu_instance *inst, const char *fn, unsigned long vr, double value);
+/* Float64 (FMI 2 Real) variables, nvr of them (the caller has checked that
+ * vrs and values are there). Setting checks every value (mode, kind,
+ * finite, range) before it writes any: a refused call changes nothing, but
+ * for a tunable parameter set while stepping that the plant's check
+ * (dct_plant_prepare) refuses, which keeps its old value. */
+fmu_status fmu_get_reals(fmu_instance *inst, const char *fn, const uint32_t vrs[], size_t nvr,
+                         double values[]);
+fmu_status fmu_set_reals(fmu_instance *inst, const char *fn, const uint32_t vrs[], size_t nvr,
+                         const double values[]);
 
-/* A value reference given to the getter or setter of a type that has no
- * variables (every type but Real / Float64): always an error naming it. */
-fmu_status fmu_no_variable(fmu_instance *inst, const char *fn, unsigned long vr,
-                           const char *type, const char *real_type);
+/* The getter or setter of a type that has no variables (every type but
+ * Real / Float64): FMU_OK for none, else an error naming the first value
+ * reference. vrs_name: what the FMI version calls vrs, for the message. */
+fmu_status fmu_no_variables(fmu_instance *inst, const char *fn, const uint32_t vrs[], size_t nvr,
+                            const char *vrs_name, const char *type, const char *real_type);
 
 /* n = round(h / step) plant steps from t (which must be the instance's time);
  * h a positive whole multiple of the plant's step. *reached: the time after
@@ -164,8 +169,43 @@ fmu_status fmu_state_serialize(fmu_instance *inst, const char *fn, const void *s
 fmu_status fmu_state_deserialize(fmu_instance *inst, const char *fn, const unsigned char *buf,
                                  size_t size, void **state);
 
+/* The six FMI functions of saved FMU states, which FMI 2 and FMI 3 have
+ * with the same arguments under names and types of their own: fmi2.c and
+ * fmi3.c each define theirs with this, every one the call of its
+ * fmu_state_* with the function's name. */
+#define FMU_STATE_FUNCTIONS(Status, Instance, State, Byte, Get, Set, Free, Size, Serialize,    \
+                            Deserialize)                                                     \
+    Status Get(Instance instance, State *state)                                              \
+    {                                                                                        \
+        return (Status)fmu_state_get(instance, #Get, state);                                 \
+    }                                                                                        \
+    Status Set(Instance instance, State state)                                               \
+    {                                                                                        \
+        return (Status)fmu_state_set(instance, #Set, state);                                 \
+    }                                                                                        \
+    Status Free(Instance instance, State *state)                                             \
+    {                                                                                        \
+        return (Status)fmu_state_free(instance, #Free, state);                               \
+    }                                                                                        \
+    Status Size(Instance instance, State state, size_t *size)                                \
+    {                                                                                        \
+        return (Status)fmu_state_size(instance, #Size, state, size);                         \
+    }                                                                                        \
+    Status Serialize(Instance instance, State state, Byte serialized[], size_t size)         \
+    {                                                                                        \
+        return (Status)fmu_state_serialize(instance, #Serialize, state,                      \
+                                           (unsigned char *)serialized, size);               \
+    }                                                                                        \
+    Status Deserialize(Instance instance, const Byte serialized[], size_t size, State *state) \
+    {                                                                                        \
+        return (Status)fmu_state_deserialize(instance, #Deserialize,                         \
+                                             (const unsigned char *)serialized, size, state); \
+    }
+
 /* an error for a function this FMU does not support, with why */
 fmu_status fmu_unsupported(fmu_instance *inst, const char *fn, const char *why);
+/* an error saying what */
+fmu_status fmu_error(fmu_instance *inst, const char *fn, const char *what);
 /* an error for a call the present mode does not allow (what: the call's purpose) */
 fmu_status fmu_not_in_mode(fmu_instance *inst, const char *fn);
 
