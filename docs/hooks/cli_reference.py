@@ -49,7 +49,8 @@ def _options(parser: argparse.ArgumentParser) -> list[str]:
                    and not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))]
         if not actions:
             continue
-        lines += [f"*{_text(group.title or 'options')}*", "", "| option | meaning |", "|---|---|"]
+        kind = "argument" if all(not a.option_strings for a in actions) else "option"
+        lines += [f"*{_text(group.title or 'options')}*", "", f"| {kind} | meaning |", "|---|---|"]
         for a in actions:
             invocation = fmt._format_action_invocation(a)
             meaning = _text(fmt._expand_help(a)) if a.help else ""
