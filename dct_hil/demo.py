@@ -41,9 +41,11 @@ from pathlib import Path
 
 import numpy as np
 
+from plant.maneuvers import LOOP_MANEUVERS
+
 DEFAULT_CHANNEL = "vcan0"
 EMBEDDED_CHANNEL = "dct-hil-demo"
-SCRIPTED_MANEUVERS = ("paper-cycle", "0-100", "creep", "reverse-park", "hill-start")
+SCRIPTED_MANEUVERS = LOOP_MANEUVERS              # the pedal tables the loop plays itself
 RECORD_EVERY_S = 0.002
 _TCU_START_TIMEOUT_S = 60.0
 #: offline shifts by (maneuver, duration), for this process only (never on disk)

@@ -195,6 +195,9 @@ def _hill_start():
                     inputs={"road_grade_pct": HILL_GRADE_PCT})
 
 
+# the maneuvers given as pedal tables: the real-time loop plays them itself
+# (dct-hil serve --maneuver, demo); wltc and nedc are speed traces a driver follows
+LOOP_MANEUVERS = ("paper-cycle", "0-100", "creep", "reverse-park", "hill-start")
 MANEUVERS = {"paper-cycle": _paper_cycle, "wltc": _wltc, "nedc": _nedc, "0-100": _zero_to_100,
              "creep": _creep, "reverse-park": _reverse_park, "hill-start": _hill_start}
 

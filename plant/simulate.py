@@ -132,3 +132,52 @@ def bench(plant, scenario, n_steps, out=None):
         i += chunk
         k += chunk
     return ns
+
+
+# ------------------------------------------------------------------- benchmark
+TARGET_MEDIAN_US = 2.0   # step-cost target of the real-time loop (0.5 ms step)
+MAX_BENCH_STEPS = 100_000_000
+
+
+def bench_figures(step_ns, step_s):
+    """Summary of per-step costs (ns) in microseconds."""
+    import numpy as np
+
+    us = np.asarray(step_ns) / 1e3
+    mean = float(us.mean())
+    return {
+        "median_us": float(np.median(us)),
+        "p90_us": float(np.percentile(us, 90)),
+        "p99_us": float(np.percentile(us, 99)),
+        "p99_9_us": float(np.percentile(us, 99.9)),
+        "max_us": float(us.max()),
+        "mean_us": mean,
+        "real_time_factor": step_s * 1e6 / mean if mean > 0 else math.inf,
+        "steps_per_s": 1e6 / mean if mean > 0 else math.inf,
+    }
+
+
+def bench_report(scenario, params_path, steps, repeat=1):
+    """``bench`` ``repeat`` times on a fresh plant each, the figures of each run
+    and, at the top, those of the run with the lowest median (the code's cost
+    with the least interference from the machine), with this machine's facts:
+    the report ``dct-hil bench`` writes (``target_median_us`` at the time)."""
+    from plant.machine import machine_info
+    from plant.model import Plant
+
+    runs = []
+    for _ in range(repeat):
+        plant = Plant(params_path, scenario.param_overrides())
+        runs.append(bench_figures(bench(plant, scenario, steps), plant.step_s))
+    best = min(range(len(runs)), key=lambda k: runs[k]["median_us"])
+    return {
+        "steps": steps,
+        "scenario": scenario.name,
+        "step_s": plant.step_s,
+        **runs[best],
+        "repeat": repeat,
+        "best_run": best + 1,
+        "runs": runs,
+        "target_median_us": TARGET_MEDIAN_US,
+        "machine": machine_info(build=True),
+    }

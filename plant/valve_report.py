@@ -2,6 +2,7 @@
 clutch pressure over solenoid current (the reference paper's Fig. 8) and
 current step responses. Used by ``dct-hil valve`` and the tests."""
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,3 +79,80 @@ def step_response(i_from, i_to, duration_s=0.4, params_path=None, overrides=None
         rows[k] = ((k + 1) * every * plant.step_s, float(o[f"clutch{clutch}_pressure_bar"]),
                    float(o[f"piston{clutch}_position_mm"]), float(o[f"spool{clutch}_position_mm"]))
     return StepResponse(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3], start, float(rows[-1, 1]))
+
+
+# -------------------------------------------------------------- dct-hil valve
+VALVE_STEPS = ((0.0, 0.6), (0.6, 0.0), (0.3, 0.7), (0.7, 0.3), (0.0, 1.0))   # A -> A
+
+
+@dataclass
+class ValveReport:
+    line_bar: float
+    currents_a: np.ndarray
+    up_bar: np.ndarray
+    down_bar: np.ndarray
+    steps: list               # (from A, to A, StepResponse)
+    files: list               # the CSVs, then the PNGs
+
+
+def write_valve_report(out_dir, params_path=None):
+    """The steady-state curve and the step responses of ``VALVE_STEPS`` with the
+    hydraulics on (valve currents, not commanded pressures), written to
+    ``out_dir`` as valve_curve.csv, valve_steps.csv and their PNG plots."""
+    overrides = {"hydraulics": {"pressure_commanded": 0}}
+    plant = Plant(params_path, overrides)
+    currents, up, down, line = steady_state_curve(plant)
+    curve_csv = os.path.join(out_dir, "valve_curve.csv")
+    np.savetxt(curve_csv, np.column_stack([currents, up, down]), fmt="%.6g", delimiter=",",
+               header="solenoid_current_a,pressure_rising_bar,pressure_falling_bar", comments="")
+    steps = [step_response(a, b, params_path=params_path, overrides=overrides) for a, b in VALVE_STEPS]
+    step_csv = os.path.join(out_dir, "valve_steps.csv")
+    cols, names = [steps[0].time_s], ["time_s"]
+    for (a, b), r in zip(VALVE_STEPS, steps):
+        tag = f"{a:g}_to_{b:g}a"
+        cols += [r.pressure_bar, r.piston_mm]
+        names += [f"pressure_{tag}_bar", f"piston_{tag}_mm"]
+    np.savetxt(step_csv, np.column_stack(cols), fmt="%.6g", delimiter=",", header=",".join(names),
+               comments="")
+    png = valve_plots(out_dir, currents, up, down, line, steps)
+    return ValveReport(line, currents, up, down, [(a, b, r) for (a, b), r in zip(VALVE_STEPS, steps)],
+                       [curve_csv, step_csv, *png])
+
+
+def valve_plots(out_dir, currents, up, down, line, steps):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    ax.plot(currents, up, label="current rising")
+    ax.plot(currents, down, "--", label="current falling")
+    ax.axhline(line, color="grey", lw=0.8, ls=":", label="line pressure")
+    ax.set_xlabel("solenoid current (A)")
+    ax.set_ylabel("clutch pressure (bar)")
+    ax.set_title("Clutch valve: steady-state pressure over current")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    files.append(os.path.join(out_dir, "valve_curve.png"))
+    fig.savefig(files[-1], dpi=120)
+    plt.close(fig)
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for (a, b), r in zip(VALVE_STEPS, steps):
+        ax1.plot(r.time_s * 1e3, r.pressure_bar, label=f"{a:g} -> {b:g} A")
+        ax2.plot(r.time_s * 1e3, r.piston_mm)
+    ax1.set_ylabel("clutch pressure (bar)")
+    ax1.set_title("Clutch valve: current step responses")
+    ax1.legend(fontsize=8)
+    ax2.set_ylabel("piston (mm)")
+    ax2.set_xlabel("time after the step (ms)")
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    files.append(os.path.join(out_dir, "valve_steps.png"))
+    fig.savefig(files[-1], dpi=120)
+    plt.close(fig)
+    return files

@@ -13,49 +13,20 @@ import argparse
 import math
 import sys
 
+from plant import argtypes
 from studies import StudyError
-
-
-def _positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
-    return n
-
-
-def _seconds(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text}")
-    return x
-
-
-def _port(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= n <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be 0-65535, got {n}")
-    return n
 
 
 def _engine_arguments(p: argparse.ArgumentParser) -> None:
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=_positive_int, metavar="N",
+    where.add_argument("--workers", type=argtypes.whole_number(1), metavar="N",
                        help="worker processes of the local Dask cluster (default: every core)")
     where.add_argument("--scheduler", metavar="ADDRESS",
                        help="run on an existing Dask cluster (e.g. tcp://10.0.0.5:8786); its "
                             "workers need dct-hil installed")
-    p.add_argument("--dashboard", type=_port, metavar="PORT",
+    p.add_argument("--dashboard", type=argtypes.port(0), metavar="PORT",
                    help="the local cluster's Dask dashboard on 127.0.0.1:PORT (default: off)")
-    p.add_argument("--connect-timeout", type=_seconds, default=10.0, metavar="S",
+    p.add_argument("--connect-timeout", type=argtypes.seconds, default=10.0, metavar="S",
                    help="seconds to reach --scheduler and find a worker (default 10)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
@@ -66,7 +37,7 @@ def sweep_arguments(p: argparse.ArgumentParser) -> None:
                         "shift_map.toml)")
     p.add_argument("--out", metavar="DIR",
                    help="results folder (default: the spec's out, else out/sweeps/<spec name>)")
-    p.add_argument("--duration", type=_seconds, metavar="S",
+    p.add_argument("--duration", type=argtypes.seconds, metavar="S",
                    help="cut every case to at most S simulated seconds (a quick look)")
     p.add_argument("--fresh", action="store_true",
                    help="forget the finished runs in the folder and compute everything")
@@ -130,7 +101,7 @@ def fit_arguments(p: argparse.ArgumentParser) -> None:
                    help="fit.json, fitted.toml and fit_residuals.png go here (default out/fit)")
     p.add_argument("--diff-step", type=float, default=0.01, metavar="H",
                    help="Jacobian step as a share of each parameter (default 0.01)")
-    p.add_argument("--max-evaluations", type=_positive_int, default=30, metavar="N",
+    p.add_argument("--max-evaluations", type=argtypes.whole_number(1), default=30, metavar="N",
                    help="at most N evaluations of the residuals (default 30)")
     _engine_arguments(p)
 

@@ -142,3 +142,125 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
     result = {k: (np.array(v) if k != "tcu_phase" else v) for k, v in rec.items()}
     result["shifts"] = list(tcu.events)
     return result
+
+
+# --------------------------------------------------------- dct-hil simulate
+# run_offline records the figures of a run (RECORDED, the TCU's state after its
+# step); dct-hil simulate records every plant output with the TCU's target
+# gear before its step, plays a scenario's rows, and keeps what it recorded
+# when a run is stopped: the rows differ, so this is its own entry.
+SIMULATE_RECORD_EVERY_S = 0.01
+
+
+def stub_columns():
+    """Scenario columns the stub TCU drives itself: clutches, forks, engine requests."""
+    from can_dbc import codec
+    from plant.scenario import PRESSURE_COLUMNS
+
+    cols = set(PRESSURE_COLUMNS)
+    for targets in codec.TCU_SIGNAL_TARGETS.values():
+        cols.update(input_name for _, input_name in targets.values())
+    return cols
+
+
+def run_with_stub(plant, duration_s, out_path, pedals_fn=None, scenario=None,
+                  csv_target_gear=True, link=None, tcu_impl="python"):
+    """Plant + stub TCU in one process, every message through the CAN contract.
+
+    Each 2 ms TCU tick: the scenario rows due (or, every 10 ms, ``pedals_fn``)
+    set the driver inputs, the TCU reads the plant messages and writes its
+    commands, the plant steps. Records all plant outputs plus ``tcu_target_gear``
+    every 10 ms (the CSV has ``tcu_target_gear`` only with ``csv_target_gear``);
+    the rows so far are written to ``out_path`` also when a KeyboardInterrupt or
+    a PlantError stops the run (then re-raised). ``tcu_impl`` "c": the same loop
+    in C (tcu_stub.fast.FastLoop), same rows.
+    Returns (names, data, shifts, wall_s)."""
+    import time
+
+    import numpy as np
+
+    from plant.driver import driver_inputs
+    from plant.model import PlantError
+    from plant.simulate import write_csv
+
+    if tcu_impl == "c":
+        return _run_with_stub_c(plant, duration_s, out_path, pedals_fn, scenario, csv_target_gear)
+    tcu = TcuLogic()
+    link = ContractLink() if link is None else link
+    steps_per_tick = max(1, int(round(PERIOD_S / plant.step_s)))
+    tick_s = steps_per_tick * plant.step_s
+    ticks_per_record = max(1, int(round(SIMULATE_RECORD_EVERY_S / tick_s)))
+    ticks_per_driver = max(1, int(round(DRIVER_PERIOD_S / tick_s)))
+    n_ticks = int(round(duration_s / tick_s))
+    names = list(plant.output_names) + ["tcu_target_gear"]
+    n_out = len(plant.output_names)
+    n_csv = len(names) if csv_target_gear else n_out
+    data = np.empty((n_ticks // ticks_per_record + 1, len(names)))
+    row_t = scenario.times if scenario is not None else ()
+    row = 0
+    j = 0
+    t0 = plant.time_s
+    wall0 = time.perf_counter()
+    try:
+        for k in range(n_ticks + 1):
+            t = k * tick_s
+            changed = False
+            while row < len(row_t) and row_t[row] <= t + 1e-9:
+                for name, value in zip(scenario.columns, scenario.values[row]):
+                    plant.inputs[name] = value
+                row += 1
+                changed = True
+            if pedals_fn is not None and k % ticks_per_driver == 0:
+                for name, value in driver_inputs(pedals_fn, plant.time_s - t0, plant.outputs).items():
+                    plant.inputs[name] = value          # the pedals, a table's selector lever
+                changed = True
+            if changed:
+                plant.update_outputs()
+            if k % ticks_per_record == 0:
+                data[j, :n_out] = plant.output_values
+                data[j, n_out] = tcu.target_gear
+                data[j, 0] = plant.time_s - t0
+                j += 1
+            if k == n_ticks:
+                break
+            cmd = tcu.step(plant.time_s - t0, link.sensors(plant.outputs, k))
+            link.apply(plant, cmd, k)
+            plant.step(steps_per_tick)
+    except (KeyboardInterrupt, PlantError):
+        if out_path is not None:
+            write_csv(out_path, names[:n_csv], data[:j, :n_csv])
+        raise
+    wall = time.perf_counter() - wall0
+    if out_path is not None:
+        write_csv(out_path, names[:n_csv], data[:j, :n_csv])
+    return names, data[:j], list(tcu.events), wall
+
+
+def _run_with_stub_c(plant, duration_s, out_path, pedals_fn, scenario, csv_target_gear):
+    """run_with_stub's loop in C: the same rows (every plant output and the TCU's
+    target gear before its step, every 10 ms, and the end state)."""
+    import time
+
+    from plant.model import PlantError
+    from plant.simulate import write_csv
+    from tcu_stub.fast import FastLoop
+
+    steps_per_tick = max(1, int(round(PERIOD_S / plant.step_s)))
+    names = list(plant.output_names) + ["tcu_target_gear"]
+    n_out = len(plant.output_names)
+    n_csv = len(names) if csv_target_gear else n_out
+    loop = FastLoop(plant, pedals_fn, duration_s, SIMULATE_RECORD_EVERY_S, record_outputs=names[1:n_out],
+                    record_before_tcu=True, scenario=scenario, period_s=steps_per_tick * plant.step_s)
+    wall0 = time.perf_counter()
+    try:
+        loop.step()
+    except (KeyboardInterrupt, PlantError):
+        if out_path is not None:
+            write_csv(out_path, names[:n_csv], loop.rec[:int(loop.run.rec_n), :n_csv])
+        raise
+    loop.finish()
+    wall = time.perf_counter() - wall0
+    data = loop.rec[:int(loop.run.rec_n), :n_out + 1]   # t, outputs, then the target gear
+    if out_path is not None:
+        write_csv(out_path, names[:n_csv], data[:, :n_csv])
+    return names, data, loop.shifts, wall

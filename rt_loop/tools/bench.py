@@ -74,6 +74,8 @@ import sys
 import threading
 import time
 
+from plant import argtypes
+
 TURNAROUND_P99_9_TARGET_US = 35.0
 LATENCY_RATIO_TARGET = 1.25
 #: a loop round's turnaround is judged only when its neighbouring floors' p99.9 are below this
@@ -105,26 +107,6 @@ class _Parser(argparse.ArgumentParser):
         raise BenchError(message)
 
 
-def _whole(lo, hi):
-    def parse(text):
-        try:
-            n = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if not lo <= n <= hi:
-            raise argparse.ArgumentTypeError(f"must be {lo}..{hi}, got {text}")
-        return n
-    return parse
-
-
-def _spin_us(text):
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(x) and x >= 0):
-        raise argparse.ArgumentTypeError(f"must be a number of microseconds >= 0, got {text}")
-    return x
 
 
 def build_parser():
@@ -132,35 +114,35 @@ def build_parser():
                 description="Benchmark the real-time loop (bridge transport, TCU peer, SCHED_FIFO) "
                             "in rounds alternating with the machine's wake-up floor, one at a "
                             "time.")
-    p.add_argument("--rounds", type=_whole(1, 1000), default=None, metavar="N",
+    p.add_argument("--rounds", type=argtypes.whole_number(1, 1000), default=None, metavar="N",
                    help=f"loop rounds, each between two floor rounds (default {DEFAULT_ROUNDS})")
-    p.add_argument("--round-s", type=_whole(1, 86_400), default=None, metavar="S",
+    p.add_argument("--round-s", type=argtypes.whole_number(1, 86_400), default=None, metavar="S",
                    help=f"seconds per round, floor and loop alike (default {DEFAULT_ROUND_S})")
     p.add_argument("--floor", choices=FLOOR_TOOLS, default=None,
                    help="what measures the floor: c (the C floor loop, rt_loop.floor; default) "
                         "or cyclictest (alone, with its own -m and PM QoS request)")
     p.add_argument("--same-run", action="store_true",
                    help=f"the old method instead of rounds: {SAME_RUN_NOTE}")
-    p.add_argument("--duration", type=_whole(1, 86_400), default=None, metavar="S",
+    p.add_argument("--duration", type=argtypes.whole_number(1, 86_400), default=None, metavar="S",
                    help=f"--same-run only: seconds to run (default {DEFAULT_SAME_RUN_S})")
     p.add_argument("--no-pm-qos", action="store_true",
                    help="make no PM QoS request (/dev/cpu_dma_latency) in the floor, the loop "
                         "or cyclictest (--laptop): the B of an A/B")
-    p.add_argument("--rate", type=_whole(100, 20_000), default=2000, metavar="HZ",
+    p.add_argument("--rate", type=argtypes.whole_number(100, 20_000), default=2000, metavar="HZ",
                    help="loop and floor rate (default 2000: 500 us period)")
-    p.add_argument("--priority", type=_whole(0, 99), default=80, metavar="0..99",
+    p.add_argument("--priority", type=argtypes.whole_number(0, 99), default=80, metavar="0..99",
                    help="SCHED_FIFO priority of the loop, the floor and cyclictest (default 80; "
                         "0: normal scheduling, not real time)")
-    p.add_argument("--cpu", type=_whole(0, 4095), metavar="N",
+    p.add_argument("--cpu", type=argtypes.whole_number(0, 4095), metavar="N",
                    help="pin the loop and the floor to CPU N (in --same-run cyclictest is left "
                         "unpinned)")
     p.add_argument("--channel", default="dct-hil-bench", metavar="NAME",
                    help="python-can virtual channel shared by the server and the peer")
-    p.add_argument("--hist-max-us", type=_whole(100, 100_000), default=10_000, metavar="US",
+    p.add_argument("--hist-max-us", type=argtypes.whole_number(100, 100_000), default=10_000, metavar="US",
                    help="cyclictest histogram range (default 10000 us; above it: overflows)")
     p.add_argument("--json", default=DEFAULT_JSON, metavar="FILE",
                    help=f"where to write the figures (default {DEFAULT_JSON})")
-    p.add_argument("--spin-us", type=_spin_us, default=None, metavar="US",
+    p.add_argument("--spin-us", type=argtypes.microseconds, default=None, metavar="US",
                    help="early wake-up busy-waited before each deadline (default: the server's)")
     p.add_argument("--check", action="store_true", help="exit 1 if a target is missed")
     return p

@@ -81,6 +81,8 @@ import threading
 import time
 from typing import Any
 
+from plant import argtypes
+
 __all__ = ["KINDS", "FuzzError", "main", "run_fuzz"]
 
 TRANSPORTS = ("embedded", "udp_multicast", "socketcan")
@@ -718,48 +720,30 @@ def format_table(r: dict) -> str:
     return "\n".join(lines)
 
 
-def _count(text: str) -> int:
-    try:
-        x = int(float(text))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if x < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
-    return x
-
-
-def _positive(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be above 0, got {text!r}")
-    return x
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scripts/fuzz", description=__doc__.split("\n\n")[0])
     p.add_argument("--transport", choices=TRANSPORTS, default="embedded")
     p.add_argument("--channel", metavar="NAME", help="the bus (default per transport; vcan0)")
-    p.add_argument("--frames", type=_count, default=None, metavar="N",
+    p.add_argument("--frames", type=argtypes.count, default=None, metavar="N",
                    help="frames to send (default 100000 unless --seconds)")
-    p.add_argument("--seconds", type=_positive, default=None, metavar="S",
+    p.add_argument("--seconds", type=argtypes.positive, default=None, metavar="S",
                    help="send for S seconds (with --frames: whichever comes first)")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--time-scale", type=_positive, default=0.1, metavar="X",
+    p.add_argument("--time-scale", type=argtypes.positive, default=0.1, metavar="X",
                    help="the loop's pace (0.1: timeouts of 200 ms and more in wall time)")
     p.add_argument("--priority", type=int, default=0, metavar="0..99",
                    help="SCHED_FIFO priority of the loop (0: none)")
-    p.add_argument("--bursts", type=_count, default=3, metavar="N",
+    p.add_argument("--bursts", type=argtypes.count, default=3, metavar="N",
                    help="bursts of --burst-frames unknown frames back to back (3)")
-    p.add_argument("--burst-frames", type=_count, default=BURST_FRAMES, metavar="N")
-    p.add_argument("--silent-restarts", type=_count, default=2, metavar="N",
+    p.add_argument("--burst-frames", type=argtypes.count, default=BURST_FRAMES, metavar="N")
+    p.add_argument("--silent-restarts", type=argtypes.count, default=2, metavar="N",
                    help="TCU restarts after a silence past the timeout (2)")
     p.add_argument("--fd", action=argparse.BooleanOptionalAction, default=None,
                    help="send CAN FD frames (default: yes, on SocketCAN only with --fd: "
                         "the interface needs an MTU of 72)")
-    p.add_argument("--xcp-packets", type=_count, default=2000, metavar="N",
+    p.add_argument("--xcp-packets", type=argtypes.count, default=2000, metavar="N",
                    help="malformed XCP datagrams to the server's slave (0: no XCP)")
     p.add_argument("--json", default="out/fuzz.json", metavar="FILE")
     p.add_argument("--quiet", action="store_true")

@@ -58,6 +58,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from plant import argtypes
+
 __all__ = ["SoakError", "main", "proc_figures", "run_soak", "slope_per_hour"]
 
 CHANNEL = "dct-hil-soak"
@@ -465,44 +467,26 @@ def _print_summary(doc: dict, paths: dict, out) -> None:
     print("soak: " + ("PASS" if v["passed"] else "FAIL"), file=out, flush=True)
 
 
-def _positive(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be above 0, got {text!r}")
-    return x
-
-
-def _non_negative(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(x) and x >= 0):
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
-    return x
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scripts/soak", description=__doc__.split("\n\n")[0])
     length = p.add_mutually_exclusive_group()
-    length.add_argument("--hours", type=_positive, metavar="H", help="run length (default 1 h)")
-    length.add_argument("--minutes", type=_positive, metavar="M", help="run length in minutes")
+    length.add_argument("--hours", type=argtypes.positive, metavar="H", help="run length (default 1 h)")
+    length.add_argument("--minutes", type=argtypes.positive, metavar="M", help="run length in minutes")
     p.add_argument("--out", default="out/soak", metavar="DIR")
-    p.add_argument("--sample-s", type=_positive, default=10.0, metavar="S",
+    p.add_argument("--sample-s", type=argtypes.positive, default=10.0, metavar="S",
                    help="one row every S seconds (10)")
-    p.add_argument("--record-every", type=_positive, default=0.002, metavar="S",
+    p.add_argument("--record-every", type=argtypes.positive, default=0.002, metavar="S",
                    help="MF4 sample interval in plant time (0.002)")
     p.add_argument("--priority", type=int, default=None, metavar="0..99",
                    help="SCHED_FIFO priority of the loop (80 as root, else 0)")
-    p.add_argument("--floor-s", type=_non_negative, default=None, metavar="S",
+    p.add_argument("--floor-s", type=argtypes.non_negative, default=None, metavar="S",
                    help="the machine's wake-up floor measured this long before and after "
                         "(30 s for an hour or more, else 10; 0: not measured)")
-    p.add_argument("--rss-slope-mb-h", type=_positive, default=RSS_SLOPE_MB_H, metavar="MB",
+    p.add_argument("--rss-slope-mb-h", type=argtypes.positive, default=RSS_SLOPE_MB_H, metavar="MB",
                    help=f"memory slope limit ({RSS_SLOPE_MB_H:g} MB/h)")
-    p.add_argument("--rss-noise-mb", type=_non_negative, default=RSS_NOISE_MB, metavar="MB",
+    p.add_argument("--rss-noise-mb", type=argtypes.non_negative, default=RSS_NOISE_MB, metavar="MB",
                    help=f"growth never judged a leak ({RSS_NOISE_MB:g} MB)")
     p.add_argument("--quiet", action="store_true", help="no line per sample")
     return p

@@ -52,7 +52,7 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any
 
-from plant import __version__
+from plant import __version__, argtypes
 from plant.describe import RANGES as _RANGES
 from plant.describe import header_comments as _header_comments
 from plant.describe import online_keys, unit_of
@@ -834,24 +834,6 @@ def generate(ffi: Any, lib: Any, *, channels: Any = None, params_doc: Any = None
 # dct-hil a2l
 # ---------------------------------------------------------------------------
 
-def _rate(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be a rate in Hz above 0, got {text}")
-    return x
-
-
-def _port(text: str) -> int:
-    try:
-        x = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 1 <= x <= 65535:
-        raise argparse.ArgumentTypeError(f"must be a port 1..65535, got {text}")
-    return x
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -866,13 +848,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
                         help="read this DBC instead of the one the mapping names for BUS "
                              "(without BUS=: the first bus); repeatable")
-    parser.add_argument("--rate", type=_rate, default=2000.0, metavar="HZ",
+    parser.add_argument("--rate", type=argtypes.rate_hz, default=2000.0, metavar="HZ",
                         help="the loop's rate, as dct-hil serve --rate: the DAQ events' cycle "
                              "times (default 2000)")
     parser.add_argument("--xcp-address", default=XCP_DEFAULTS["address"], metavar="ADDR",
                         help="the XCP slave's IP address or host name (default "
                              f"{XCP_DEFAULTS['address']})")
-    parser.add_argument("--xcp-port", type=_port, default=XCP_DEFAULTS["port"], metavar="PORT",
+    parser.add_argument("--xcp-port", type=argtypes.port(), default=XCP_DEFAULTS["port"], metavar="PORT",
                         help=f"the XCP slave's port (default {XCP_DEFAULTS['port']})")
     parser.add_argument("--xcp-transport", choices=("udp", "tcp", "both"),
                         default=XCP_DEFAULTS["transport"],
