@@ -8,7 +8,9 @@ runs in C without crossing into Python. The codec's types come from
 passed to the loop as it is. The cdef is the loop's public headers
 (dct_plant.h, rt_loop.h, rt_floor.h), read the same way as plant/_build.py
 reads dct_plant.h: every preprocessor line dropped except ``#define NAME
-<integer>``.
+<integer>``. The sources are every ``csrc/*.c`` (the loop one component a
+file, listed in ``csrc/rt_internal.h``); the private headers (rt_internal.h,
+rt_faults.h, rt_scope.h) are never read by the cdef.
 """
 
 import glob

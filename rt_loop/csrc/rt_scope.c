@@ -1,7 +1,8 @@
 /*
  * rt_scope.c - min and max of chosen loop values over buckets of ticks, for
  * a live view that reads every tick without the tick waiting for it (see
- * rt_loop.h, "the scope").
+ * rt_loop.h, "the scope"); the configuration's hand-over between Python
+ * (rt_scope_publish) and the tick (rt_scope_acked).
  */
 #include "rt_scope.h"
 
@@ -93,4 +94,14 @@ void rts_tick(rt_scope_run *s, rt_loop *l, uint64_t tick, double time_s)
         push(s, l, tick, time_s);
         bucket_reset(s);
     }
+}
+
+void rt_scope_publish(rt_loop *l, uint32_t gen)
+{
+    atomic_store_explicit(A32(&l->scope_gen), gen, memory_order_release);
+}
+
+uint32_t rt_scope_acked(rt_loop *l)
+{
+    return atomic_load_explicit(A32(&l->scope_ack), memory_order_acquire);
 }
