@@ -17,6 +17,7 @@ import sys
 from dct_hil import __version__
 from dct_hil.commands import COMMANDS
 from dct_hil.commands.options import UserError
+from plant.extras import install_hint, missing_extra
 
 
 class _Parser(argparse.ArgumentParser):
@@ -67,6 +68,12 @@ def main(argv=None):
             return fail(f"the plant package is not built or incomplete ({e}); run scripts/setup")
         try:
             return args.func(args)
+        except ImportError as e:
+            extra = missing_extra(e)
+            if extra is None:
+                raise
+            return fail(f"dct-hil {args.command} needs the {extra} extra ({e.name} is not "
+                        f"installed): {install_hint(extra)}")
         except user_errors as e:
             if isinstance(e, OSError) and e.filename is not None:
                 return fail(f"{e.filename}: {e.strerror or e}")

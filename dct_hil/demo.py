@@ -236,7 +236,13 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     (writes refused) until Ctrl-C or SIGTERM, then the demo exits with its
     own status."""
     from plant import maneuvers as mv
-    from plant.plots import write_plots
+    from plant.extras import install_hint, missing_extra
+    try:
+        from plant.plots import write_plots
+    except ImportError as e:                # a bench PC without the plots extra: no PNGs
+        if missing_extra(e) != "plots":
+            raise
+        write_plots = None
     from rt_loop import verdict as vd
     from rt_loop.console import StopSignals
     from rt_loop.measure.recorder import read_recording
@@ -362,7 +368,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         ran["time_s"] = ran["maneuver_time_s"]
         figures = mv.report(m, ran)
         shifts = mv.gear_shifts(ran["time_s"], ran["gear"])
-        plots = write_plots(ran, folder, title=f"demo {maneuver}")
+        if write_plots is not None:
+            plots = write_plots(ran, folder, title=f"demo {maneuver}")
     tcu_report = tcu.report() if tcu is not None else None
     offline, not_compared, interrupted = None, None, signals.interrupted
     if received:
@@ -422,7 +429,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         print(f"dct-hil demo: the maneuver did not complete (state {run['maneuver']})", file=err)
         return_code = return_code or 1
     print("written:", file=out)
-    for name, p in [("plots", ", ".join(plots) or "none")] + [
+    no_plots = "none" if write_plots is not None else f"none (no matplotlib: {install_hint('plots')})"
+    for name, p in [("plots", ", ".join(plots) or no_plots)] + [
             (k, str(v)) for k, v in paths.items()]:
         print(f"  {name:<15} {p}", file=out)
     for line in vd.verdict_lines(verdict):

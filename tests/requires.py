@@ -15,9 +15,9 @@ import shutil
 import pytest
 
 #: how each test dependency gets onto the machine
-SETUP = "scripts/setup installs it (pip install -e '.[test]')"
+SETUP = "scripts/setup installs it (pip install -e '.[all,docs,test]')"
 REBUILD = ("the compiled extension is older than its C sources: rebuild it with scripts/setup "
-           "(or pip install -e '.[test]')")
+           "(or pip install -e '.[all,docs,test]')")
 HOW = {
     "pyxcp": SETUP, "pya2l": SETUP, "fmpy": SETUP, "selenium": SETUP, "hypothesis": SETUP,
     "pytest_timeout": SETUP,

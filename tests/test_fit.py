@@ -9,10 +9,10 @@ import pytest
 from dct_hil.cli import main
 from plant.params import load_params
 from plant.simulate import write_csv
-from studies.engine import Engine
-from studies.fit import fit, parse_params, parse_signals, targets
-from studies.measurement import load_mapping
-from studies.runs import make_case, simulate
+from dct_hil.studies.engine import Engine
+from dct_hil.studies.fit import fit, parse_params, parse_signals, targets
+from dct_hil.studies.measurement import load_mapping
+from dct_hil.studies.runs import make_case, simulate
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The layers hold: plant <- can_dbc <- tcu_stub <- rt_loop | studies | validation <- dct_hil.
+"""The layers hold: plant <- can_dbc <- tcu_stub <- rt_loop | dct_hil.studies | validation <- dct_hil.
 
 scripts/test's lint stage runs ruff and import-linter with the contracts in
 pyproject.toml; these tests show that the contracts pass on the project and
@@ -18,8 +18,9 @@ import requires
 
 ROOT = Path(__file__).resolve().parent.parent
 #: the layers, lowest first; one layer may hold several packages
-LAYERS = [("plant",), ("can_dbc",), ("tcu_stub",), ("rt_loop", "studies", "validation"), ("dct_hil",)]
+LAYERS = [("plant",), ("can_dbc",), ("tcu_stub",), ("rt_loop", "dct_hil.studies", "validation"), ("dct_hil",)]
 LEVEL = {pkg: i for i, layer in enumerate(LAYERS) for pkg in layer}
+TOP = sorted({pkg.split(".")[0] for pkg in LEVEL})       # the top-level packages
 #: the compiled extensions (setup.py's cffi_modules)
 EXTENSIONS = ("plant._dct_plant", "can_dbc._can_table", "rt_loop._rt_loop", "tcu_stub._tcu_fast")
 
@@ -35,7 +36,7 @@ def _lint_imports(cwd):
 
 def _copy(tmp_path):
     """The packages' Python files and pyproject.toml in ``tmp_path``."""
-    for pkg in LEVEL:
+    for pkg in TOP:
         shutil.copytree(ROOT / pkg, tmp_path / pkg,
                         ignore=lambda d, names: [n for n in names
                                                  if not (n.endswith(".py") or os.path.isdir(os.path.join(d, n)))
@@ -96,7 +97,7 @@ def extension_imports_across_layers(root=ROOT):
     """'file:line imports X' for every import of a compiled extension from a lower layer."""
     found = []
     for pkg, level in LEVEL.items():
-        for path in sorted((root / pkg).rglob("*.py")):
+        for path in sorted((root / pkg.replace(".", "/")).rglob("*.py")):
             seen = set()
             for line, name in _imports(path, root):
                 ext = next((e for e in EXTENSIONS if name == e or name.startswith(e + ".")), None)
@@ -123,7 +124,20 @@ def test_the_extension_check_finds_an_upward_extension_import(tmp_path):
 def test_every_package_has_a_layer():
     """A new top-level package is given a layer, here and in pyproject.toml."""
     packages = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"tests"}
-    assert packages == set(LEVEL)
+    assert packages == set(TOP)
     contract = (ROOT / "pyproject.toml").read_text(encoding="utf-8").split("[tool.importlinter]")[1]
     for pkg in packages:
         assert f'"{pkg}"' in contract, pkg
+    # dct_hil's modules are layered one by one (its studies lower than the rest)
+    children = {p.stem for p in (ROOT / "dct_hil").glob("*.py")} - {"__init__"} | {
+        p.parent.name for p in (ROOT / "dct_hil").glob("*/__init__.py")}
+    for child in children:
+        assert f"dct_hil.{child}" in contract, child
+
+
+def test_the_studies_may_not_import_the_command_line(tmp_path):
+    copy = _copy(tmp_path)
+    _append(copy / "dct_hil" / "studies" / "keys.py", "from dct_hil.commands import options  # upward")
+    r = _lint_imports(copy)
+    assert r.returncode != 0
+    assert "dct_hil.studies.keys -> dct_hil.commands.options" in r.stdout

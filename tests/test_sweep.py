@@ -17,9 +17,9 @@ import pandas as pd
 import pytest
 
 from dct_hil.cli import main
-from studies import StudyError
-from studies.engine import Engine
-from studies.sweep import JOURNAL, load_spec, read_journal, run_sweep
+from dct_hil.studies import StudyError
+from dct_hil.studies.engine import Engine
+from dct_hil.studies.sweep import JOURNAL, load_spec, read_journal, run_sweep
 
 SPEC_32 = """\
 [sweep]
@@ -132,8 +132,8 @@ def test_tcu_calibration_and_maneuver_in_a_sweep(tmp_path, engine):
     """A TCU calibration value reaches the TCU: a lower full-pedal upshift speed makes
     the 0-100 slower; the shipped shift-map example runs (few points, cut short) and
     finds its Pareto front."""
-    import studies
-    from studies import sweep as sw
+    from dct_hil import studies
+    from dct_hil.studies import sweep as sw
 
     example = os.path.join(os.path.dirname(studies.__file__), "examples", "shift_map.toml")
     spec = load_spec(example, duration_cap_s=40.0)
@@ -260,7 +260,7 @@ def test_bad_sweep_input_is_one_line(tmp_path, capsys):
 
 
 def test_keys_build_overrides_as_the_parameter_files_name_them():
-    from studies.keys import Assignment, build, resolve
+    from dct_hil.studies.keys import Assignment, build, resolve
 
     over, cal = build([Assignment(resolve("clutch[1].mu_static"), 0.1),
                        Assignment(resolve("gearbox.ratio[2]"), 1.4),
@@ -279,7 +279,7 @@ def test_keys_build_overrides_as_the_parameter_files_name_them():
 
 
 def test_calibrated_tcu_leaves_the_shared_module_alone():
-    from studies.tcu import calibrated_module, make_tcu
+    from dct_hil.studies.tcu import calibrated_module, make_tcu
     from tcu_stub import logic
 
     tcu = make_tcu({"LAUNCH_RPM_MAX": 2500.0, "TYRE_RADIUS_M": 0.33})

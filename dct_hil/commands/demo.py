@@ -4,6 +4,7 @@ time, then plots and logs (``dct_hil.demo.run_demo``)."""
 import os
 
 from plant import argtypes
+from plant.extras import require
 from plant.maneuvers import LOOP_MANEUVERS
 
 from . import options
@@ -62,6 +63,8 @@ def run(args):
     from rt_loop.server import ServerError
     from rt_loop.transport import TransportError
 
+    if args.mf4:
+        require("asammdf")
     check_writable(os.path.join(args.out, "summary.json"), "--out")
     mapping, bus_channels = options.mapping_from_args(args, 2000.0)
     ui = options.ui_settings(args)

@@ -1,27 +1,21 @@
 """dct-hil fit: plant parameters from recorded runs, least squares on Dask
 (``studies``: its options and its run)."""
 
-from .options import UserError
+from . import options
 
 
 def add_parser(sub):
-    from studies import cli as studies_cli
+    from dct_hil.studies import cli as studies_cli
 
     fit = sub.add_parser(
         "fit", help="identify plant parameters from a recorded run (least squares on Dask)",
         description="Fits the chosen plant parameters to recorded runs (CSV or MF4, a car's "
                     "signals through --mapping) by least squares, the candidate runs on Dask; "
                     "prints the values with 95 %% confidence intervals, writes the residual "
-                    "plot (README: Sweeps and fits).")
+                    "plot (the manual: docs/studies.md).")
     studies_cli.fit_arguments(fit)
     fit.set_defaults(func=run)
 
 
 def run(args):
-    from studies import StudyError
-    from studies import cli as studies_cli
-
-    try:
-        return studies_cli.fit(args)
-    except StudyError as e:
-        raise UserError(str(e)) from None
+    return options.run_study("fit", args)

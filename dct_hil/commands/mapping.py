@@ -13,7 +13,7 @@ def add_parser(sub):
     mapping = sub.add_parser(
         "mapping", help="vehicle CAN matrices: write, check and show mapping files",
         description="A mapping file (TOML) says what the plant sends and receives on a vehicle's "
-                    "DBC (README: Vehicle CAN matrices).")
+                    "DBC (the manual: docs/can-matrices.md).")
     msub = mapping.add_subparsers(dest="mapping_command", metavar="ACTION")
     tpl = msub.add_parser("template", help="a commented mapping skeleton for a DBC")
     tpl.add_argument("dbc", metavar="VEHICLE.dbc")

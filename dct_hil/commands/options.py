@@ -6,6 +6,7 @@ and PM QoS."""
 import os
 
 from plant import argtypes
+from plant.extras import require
 
 
 class UserError(Exception):
@@ -26,6 +27,17 @@ def check_writable(path, option):
         os.path.exists(full) and not os.access(full, os.W_OK)
     ):
         raise UserError(f"{option} {path}: not writable")
+
+
+def run_study(name, args):
+    """``dct_hil.studies.cli``'s ``sweep`` or ``fit`` (the studies extra checked first)."""
+    require("dask", "distributed", "pandas", "pyarrow", "scipy", "matplotlib")
+    from dct_hil.studies import StudyError, cli
+
+    try:
+        return getattr(cli, name)(args)
+    except StudyError as e:
+        raise UserError(str(e)) from None
 
 
 def loop_rate():
@@ -62,7 +74,7 @@ UI_DEFAULT = "127.0.0.1:5006"
 
 def add_ui_options(parser, demo):
     what = ("the live bench view in the browser: traces, instruments, timing, bus, controls "
-            "(the manual: the bench view); binds 127.0.0.1 unless HOST is given, "
+            "(the manual: docs/bench-view.md); binds 127.0.0.1 unless HOST is given, "
             "beyond loopback only with a token")
     if demo:
         parser.add_argument("--ui", nargs="?", const=UI_DEFAULT, metavar="[HOST:]PORT",
@@ -95,6 +107,7 @@ def ui_settings(args):
         if args.ui_token is not None or args.ui_token_file is not None:
             raise UserError("--ui-token and --ui-token-file need --ui")
         return None
+    require("bokeh", "tornado")
     try:
         host, port = parse_address(args.ui)
         token = (check_token(args.ui_token) if args.ui_token is not None else

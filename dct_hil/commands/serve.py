@@ -4,6 +4,7 @@ run by ``rt_loop.console.run_console``), with the bench view when asked."""
 import os
 
 from plant import argtypes
+from plant.extras import mf4_paths, require
 from plant.maneuvers import LOOP_MANEUVERS
 
 from . import options
@@ -104,6 +105,8 @@ def run(args):
     from rt_loop.server import Server, ServerError
     from rt_loop.transport import TransportError, check_interface
 
+    if mf4_paths(args.record, args.log, args.stimulus):
+        require("asammdf")
     mapping, bus_channels = options.mapping_from_args(args, args.rate)
     ui = options.ui_settings(args)
     try:

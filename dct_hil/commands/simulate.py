@@ -7,6 +7,7 @@ import os
 import sys
 
 from plant import argtypes
+from plant.extras import require
 from plant.maneuvers import MANEUVERS
 
 from .options import UserError, check_writable
@@ -183,6 +184,8 @@ def run(args):
     from plant.simulate import run as play_scenario
     from tcu_stub.offline import run_with_stub, stub_columns
 
+    if args.plot:
+        require("matplotlib")
     if args.out:
         check_writable(args.out, "--out")
     if args.dbc and not args.mapping:

@@ -5,6 +5,8 @@ import os
 
 import numpy as np
 
+from plant.extras import require
+
 from .options import check_writable
 
 
@@ -19,6 +21,7 @@ def add_parser(sub):
 def run(args):
     from plant.valve_report import write_valve_report
 
+    require("matplotlib")
     os.makedirs(args.out_dir, exist_ok=True)
     check_writable(os.path.join(args.out_dir, "valve_curve.csv"), "--out-dir")
     r = write_valve_report(args.out_dir, args.params)

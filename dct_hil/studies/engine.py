@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from studies import StudyError
+from dct_hil.studies import StudyError
 
 CONNECT_TIMEOUT_S = 10.0
 
@@ -41,10 +41,10 @@ def _probe() -> str:
     """Runs on each worker: the package imports there, and a 50 ms closed-loop run
     loads what every run needs (the plant, the codec, the TCU), so the first real
     run of each worker costs what the others do."""
-    import studies.runs
+    from dct_hil.studies import runs
 
-    studies.runs.simulate(studies.runs.make_case("0-100", 0.05))
-    return studies.runs.worker_name()
+    runs.simulate(runs.make_case("0-100", 0.05))
+    return runs.worker_name()
 
 
 class Engine:

@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from studies import StudyError
-from studies.keys import (
+from dct_hil.studies import StudyError
+from dct_hil.studies.keys import (
     Assignment,
     build,
     check_plant,
@@ -45,8 +45,8 @@ from studies.keys import (
     plant_range,
     resolve,
 )
-from studies.measurement import ChannelMap, Measurement, load
-from studies.runs import Case, evaluate_signals, make_case
+from dct_hil.studies.measurement import ChannelMap, Measurement, load
+from dct_hil.studies.runs import Case, evaluate_signals, make_case
 
 DEFAULT_SIGNALS = ("vehicle_speed_kmh",)
 REPLAY_INPUTS = ("accel_pedal_pct", "brake_pedal_pct")
@@ -265,7 +265,7 @@ def fit(keys, targets_, signals, start_values: dict | None = None, base_raw: dic
 
     log = log or (lambda text: None)
     base_raw = base_raw or {}
-    from studies.keys import base_params
+    from dct_hil.studies.keys import base_params
 
     base = base_params(base_raw)
     start = np.array([float(start_values.get(k.text, default_of(k, base))) if start_values
@@ -391,8 +391,8 @@ def _toml_value(v) -> str:
 
 
 def write_outputs(out: Path, res: FitResult, targets_, signals, fitted_sig, start_sig) -> list:
-    from studies.plots import fit_plot
-    from studies.runs import UNITS
+    from dct_hil.studies.plots import fit_plot
+    from dct_hil.studies.runs import UNITS
 
     out.mkdir(parents=True, exist_ok=True)
     files = []

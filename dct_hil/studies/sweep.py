@@ -1,7 +1,7 @@
 """``dct-hil sweep SPEC.toml``: a sample over plant parameters, TCU calibration values and
 cases (maneuvers or scenarios), evaluated on Dask, kept as tables and plots.
 
-The spec (``studies/examples/shift_map.toml`` is a worked one)::
+The spec (``dct_hil/studies/examples/shift_map.toml`` is a worked one)::
 
     [sweep]
     sampling = "grid"          # grid | random | lhs (Latin hypercube)
@@ -37,7 +37,7 @@ as they finish; running the same spec again computes only the runs not in it
 that fails (the plant leaves its valid range, a bad combination) is recorded
 with its error. Then ``runs.parquet``/``runs.csv`` (a row per run: inputs,
 status, error, figures), ``points.parquet``/``points.csv`` (a row per point:
-inputs and ``<case>.<figure>``) and the plots (``studies.plots``).
+inputs and ``<case>.<figure>``) and the plots (``dct_hil.studies.plots``).
 """
 
 from __future__ import annotations
@@ -59,9 +59,17 @@ from typing import Any
 
 import numpy as np
 
-from studies import StudyError
-from studies.keys import Assignment, Key, build, check_plant, check_tcu, merge, resolve
-from studies.runs import FIGURES, Case, evaluate, make_case
+from dct_hil.studies import StudyError
+from dct_hil.studies.keys import (
+    Assignment,
+    Key,
+    build,
+    check_plant,
+    check_tcu,
+    merge,
+    resolve,
+)
+from dct_hil.studies.runs import FIGURES, Case, evaluate, make_case
 
 RUN_FORMAT = 1          # part of every run's hash: bump when a run's meaning changes
 SAMPLINGS = ("grid", "random", "lhs")
@@ -299,7 +307,7 @@ def _parameters(tables: Any, where: str, base_raw: dict) -> list[Parameter]:
         raise StudyError(f"{where}: parameter must be an array of tables ([[parameter]])")
     out: list[Parameter] = []
     seen = set()
-    from studies.keys import is_scalar, plant_range
+    from dct_hil.studies.keys import is_scalar, plant_range
 
     for i, t in enumerate(tables):
         w = f"{where}: [[parameter]] {i + 1}"
@@ -387,7 +395,7 @@ def plan(spec: Spec) -> list[Run]:
     """Every run of the spec: point-major, then case."""
     _check_grid(spec)
     runs = []
-    from studies.keys import base_params
+    from dct_hil.studies.keys import base_params
 
     base = base_params(spec.base_raw)
     for i, values in enumerate(spec.points()):
@@ -547,9 +555,9 @@ def run_sweep(spec: Spec, out: Path | None = None, workers: int | None = None,
               connect_timeout_s: float | None = None, log=None, engine=None) -> SweepResult:
     """Run (or resume) the sweep; returns what was done and where the files are.
 
-    ``engine``: an open ``studies.engine.Engine`` to run on (default: one started
+    ``engine``: an open ``dct_hil.studies.engine.Engine`` to run on (default: one started
     for this sweep from ``workers`` / ``scheduler`` and closed after it)."""
-    from studies.engine import CONNECT_TIMEOUT_S, Engine, Progress
+    from dct_hil.studies.engine import CONNECT_TIMEOUT_S, Engine, Progress
 
     log = log or (lambda text: print(text, flush=True))
     out = Path(out or spec.out or Path("out") / "sweeps" / spec.name)
@@ -613,7 +621,7 @@ def run_sweep(spec: Spec, out: Path | None = None, workers: int | None = None,
         files = write_tables(out, run_df, point_df)
         wall = time.monotonic() - t0
         if plots:
-            from studies.plots import sweep_plots
+            from dct_hil.studies.plots import sweep_plots
 
             files += sweep_plots(spec, run_df, point_df, out)
         summary = {"spec": str(spec.path), "name": spec.name, "runs": len(runs),

@@ -13,8 +13,8 @@ import argparse
 import math
 import sys
 
+from dct_hil.studies import StudyError
 from plant import argtypes
-from studies import StudyError
 
 
 def _engine_arguments(p: argparse.ArgumentParser) -> None:
@@ -33,7 +33,7 @@ def _engine_arguments(p: argparse.ArgumentParser) -> None:
 
 def sweep_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("spec", metavar="SPEC.toml",
-                   help="the sweep: parameters, sampling, cases (see studies/examples/"
+                   help="the sweep: parameters, sampling, cases (see dct_hil/studies/examples/"
                         "shift_map.toml)")
     p.add_argument("--out", metavar="DIR",
                    help="results folder (default: the spec's out, else out/sweeps/<spec name>)")
@@ -49,7 +49,13 @@ def sweep_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def sweep(args: argparse.Namespace) -> int:
-    from studies.sweep import load_spec, plan, print_summary, read_journal, run_sweep
+    from dct_hil.studies.sweep import (
+        load_spec,
+        plan,
+        print_summary,
+        read_journal,
+        run_sweep,
+    )
 
     spec = load_spec(args.spec, duration_cap_s=args.duration)
     for note in spec.notes:
@@ -110,9 +116,9 @@ def fit(args: argparse.Namespace) -> int:
     import tomllib
     from pathlib import Path
 
-    from studies import fit as fitting
-    from studies.engine import Engine
-    from studies.measurement import load_mapping
+    from dct_hil.studies import fit as fitting
+    from dct_hil.studies.engine import Engine
+    from dct_hil.studies.measurement import load_mapping
 
     if not (math.isfinite(args.diff_step) and 0 < args.diff_step <= 0.5):
         raise StudyError(f"--diff-step must be in (0, 0.5], got {args.diff_step}")

@@ -1,7 +1,7 @@
 """How the sweep scales with Dask workers: the same sweep with 1 worker, then with 2.
 
-    .venv/bin/python -m studies.scaling                      # 12 runs of the WLTC
-    .venv/bin/python -m studies.scaling --case paper-cycle --points 24
+    .venv/bin/python -m dct_hil.studies.scaling                      # 12 runs of the WLTC
+    .venv/bin/python -m dct_hil.studies.scaling --case paper-cycle --points 24
 
 Each round starts a LocalCluster with that many worker processes (one thread each),
 runs every point from scratch (``--fresh``: nothing is taken from a journal) and times
@@ -76,8 +76,8 @@ range = [0.008, 0.011]
 def one_round(spec, workers: int, folder: Path) -> dict:
     import psutil
 
-    from studies.engine import Engine
-    from studies.sweep import run_sweep
+    from dct_hil.studies.engine import Engine
+    from dct_hil.studies.sweep import run_sweep
 
     me = psutil.Process()
     load_before = os.getloadavg()
@@ -103,7 +103,7 @@ def one_round(spec, workers: int, folder: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m studies.scaling", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m dct_hil.studies.scaling", description=__doc__.split("\n\n")[0])
     ap.add_argument("--case", default="wltc", help="maneuver or scenario (default wltc)")
     ap.add_argument("--duration", type=float, help="cut the case to S simulated seconds")
     ap.add_argument("--points", type=int, default=12, help="runs in the sweep (default 12)")
@@ -112,8 +112,8 @@ def main(argv=None) -> int:
     if args.points < 2:
         ap.error("--points must be at least 2")
 
-    from studies import StudyError
-    from studies.sweep import load_spec
+    from dct_hil.studies import StudyError
+    from dct_hil.studies.sweep import load_spec
 
     with tempfile.TemporaryDirectory(prefix="dct-scaling-") as tmp:
         spec_path = Path(tmp) / "scaling.toml"
@@ -121,7 +121,7 @@ def main(argv=None) -> int:
         try:
             spec = load_spec(spec_path)
         except StudyError as e:
-            print(f"studies.scaling: error: {e}", file=sys.stderr)
+            print(f"dct_hil.studies.scaling: error: {e}", file=sys.stderr)
             return 2
         rounds = []
         for workers in (1, 2):

@@ -21,7 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from studies.runs import UNITS
+from dct_hil.studies.runs import UNITS
 
 MAIN_FIGURES = ("zero_to_100_s", "fuel_l_per_100km", "rms_speed_error_kmh", "shifts",
                 "gear_clashes", "max_jerk_mps3", "top_speed_kmh")

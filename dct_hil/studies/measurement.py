@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from studies import StudyError
+from dct_hil.studies import StudyError
 
 SUFFIXES = (".csv", ".mf4", ".mdf")
 

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from studies import StudyError
+from dct_hil.studies import StudyError
 
 FIGURES = ("zero_to_100_s", "top_speed_kmh", "fuel_l_per_100km", "rms_speed_error_kmh",
            "shifts", "gear_clashes", "max_jerk_mps3", "distance_km", "fuel_l",
@@ -127,9 +127,9 @@ def tcu_columns() -> set:
 def simulate(case: Case, overrides: dict | None = None, calibration: dict | None = None,
              record_every_s: float = RECORD_EVERY_S) -> tuple[dict, list | None]:
     """Run ``case``; returns (recorded arrays by name, the TCU's shifts or None open-loop)."""
+    from dct_hil.studies.keys import merge
     from plant.model import Plant
     from plant.simulate import run, start
-    from studies.keys import merge
 
     overrides = dict(overrides or {})
     if case.kind == "maneuver":
@@ -164,10 +164,10 @@ def _closed_loop(setup, duration, record_every_s, calibration):
     given through run_offline's own ``calibration`` argument where it has one
     (tcu_stub's documented way), else (or when tcu_stub cannot make its calibrated
     TCU: an ImportError before the run starts) as a TcuLogic of a calibrated copy
-    of tcu_stub.logic (``studies.tcu``), passed as ``tcu``."""
+    of tcu_stub.logic (``dct_hil.studies.tcu``), passed as ``tcu``."""
     import inspect
 
-    from studies.tcu import make_tcu
+    from dct_hil.studies.tcu import make_tcu
     from tcu_stub.offline import run_offline
 
     plant, driver = setup()

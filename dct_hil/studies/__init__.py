@@ -1,15 +1,15 @@
 """Studies over the offline closed loop: parameter sweeps and parameter fits.
 
-- ``studies.sweep``: ``dct-hil sweep SPEC.toml``: a grid, random or Latin
+- ``dct_hil.studies.sweep``: ``dct-hil sweep SPEC.toml``: a grid, random or Latin
   hypercube sample over plant parameters, TCU calibration values and
   maneuvers or scenarios, evaluated on Dask; results as Parquet and CSV,
-  resumable, plots (``studies.plots``).
-- ``studies.fit``: ``dct-hil fit MEASUREMENT --params ...``: plant parameters
+  resumable, plots (``dct_hil.studies.plots``).
+- ``dct_hil.studies.fit``: ``dct-hil fit MEASUREMENT --params ...``: plant parameters
   identified from a recorded run by least squares, candidates evaluated on the
-  same Dask engine (``studies.engine``).
-- ``studies.runs``: one run (a case, parameter overrides, calibration) and its
+  same Dask engine (``dct_hil.studies.engine``).
+- ``dct_hil.studies.runs``: one run (a case, parameter overrides, calibration) and its
   figures; what the Dask workers execute.
-- ``studies.keys``: dotted parameter keys (``vehicle.mass_kg``,
+- ``dct_hil.studies.keys``: dotted parameter keys (``vehicle.mass_kg``,
   ``clutch[0].mu_static``) and TCU calibration keys (``tcu.UPSHIFT_RPM[4]``).
 
 Every user error is a ``StudyError``: one line naming the file, key or

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
-from studies import StudyError
+from dct_hil.studies import StudyError
 
 TCU_PREFIX = "tcu."
 # constants of tcu_stub/logic.py that are structure, not calibration
