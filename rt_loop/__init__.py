@@ -5,7 +5,9 @@ The tick runs in C (``csrc/rt_loop.c``, contract ``csrc/rt_loop.h``, compiled
 into ``rt_loop._rt_loop``) in a thread of its own; Python sets it up and
 watches it:
 
-* ``rt_loop.server``: ``Server`` (set-up, loop thread, traffic log, stop);
+* ``rt_loop.server``: ``Server`` (set-up, loop thread, traffic log, stop), one
+  module per concern: start-up and CPU, recording, reports, maneuvers, XCP and
+  the control socket, the argument checks;
   ``rt_loop.console``: ``run_console`` (``dct-hil serve``);
 * ``rt_loop.transport``: SocketCAN (hard real time) or a bridge to any
   python-can interface (soft real time);

@@ -1,4 +1,4 @@
-"""What a running server changes without a restart (rt_loop/server.py): a
+"""What a running server changes without a restart (rt_loop/server/): a
 maneuver started and stopped by the loop's command hand-over, and a
 recording started and stopped while the loop ticks. Shown on the embedded
 transport without a TCU (the pedals act on the plant directly)."""

@@ -13,8 +13,7 @@ import uuid
 import pytest
 
 from rt_loop import console
-from rt_loop import server as server_mod
-from rt_loop.server import Server, ServerError
+from rt_loop.server import Server, ServerError, startup
 
 
 def new_server(**kw):
@@ -33,7 +32,7 @@ def slow_entry(monkeypatch):
         original(self)
 
     monkeypatch.setattr(Server, "_run", held_back)
-    monkeypatch.setattr(server_mod, "START_NOTE_S", 0.05)
+    monkeypatch.setattr(startup, "START_NOTE_S", 0.05)     # read by StartupMixin._await_running
     yield gate
     gate.set()
 
