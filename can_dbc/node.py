@@ -8,6 +8,7 @@ A node holds its ``RxStats`` under its own lock, notifies its ``_changed``
 condition (built on that lock) after every received frame, and reads them
 through the methods below while holding the lock."""
 
+import threading
 import time
 
 from . import codec
@@ -77,8 +78,27 @@ class RxStats:
 
 
 class ReceivingNode:
-    """The waiting side of a node: ``_changed`` is a threading.Condition the
-    receive threads notify after every frame."""
+    """The threads and the waiting side of a node: ``_changed`` is a
+    threading.Condition the receive threads notify after every frame, ``_stop``
+    a threading.Event they watch, ``_threads`` the list of them, ``started_at``
+    and ``stopped_at`` monotonic times (None before)."""
+
+    def _start_threads(self, threads):
+        """Starts ``threads`` ((target, args, name) each) as daemons; notes the start."""
+        self.started_at = time.monotonic()
+        for target, args, name in threads:
+            t = threading.Thread(target=target, args=args, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def _stop_threads(self):
+        """Stops and joins the node's threads; notes the stop (the first one)."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        self._threads = []
+        if self.stopped_at is None and self.started_at is not None:
+            self.stopped_at = time.monotonic()
 
     def wait_for(self, predicate, timeout=5.0):
         """Waits until ``predicate(self)`` is true (checked after every received

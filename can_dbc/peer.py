@@ -118,22 +118,13 @@ class CanPeer(ReceivingNode):
     def start(self):
         if self._threads:
             return
-        self.started_at = time.monotonic()
         loops = ((self._send_loop, "send"), (self._recv_loop, "recv")) if self.send_thread else \
             ((self._recv_loop, "recv"),)
-        for target, name in loops:
-            t = threading.Thread(target=target, name=f"can-peer-{self.side}-{name}", daemon=True)
-            t.start()
-            self._threads.append(t)
+        self._start_threads((target, (), f"can-peer-{self.side}-{name}") for target, name in loops)
 
     def close(self):
         """Stops both threads; shuts the bus down if the peer opened it."""
-        self._stop.set()
-        for t in self._threads:
-            t.join(timeout=5.0)
-        self._threads = []
-        if self.stopped_at is None and self.started_at is not None:
-            self.stopped_at = time.monotonic()
+        self._stop_threads()
         if self._owns_bus:
             self._owns_bus = False
             self.bus.shutdown()

@@ -9,11 +9,12 @@ every layer above measures something.
 from __future__ import annotations
 
 import datetime
+import json
 import os
 import platform
 import subprocess
 
-__all__ = ["cpu_model", "machine_info", "preempt_rt"]
+__all__ = ["cpu_model", "machine_info", "preempt_rt", "write_figures"]
 
 
 def cpu_model() -> str:
@@ -80,3 +81,15 @@ def machine_info(build: bool = False) -> dict:
                     git_dirty=bool(dirty) if commit else None)
     info["date"] = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     return info
+
+
+def write_figures(path: str | os.PathLike, report: dict, indent: int = 2) -> None:
+    """A benchmark's report as JSON at ``path`` (its folder made; written whole
+    or not at all: a reader never sees half a file): what is not JSON (a NumPy
+    number, a path) written as its text."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp"
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(report, f, indent=indent, default=str)
+        f.write("\n")
+    os.replace(tmp, path)

@@ -365,20 +365,11 @@ class MappedPeer(ReceivingNode):
     def start(self):
         if self._threads:
             return
-        self.started_at = time.monotonic()
-        for name in self.buses:
-            t = threading.Thread(target=self._recv_loop, args=(name,), name=f"tcu-recv-{name}", daemon=True)
-            t.start()
-            self._threads.append(t)
+        self._start_threads((self._recv_loop, (name,), f"tcu-recv-{name}") for name in self.buses)
 
     def close(self):
         """Stops the receive threads; shuts the buses down if the peer owns them."""
-        self._stop.set()
-        for t in self._threads:
-            t.join(timeout=5.0)
-        self._threads = []
-        if self.stopped_at is None and self.started_at is not None:
-            self.stopped_at = time.monotonic()
+        self._stop_threads()
         if self._owns_buses:
             self._owns_buses = False
             for bus in self.buses.values():

@@ -1,10 +1,10 @@
 """dct-hil bench: the cost of one plant step (``plant.simulate.bench_report``),
 printed and written as JSON; --check fails above the real-time loop's target."""
 
-import json
 import sys
 
 from plant import argtypes, simulate
+from plant.machine import write_figures
 
 from .options import check_writable
 
@@ -33,9 +33,7 @@ def run(args):
     check_writable(args.json, "--json")
     scenario = load_scenario(args.scenario)
     report = simulate.bench_report(scenario, args.params, args.steps, args.repeat)
-    with open(args.json, "w", encoding="utf-8") as f:
-        json.dump(report, f, indent=2)
-        f.write("\n")
+    write_figures(args.json, report)
     runs, fig, best = report["runs"], report, report["best_run"] - 1
     target = simulate.TARGET_MEDIAN_US
     print(f"bench             {scenario.name}, {args.steps} steps of {report['step_s'] * 1e3:g} ms")

@@ -63,7 +63,6 @@ cyclictest: one line, exit 2.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import shutil
@@ -75,6 +74,7 @@ import threading
 import time
 
 from plant import argtypes
+from plant.machine import write_figures
 
 TURNAROUND_P99_9_TARGET_US = 35.0
 LATENCY_RATIO_TARGET = 1.25
@@ -1071,14 +1071,6 @@ def _check_writable(path):
         raise BenchError(f"--json {path}: not writable")
 
 
-def write_json(path, report):
-    tmp = f"{path}.tmp"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(report, f, indent=2)
-        f.write("\n")
-    os.replace(tmp, path)
-
-
 class StopOnSignal:
     """The first SIGINT/SIGTERM sets ``event`` (the run stops and writes what it has);
     the next one acts as usual. Main thread only; elsewhere nothing is installed."""
@@ -1119,7 +1111,7 @@ def main(argv=None, progress=None):
                 rep = run_same_run(args, progress, stopper.event)
             else:
                 rep = run_rounds(args, progress, stopper.event,
-                                 write=lambda r: write_json(args.json, r))
+                                 write=lambda r: write_figures(args.json, r))
     except BenchError as e:
         print(f"rt_loop.tools.bench: error: {' '.join(str(e).split())}", file=sys.stderr)
         return 2
@@ -1132,7 +1124,7 @@ def main(argv=None, progress=None):
     for line in table_lines(rep):
         print(line)
     try:
-        write_json(args.json, rep)
+        write_figures(args.json, rep)
     except OSError as e:
         print(f"rt_loop.tools.bench: error: cannot write {args.json}: {e.strerror or e}", file=sys.stderr)
         return 2

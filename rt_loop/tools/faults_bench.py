@@ -20,8 +20,6 @@ file; exit 0 (1 with ``--check`` when the target is missed).
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
 import sys
 import time
@@ -102,7 +100,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not (args.pairs >= 1 and args.round_s > 0 and 0 <= args.priority <= 99):
         p.error("--pairs >= 1, --round-s > 0, --priority 0..99")
-    from plant.machine import machine_info
+    from plant.machine import machine_info, write_figures
 
     rounds = []
     for _ in range(args.pairs):
@@ -137,9 +135,7 @@ def main(argv=None) -> int:
               "extra_execution_us": extra, "pair_differences_us": diffs, "target_us": TARGET_US,
               "machine": machine_info(),
               "pass": extra <= TARGET_US and active == len(FAULTS)}
-    os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-    with open(args.json, "w", encoding="utf-8") as f:
-        json.dump(report, f, indent=2)
+    write_figures(args.json, report)
     print(f"figures in {args.json}")
     return 1 if args.check and not report["pass"] else 0
 

@@ -69,19 +69,17 @@ counted; unexplained) and writes it as JSON (``--json``).
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
 import random
-import signal
 import socket
 import struct
 import sys
-import threading
 import time
 from typing import Any
 
 from plant import argtypes
+from plant.machine import write_figures
+from rt_loop.console import StopSignals
 
 __all__ = ["KINDS", "FuzzError", "main", "run_fuzz"]
 
@@ -450,14 +448,8 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
     except Exception as e:  # the plant's parameters, the build: one line
         raise FuzzError(f"the server cannot be set up: {type(e).__name__}: "
                         f"{' '.join(str(e).split())}") from None
-    stop = threading.Event()
-    received: list[int] = []
-
-    def on_signal(signum, _frame):
-        received.append(signum)
-        stop.set()
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    signals = StopSignals().__enter__()    # SIGINT, SIGTERM: stop (restored at the end)
+    stop, received = signals.event, signals.received
     gen = Generator(args.seed, transport, fd_allowed=fd)
     sent_kind = dict.fromkeys(KINDS, 0)
     expect = dict.fromkeys(REASONS, 0)
@@ -589,8 +581,7 @@ def run_fuzz(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> dict:
         server.stop()
         if sender is not None:
             sender.close()
-        for s, h in old.items():
-            signal.signal(s, h)
+        signals.__exit__(None, None, None)
     report = server.report(histograms=False)
     c = report["counts"]
     result = _table(args, transport, channel, sent_kind, expect, c, burst_sent,
@@ -766,10 +757,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     print(format_table(r), flush=True)
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w", encoding="utf-8") as f:
-            json.dump(r, f, indent=1, default=str)
-            f.write("\n")
+        write_figures(args.json, r, indent=1)
     if r["interrupted"]:
         return 130
     return 0 if r["passed"] else 1

@@ -53,12 +53,12 @@ import math
 import os
 import signal
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from plant import argtypes
+from rt_loop.console import StopSignals
 
 __all__ = ["SoakError", "main", "proc_figures", "run_soak", "slope_per_hour"]
 
@@ -267,14 +267,8 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             p.unlink()
     priority = args.priority if args.priority is not None else (80 if os.geteuid() == 0 else 0)
     cycle_s = get_maneuver(MANEUVER).duration_s
-    stop = threading.Event()
-    received: list[int] = []
-
-    def on_signal(signum, _frame):
-        received.append(signum)
-        stop.set()
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    signals = StopSignals().__enter__()    # SIGINT, SIGTERM: stop (restored at the end)
+    stop, received = signals.event, signals.received
     run: dict[str, Any] = {"cycles_completed": 0, "cycles_incomplete": 0}
     floor_before = floor_after = None
     rows: list[dict] = []
@@ -314,6 +308,19 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
         cycle_started = None
         f = open(paths["csv"], "w", newline="", encoding="utf-8")
         writer = None
+
+        def sample():
+            """One row: taken, kept, written to the CSV (its header first)."""
+            nonlocal writer
+            row = _sample(server, t0, cycles, paths["mf4"])
+            rows.append(row)
+            if writer is None:
+                writer = csv.DictWriter(f, fieldnames=list(row))
+                writer.writeheader()
+            writer.writerow(row)
+            f.flush()
+            return row
+
         next_sample = time.monotonic()
         next_json = time.monotonic() + 60.0
         end = t0 + duration
@@ -336,13 +343,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
                     cycles += 1
                     cycle_started = now
                 if now >= next_sample:
-                    row = _sample(server, t0, cycles, paths["mf4"])
-                    rows.append(row)
-                    if writer is None:
-                        writer = csv.DictWriter(f, fieldnames=list(row))
-                        writer.writeheader()
-                    writer.writerow(row)
-                    f.flush()
+                    row = sample()
                     if not args.quiet:
                         print(f"soak: {row['t_s'] / 60.0:6.1f} min  RSS {row['rss_mb']:.1f} MB  "
                               f"fds {row['fds']}  threads {row['threads']}  cycle {cycles}  "
@@ -355,12 +356,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
                 stop.wait(0.05)
         finally:
             if rows and (time.monotonic() - t0) - rows[-1]["t_s"] > 1.0 and server.running:
-                row = _sample(server, t0, cycles, paths["mf4"])
-                rows.append(row)
-                if writer is None:
-                    writer = csv.DictWriter(f, fieldnames=list(row))
-                    writer.writeheader()
-                writer.writerow(row)
+                sample()
             f.close()
     except SoakError as e:
         print(f"soak: error: {e}", file=err)
@@ -385,8 +381,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             server.write_report(paths["stats"], report)
             run.setdefault("error", report["run"]["error"])
             run["ticks"] = report["run"]["ticks"]
-        for s, h in old.items():
-            signal.signal(s, h)
+        signals.__exit__(None, None, None)
     run["interrupted"] = bool(received)
     if rows and not received and args.floor_s > 0:
         print(f"soak: the machine's wake-up floor again for {args.floor_s:g} s ...", file=out,

@@ -20,9 +20,7 @@ exceeds 1 us or a DTO was lost).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
 import statistics
 import sys
 import time
@@ -187,7 +185,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not (1 <= args.signals <= 1000 and args.pairs >= 1 and args.round_s > 0):
         p.error("--signals 1..1000, --pairs >= 1, --round-s > 0")
-    from plant.machine import machine_info
+    from plant.machine import machine_info, write_figures
     from rt_loop._rt_loop import ffi
 
     signals = measurable_doubles(ffi, args.signals)
@@ -224,9 +222,7 @@ def main(argv=None) -> int:
               "median": {"without_xcp": summary[False], "with_xcp": summary[True]},
               "dtos_lost_in_loop": lost, "machine": machine_info(),
               "pass": copy_ns <= TARGET_NS and lost == 0}
-    os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-    with open(args.json, "w", encoding="utf-8") as f:
-        json.dump(report, f, indent=2)
+    write_figures(args.json, report)
     print(f"figures in {args.json}")
     return 1 if args.check and not report["pass"] else 0
 
