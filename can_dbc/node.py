@@ -78,7 +78,8 @@ class RxStats:
 
 
 class ReceivingNode:
-    """The threads and the waiting side of a node: ``_changed`` is a
+    """The threads and the receiving side of a node: ``_rx_stats`` holds an
+    RxStats per received message under ``_lock``; ``_changed`` is a
     threading.Condition the receive threads notify after every frame, ``_stop``
     a threading.Event they watch, ``_threads`` the list of them, ``started_at``
     and ``stopped_at`` monotonic times (None before)."""
@@ -99,6 +100,40 @@ class ReceivingNode:
         self._threads = []
         if self.stopped_at is None and self.started_at is not None:
             self.stopped_at = time.monotonic()
+
+    node = "TCU"          # who receives (a node's name in the DBC), for the errors
+
+    def _rx_key(self, message):
+        """The key of ``message`` in ``_rx_stats``."""
+        return message
+
+    def _stats_of(self, message):
+        """The RxStats of a received message (the caller holds ``_lock``)."""
+        key = self._rx_key(message)
+        st = self._rx_stats.get(key)
+        if st is None:
+            raise ValueError(f"{key} is not a message the {self.node} receives")
+        return st
+
+    def rx_snapshot(self):
+        """{message: (decoded values of the last accepted frame or None,
+        monotonic time it was received or None, frames rejected since then,
+        why the last of those was rejected or None)} for every received
+        message, in one consistent copy. The value dicts are the node's own
+        (never changed after they were stored): read them, do not modify them."""
+        with self._lock:
+            return {key: st.snapshot() for key, st in self._rx_stats.items()}
+
+    def last(self, message):
+        """Decoded values of the last accepted frame of a received message (None before the first)."""
+        with self._lock:
+            st = self._stats_of(message)
+            return dict(st.last) if st.last is not None else None
+
+    def counts(self, message):
+        """{received, accepted, bad_length, bad_crc, bad_counter} of a received message."""
+        with self._lock:
+            return self._stats_of(message).counts()
 
     def wait_for(self, predicate, timeout=5.0):
         """Waits until ``predicate(self)`` is true (checked after every received

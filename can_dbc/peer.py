@@ -203,32 +203,8 @@ class CanPeer(ReceivingNode):
 
     # -- what was received --------------------------------------------------
 
-    def rx_snapshot(self):
-        """{message: (decoded values of the last accepted frame or None,
-        monotonic time it was received or None, frames rejected since then,
-        why the last of those was rejected or None)} for every received
-        message, in one consistent copy. The value dicts are the peer's own (never changed after they
-        were stored): read them, do not modify them."""
-        with self._lock:
-            return {name: st.snapshot() for name, st in self._rx_stats.items()}
-
-    def last(self, message):
-        """Decoded values of the last accepted frame of a received message (None before the first)."""
-        name = codec.message(message).name
-        with self._lock:
-            st = self._rx_stats.get(name)
-            if st is None:
-                raise ValueError(f"{name} is not a message the {self.node} receives")
-            return dict(st.last) if st.last is not None else None
-
-    def counts(self, message):
-        """{received, accepted, bad_length, bad_crc, bad_counter} of a received message."""
-        name = codec.message(message).name
-        with self._lock:
-            st = self._rx_stats.get(name)
-            if st is None:
-                raise ValueError(f"{name} is not a message the {self.node} receives")
-            return st.counts()
+    def _rx_key(self, message):
+        return codec.message(message).name
 
     @property
     def unknown_frames(self):

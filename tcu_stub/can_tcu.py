@@ -337,7 +337,7 @@ class MappedPeer(ReceivingNode):
         self.rx_messages = {message_key(m): m for m in self.matrix.sent}
         self.tx_messages = {message_key(m): m for m in self.matrix.received}
         self._fd_brs = {b.name: bool(b.fd and b.data_bitrate) for b in setup.mapping.buses}
-        self._rx = {k: RxStats(setup.tables[m.bus][0].new_state()) for k, m in self.rx_messages.items()}
+        self._rx_stats = {k: RxStats(setup.tables[m.bus][0].new_state()) for k, m in self.rx_messages.items()}
         self._counter = {k: 0 for k in self.tx_messages}
         self.sent = {k: 0 for k in self.tx_messages}
         self.send_errors = {k: 0 for k in self.tx_messages}
@@ -359,7 +359,7 @@ class MappedPeer(ReceivingNode):
     @property
     def names(self):
         """The keys of the messages received."""
-        return tuple(self._rx)
+        return tuple(self._rx_stats)
 
     # -- control ------------------------------------------------------------
     def start(self):
@@ -416,21 +416,6 @@ class MappedPeer(ReceivingNode):
         return True
 
     # -- what was received --------------------------------------------------
-    def rx_snapshot(self):
-        """{key: (decoded values of the last accepted frame or None, monotonic
-        time it was received or None, frames rejected since then, why the last
-        of those was rejected or None)}."""
-        with self._lock:
-            return {k: st.snapshot() for k, st in self._rx.items()}
-
-    def counts(self, key):
-        """{received, accepted, bad_length, bad_crc, bad_counter} of a received message."""
-        with self._lock:
-            st = self._rx.get(key)
-            if st is None:
-                raise ValueError(f"{key} is not a message the TCU receives")
-            return st.counts()
-
     @property
     def unknown_frames(self):
         with self._lock:
@@ -449,7 +434,7 @@ class MappedPeer(ReceivingNode):
         """Everything counted so far, as JSON-ready data."""
         with self._lock:
             received = {}
-            for k, st in self._rx.items():
+            for k, st in self._rx_stats.items():
                 m = self.rx_messages[k]
                 received[k] = {"bus": m.bus, "message": m.name, "frame_id": m.frame_id,
                                "cycle_ms": m.cycle_ms, **st.figures()}
@@ -497,7 +482,7 @@ class MappedPeer(ReceivingNode):
                     self._changed.notify_all()
                     continue
                 data = b"" if msg.is_remote_frame else bytes(msg.data)
-                st = self._rx[key]
+                st = self._rx_stats[key]
                 status = table.check(i, data, st.state)
                 st.frame(t, status, table.decode(i, data) if status == codec.OK else None)
                 self._changed.notify_all()

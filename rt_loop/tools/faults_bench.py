@@ -22,8 +22,10 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import time
 import uuid
+
+from plant import argtypes
+from rt_loop.tools.ab_round import drive, loop_figures
 
 TARGET_US = 0.5
 
@@ -65,41 +67,29 @@ def _round(args, with_faults):
     peer = CanPeer.open(side="tcu", interface="virtual", channel=channel,
                         values={"SolenoidCurrent1": 0.4, "SolenoidCurrent2": 0.0})
     try:
-        t0 = time.monotonic()
-        while srv.running:
-            peer.set(SolenoidCurrent1=0.4 if int(time.monotonic() - t0) % 2 == 0 else 0.0)
-            srv.wait(0.05)
+        drive(srv, peer)
     finally:
         peer.close()
         srv.stop()
     rep = srv.report(histograms=True)
-    ex = rep["execution"]
-    hist = [(b, c) for b, c in ex.get("histogram", []) if b < 20]
-    n = sum(c for _, c in hist)
     faults = rep["faults"]["set"]
     return {
         "faults": with_faults,
         "active": sum(1 for f in faults if f["state"] == "active"),
         "hits": sum(f["hits"] for f in faults),
-        "ticks": rep["counts"]["ticks"],
-        "turnaround": {k: rep["turnaround"][k] for k in ("p50_us", "p99_9_us", "max_us")},
-        "execution": {k: ex[k] for k in ("p50_us", "p99_9_us", "max_us")},
-        "execution_mean_under_20us": sum((b + 0.5) * c for b, c in hist) / n if n else None,
-        "overruns": rep["counts"]["overruns"],
+        **loop_figures(rep),
     }
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m rt_loop.tools.faults_bench",
                                 description=__doc__.split("\n")[0])
-    p.add_argument("--pairs", type=int, default=3)
-    p.add_argument("--round-s", type=float, default=20.0)
-    p.add_argument("--priority", type=int, default=80)
+    p.add_argument("--pairs", type=argtypes.whole_number(1), default=3)
+    p.add_argument("--round-s", type=argtypes.seconds, default=20.0)
+    p.add_argument("--priority", type=argtypes.priority, default=80)
     p.add_argument("--json", default="out/bench-faults.json")
     p.add_argument("--check", action="store_true")
     args = p.parse_args(argv)
-    if not (args.pairs >= 1 and args.round_s > 0 and 0 <= args.priority <= 99):
-        p.error("--pairs >= 1, --round-s > 0, --priority 0..99")
     from plant.machine import machine_info, write_figures
 
     rounds = []

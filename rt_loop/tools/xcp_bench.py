@@ -23,8 +23,10 @@ import argparse
 import logging
 import statistics
 import sys
-import time
 import uuid
+
+from plant import argtypes
+from rt_loop.tools.ab_round import drive, loop_figures
 
 TARGET_NS = 1000.0
 
@@ -68,28 +70,17 @@ def _round(args, with_xcp, signals):
         if with_xcp:
             master = _Master(srv, signals, received)
             master.start()
-        t0 = time.monotonic()
-        while srv.running:
-            peer.set(SolenoidCurrent1=0.4 if int(time.monotonic() - t0) % 2 == 0 else 0.0)
-            srv.wait(0.05)
+        drive(srv, peer)
     finally:
         if master is not None:
             master.stop()
         peer.close()
         srv.stop()
-    rep = srv.report(histograms=True)
-    ex = rep["execution"]
-    hist = [(b, c) for b, c in ex.get("histogram", []) if b < 20]
-    n = sum(c for _, c in hist)
     x = srv.xcp_counters() if with_xcp else None
     return {
         "xcp": with_xcp,
         "signals": len(signals) if with_xcp else 0,
-        "ticks": rep["counts"]["ticks"],
-        "turnaround": {k: rep["turnaround"][k] for k in ("p50_us", "p99_9_us", "max_us")},
-        "execution": {k: ex[k] for k in ("p50_us", "p99_9_us", "max_us")},
-        "execution_mean_under_20us": sum((b + 0.5) * c for b, c in hist) / n if n else None,
-        "overruns": rep["counts"]["overruns"],
+        **loop_figures(srv.report(histograms=True)),
         "dtos_received": received[0] if with_xcp else None,
         "dtos_lost_in_loop": None if x is None else x["loop"]["dto_ring_dropped"],
     }
@@ -176,15 +167,13 @@ def daq_copy_ns(signals, iterations=200_000):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m rt_loop.tools.xcp_bench", description=__doc__.split("\n")[0])
-    p.add_argument("--signals", type=int, default=100)
-    p.add_argument("--pairs", type=int, default=3)
-    p.add_argument("--round-s", type=float, default=20.0)
-    p.add_argument("--priority", type=int, default=80)
+    p.add_argument("--signals", type=argtypes.whole_number(1, 1000), default=100)
+    p.add_argument("--pairs", type=argtypes.whole_number(1), default=3)
+    p.add_argument("--round-s", type=argtypes.seconds, default=20.0)
+    p.add_argument("--priority", type=argtypes.priority, default=80)
     p.add_argument("--json", default="out/bench-xcp.json")
     p.add_argument("--check", action="store_true")
     args = p.parse_args(argv)
-    if not (1 <= args.signals <= 1000 and args.pairs >= 1 and args.round_s > 0):
-        p.error("--signals 1..1000, --pairs >= 1, --round-s > 0")
     from plant.machine import machine_info, write_figures
     from rt_loop._rt_loop import ffi
 
