@@ -101,6 +101,21 @@ class ReceivingNode:
         if self.stopped_at is None and self.started_at is not None:
             self.stopped_at = time.monotonic()
 
+    def _frames(self, bus):
+        """(monotonic receive time, message) of each frame ``bus`` receives until
+        the node stops; a receive error ends it while stopping (the bus going
+        down) and is retried otherwise."""
+        while not self._stop.is_set():
+            try:
+                msg = bus.recv(timeout=0.05)
+            except Exception:  # any bus error: retried, or the end while stopping
+                if self._stop.is_set():
+                    return
+                time.sleep(0.01)
+                continue
+            if msg is not None:
+                yield time.monotonic(), msg
+
     node = "TCU"          # who receives (a node's name in the DBC), for the errors
 
     def _rx_key(self, message):

@@ -296,17 +296,7 @@ class CanPeer(ReceivingNode):
                 self._stop.wait(wait)
 
     def _recv_loop(self):
-        while not self._stop.is_set():
-            try:
-                msg = self.bus.recv(timeout=0.05)
-            except Exception:
-                if self._stop.is_set():
-                    return
-                time.sleep(0.01)
-                continue
-            if msg is None:
-                continue
-            t = time.monotonic()
+        for t, msg in self._frames(self.bus):
             with self._lock:
                 if self._own is not None and self._own.is_echo(msg):
                     continue                          # our own frame, looped back

@@ -154,6 +154,7 @@ import time
 
 from can_dbc import codec
 from can_dbc.node import ReceivingNode, RxStats
+from can_dbc.options import add_matrix_options
 from can_dbc.own_frames import OwnFrames, is_echoing_bus
 from can_dbc.peer import CanPeer
 from plant import argtypes
@@ -457,17 +458,7 @@ class MappedPeer(ReceivingNode):
         own = self._own[bus_name]
         table, msgs = self.setup.tables.get(bus_name, (None, ()))
         keys = [message_key(m) if m.direction == "send" else None for m in msgs]
-        while not self._stop.is_set():
-            try:
-                msg = bus.recv(timeout=0.05)
-            except Exception:  # a bus going down while stopping
-                if self._stop.is_set():
-                    return
-                time.sleep(0.01)
-                continue
-            if msg is None:
-                continue
-            t = time.monotonic()
+        for t, msg in self._frames(bus):
             with self._lock:
                 if own is not None and own.is_echo(msg):
                     continue                          # our own frame, looped back
@@ -1095,18 +1086,15 @@ def add_arguments(parser):
                         help="wall: a task tick every 2 ms (/ time scale) of wall time, as a TCU "
                              "(default); bus: a tick per DCT_ShaftSpeeds frame, following the "
                              "plant's time exactly (slow-motion runs on slow machines)")
-    parser.add_argument("--mapping", metavar="FILE_OR_NAME",
-                        help="speak a vehicle CAN matrix through this mapping file (or a shipped one: "
-                             "dct_hil, vehicle) instead of the project's own contract: receive the "
-                             "messages the plant sends, send the ones it receives, one CAN channel "
-                             "per bus of the mapping")
-    parser.add_argument("--bus", action="append", default=[], metavar="NAME=CHANNEL",
-                        help="with --mapping: the CAN channel of the mapping's bus NAME (repeatable); "
-                             "the first bus defaults to --channel, the others on virtual and "
-                             "udp_multicast to CHANNEL-NAME, elsewhere each needs --bus")
-    parser.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
-                        help="with --mapping: read this DBC instead of the one the mapping names "
-                             "for BUS (without BUS=: the first bus); repeatable")
+    add_matrix_options(
+        parser, needs_mapping=True,
+        mapping_help="speak a vehicle CAN matrix through this mapping file (or a shipped one: "
+                     "dct_hil, vehicle) instead of the project's own contract: receive the "
+                     "messages the plant sends, send the ones it receives, one CAN channel "
+                     "per bus of the mapping",
+        bus_help="the CAN channel of the mapping's bus NAME (repeatable); the first bus "
+                 "defaults to --channel, the others on virtual and udp_multicast to "
+                 "CHANNEL-NAME, elsewhere each needs --bus")
     parser.add_argument("--report", metavar="FILE.json", help="write the JSON report here at the end")
     parser.add_argument("--quiet", action="store_true", help="no live status and no summary")
     return parser

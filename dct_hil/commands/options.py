@@ -5,6 +5,7 @@ and PM QoS."""
 
 import os
 
+from can_dbc.options import add_matrix_options
 from plant import argtypes
 from plant.extras import require
 
@@ -48,18 +49,14 @@ def loop_rate():
 
 
 def add_mapping_options(p, what):
-    p.add_argument("--mapping", metavar="FILE_OR_NAME",
-                   help=f"the CAN matrix {what} plays: a mapping file (DBC per bus, what is sent "
-                        "and received, sources and targets) or a shipped one: dct_hil (the "
+    add_matrix_options(
+        p, mapping_help=f"the CAN matrix {what} plays: a mapping file (DBC per bus, what is "
+                        "sent and received, sources and targets) or a shipped one: dct_hil (the "
                         "project's own contract, the default) or vehicle (an example powertrain "
-                        "CAN at 500 kbit/s and an I/O bus)")
-    p.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
-                   help="read this DBC instead of the one the mapping names for BUS (without "
-                        "BUS=: the first bus); repeatable")
-    p.add_argument("--bus", action="append", default=[], metavar="NAME=CHANNEL",
-                   help="the CAN channel of a bus of the mapping other than the first (which is "
-                        "on --channel); repeatable. Default on interfaces other than socketcan: "
-                        "CHANNEL-NAME")
+                        "CAN at 500 kbit/s and an I/O bus)",
+        bus_help="the CAN channel of a bus of the mapping other than the first (which is on "
+                 "--channel); repeatable. Default on interfaces other than socketcan: "
+                 "CHANNEL-NAME")
 
 
 def add_control_option(parser):

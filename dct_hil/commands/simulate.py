@@ -6,6 +6,7 @@ import math
 import os
 import sys
 
+from can_dbc.options import add_matrix_options
 from plant import argtypes
 from plant.extras import require
 from plant.maneuvers import MANEUVERS
@@ -28,13 +29,11 @@ def add_parser(sub):
                           "scenario's own clutch and fork columns")
     sim.add_argument("--plot", action="store_true",
                      help="write PNG plots next to the CSV (or in out/NAME/ without --out)")
-    sim.add_argument("--mapping", metavar="FILE_OR_NAME",
-                     help="the TCU stub talks to the plant through this vehicle matrix (a "
-                          "mapping file, or a shipped one: dct_hil, vehicle) instead of the "
-                          "project's own contract")
-    sim.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
-                     help="with --mapping: read this DBC instead of the one the mapping names for "
-                          "BUS (without BUS=: the first bus); repeatable")
+    add_matrix_options(
+        sim, needs_mapping=True,
+        mapping_help="the TCU stub talks to the plant through this vehicle matrix (a mapping "
+                     "file, or a shipped one: dct_hil, vehicle) instead of the project's own "
+                     "contract")
     sim.add_argument("--tcu-impl", choices=("c", "python"), default=None,
                      help="the TCU stub's loop: c, the reference TCU, driver and CAN contract "
                           "compiled (tcu_stub/fast.py; the default, except with --mapping), or "

@@ -52,6 +52,7 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any
 
+from can_dbc.options import add_matrix_options
 from plant import __version__, argtypes
 from plant.describe import RANGES as _RANGES
 from plant.describe import header_comments as _header_comments
@@ -840,14 +841,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``dct-hil a2l`` on an argparse parser (or subparser)."""
     parser.add_argument("out", metavar="OUT.a2l",
                         help="the A2L file to write (its folder is made if missing)")
-    parser.add_argument("--mapping", metavar="FILE_OR_NAME",
-                        help="the CAN matrix the server plays (a mapping file or a shipped one: "
+    add_matrix_options(
+        parser, mapping_help="the CAN matrix the server plays (a mapping file or a shipped one: "
                              "dct_hil, the default, or vehicle): names the commands, the "
                              "channels, the messages' counters and every signal's last value "
                              "(<bus>.<Message>.<Signal>)")
-    parser.add_argument("--dbc", action="append", default=[], metavar="[BUS=]FILE",
-                        help="read this DBC instead of the one the mapping names for BUS "
-                             "(without BUS=: the first bus); repeatable")
     parser.add_argument("--rate", type=argtypes.rate_hz, default=2000.0, metavar="HZ",
                         help="the loop's rate, as dct-hil serve --rate: the DAQ events' cycle "
                              "times (default 2000)")
