@@ -45,9 +45,7 @@ def add_parser(sub):
     demo.add_argument("--duration", type=argtypes.seconds, metavar="S",
                       help="play only the first S seconds of the maneuver")
     demo.add_argument("--quiet", action="store_true", help="no live status")
-    demo.add_argument("--strict", action="store_true",
-                      help="exit 3 when the run's timing verdict is INVALID (without it the "
-                           "verdict is printed with a warning and the exit status stays)")
+    options.add_strict_option(demo)
     options.add_pm_qos_options(demo)
     options.add_mapping_options(demo, "the plant and the TCU stub")
     demo.add_argument("--mf4", action="store_true",

@@ -59,6 +59,12 @@ def add_mapping_options(p, what):
                  "CHANNEL-NAME")
 
 
+def add_strict_option(parser):
+    parser.add_argument("--strict", action="store_true",
+                        help="exit 3 when the run's timing verdict is INVALID (without it the "
+                             "verdict is printed with a warning and the exit status stays)")
+
+
 def add_control_option(parser):
     parser.add_argument("--control", metavar="PATH",
                         help="serve the control channel on the Unix socket PATH (mode 0600, "

@@ -73,9 +73,7 @@ def add_parser(sub):
                        help="recording interval in plant time (default 0.002)")
     serve.add_argument("--quiet", action="store_true",
                        help="no live status (the banner, warnings and summary stay)")
-    serve.add_argument("--strict", action="store_true",
-                       help="exit 3 when the run's timing verdict is INVALID (without it the "
-                            "verdict is printed with a warning and the exit status stays)")
+    options.add_strict_option(serve)
     options.add_pm_qos_options(serve)
     options.add_mapping_options(serve, "the plant")
     serve.add_argument("--xcp", metavar="[HOST:]PORT",
