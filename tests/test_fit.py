@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from dct_hil.cli import main
-from plant.params import load_params
-from plant.simulate import write_csv
 from dct_hil.studies.engine import Engine
 from dct_hil.studies.fit import fit, parse_params, parse_signals, targets
 from dct_hil.studies.measurement import load_mapping
 from dct_hil.studies.runs import make_case, simulate
+from plant.params import load_params
+from plant.simulate import write_csv
 
 
 @pytest.fixture(scope="module")
