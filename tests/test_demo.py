@@ -36,6 +36,24 @@ def test_without_vcan0_the_demo_takes_the_embedded_transport_and_says_why():
     assert (iface, two) == ("virtual", False)
     assert "no vcan0" in why and "embedded" in why
 
+def _assert_shifts_as_offline(summary, duration_s=8.0):
+    """The demo's shifts over CAN are the offline run's of paper-cycle's first
+    ``duration_s`` (two shifts), each within 30 ms."""
+    from plant.maneuvers import compare_shifts, gear_shifts, get_maneuver
+    from plant.model import Plant
+    from tcu_stub.offline import run_offline
+
+    over_can = [(s["time_s"], s["from"], s["to"]) for s in summary["shifts"]]
+    m = get_maneuver("paper-cycle")
+    plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
+    plant.reset(**m.reset_kwargs)
+    rec = run_offline(plant, m.driver, duration_s, record_every_s=0.002)
+    offline = gear_shifts(rec["time_s"], rec["gear"])
+    same, diffs = compare_shifts(offline, over_can)
+    assert same and len(offline) == 2, (offline, over_can)
+    assert max(abs(d) for d in diffs) <= 0.030, (diffs, offline, over_can)
+
+
 
 def test_a_channel_that_is_no_can_interface_is_a_one_line_error():
     assert not demo.can_netdev_up("lo")
@@ -155,9 +173,6 @@ def test_slow_motion_with_the_bus_clock_gives_the_offline_shifts_within_30_ms(tm
     since the TCU's clutch gain follows the oil temperature, the 2-3 up to 21-23 ms
     early here and 24.5 ms in the emulated guest over vcan0 (cause not established):
     30 ms."""
-    from plant.maneuvers import compare_shifts, gear_shifts, get_maneuver
-    from plant.model import Plant
-    from tcu_stub.offline import run_offline
 
     proc = run_cli("--duration", "8", "--time-scale", "0.5", "--out", str(tmp_path),
                    "--priority", "0", "--quiet")
@@ -165,15 +180,7 @@ def test_slow_motion_with_the_bus_clock_gives_the_offline_shifts_within_30_ms(tm
     assert "TCU clock         bus" in proc.stdout
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["tcu_clock"] == "bus" and summary["tcu"]["clock"] == "bus"
-    over_can = [(s["time_s"], s["from"], s["to"]) for s in summary["shifts"]]
-    m = get_maneuver("paper-cycle")
-    plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
-    plant.reset(**m.reset_kwargs)
-    rec = run_offline(plant, m.driver, 8.0, record_every_s=0.002)
-    offline = gear_shifts(rec["time_s"], rec["gear"])
-    same, diffs = compare_shifts(offline, over_can)
-    assert same and len(offline) == 2, (offline, over_can)
-    assert max(abs(d) for d in diffs) <= 0.030, (diffs, offline, over_can)
+    _assert_shifts_as_offline(summary)
 
 
 PAUSE_AT_S = 4.0      # TCU time: the 1-2 upshift of paper-cycle is under way (offline: 3.99-4.07 s)
@@ -244,9 +251,6 @@ def test_over_the_vehicle_matrix_the_demo_shifts_as_the_offline_run_of_the_contr
     buses on the embedded transport, half speed with the bus clock: every message
     of both buses goes both ways unrejected, and the first shifts of paper-cycle
     land where the in-process run over the project's own contract puts them."""
-    from plant.maneuvers import compare_shifts, gear_shifts, get_maneuver
-    from plant.model import Plant
-    from tcu_stub.offline import run_offline
 
     proc = run_cli("--mapping", "vehicle", "--duration", "8", "--time-scale", "0.5",
                    "--out", str(tmp_path), "--priority", "0", "--quiet")
@@ -264,15 +268,7 @@ def test_over_the_vehicle_matrix_the_demo_shifts_as_the_offline_run_of_the_contr
         assert c["sent"] > 0, name
     for name, r in summary["tcu"]["received"].items():
         assert r["accepted"] > 0 and not any(r["rejected"].values()), (name, r)
-    over_can = [(s["time_s"], s["from"], s["to"]) for s in summary["shifts"]]
-    m = get_maneuver("paper-cycle")
-    plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
-    plant.reset(**m.reset_kwargs)
-    rec = run_offline(plant, m.driver, 8.0, record_every_s=0.002)
-    offline = gear_shifts(rec["time_s"], rec["gear"])
-    same, diffs = compare_shifts(offline, over_can)
-    assert same and len(offline) == 2, (offline, over_can)
-    assert max(abs(d) for d in diffs) <= 0.030, diffs
+    _assert_shifts_as_offline(summary)
 
 
 @pytest.mark.slow

@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from cli_errors import one_line_error
 
 from dct_hil.cli import main
 from dct_hil.studies.engine import Engine
@@ -112,32 +113,25 @@ def test_a_cars_signals_named_in_a_mapping(tmp_path, engine):
     assert res.value[0] == pytest.approx(1580.0, rel=0.02)
 
 
-def _error(capsys, argv):
-    code = main(argv)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("dct-hil: error: "), err
-    return lines[0]
 
 
 def test_bad_fit_input_is_one_line(tmp_path, capsys):
     meas = tmp_path / "m.csv"
     meas.write_text("time_s,engine_speed_rpm\n0,800\n0.01,810\n")
-    line = _error(capsys, ["fit", f"{meas}@coastdown", "--params", "vehicle.mass_kg"])
+    line = one_line_error(capsys, ["fit", f"{meas}@coastdown", "--params", "vehicle.mass_kg"])
     assert "m.csv: no channel vehicle_speed_kmh (needed)" in line
     assert "time_s, engine_speed_rpm" in line
-    line = _error(capsys, ["fit", str(meas), "--params", "vehicle.mass_kg"])
+    line = one_line_error(capsys, ["fit", str(meas), "--params", "vehicle.mass_kg"])
     assert "vehicle_speed_kmh, accel_pedal_pct, brake_pedal_pct" in line
     mapping = tmp_path / "car.toml"
     mapping.write_text('[channels]\nvehicle_speed_kmh = "VehSpd"\n')
-    line = _error(capsys, ["fit", f"{meas}@coastdown", "--params", "vehicle.mass_kg",
+    line = one_line_error(capsys, ["fit", f"{meas}@coastdown", "--params", "vehicle.mass_kg",
                            "--mapping", str(mapping)])
     assert "no channel vehicle_speed_kmh (channel 'VehSpd')" in line
-    line = _error(capsys, ["fit", f"{meas}@coastdown", "--params", "vehicle.drag_coef"])
+    line = one_line_error(capsys, ["fit", f"{meas}@coastdown", "--params", "vehicle.drag_coef"])
     assert "unknown parameter key 'vehicle.drag_coef'" in line
     assert "did you mean vehicle.drag_coefficient" in line
-    line = _error(capsys, ["fit", f"{meas}@coastdown", "--params", "tcu.LAUNCH_RPM_MAX"])
+    line = one_line_error(capsys, ["fit", f"{meas}@coastdown", "--params", "tcu.LAUNCH_RPM_MAX"])
     assert "plant parameters" in line
-    line = _error(capsys, ["fit", str(tmp_path / "none.mf4"), "--params", "vehicle.mass_kg"])
+    line = one_line_error(capsys, ["fit", str(tmp_path / "none.mf4"), "--params", "vehicle.mass_kg"])
     assert "none.mf4: no such measurement file" in line

@@ -15,8 +15,8 @@ import time
 import numpy as np
 import pandas as pd
 import pytest
+from cli_errors import one_line_error
 
-from dct_hil.cli import main
 from dct_hil.studies import StudyError
 from dct_hil.studies.engine import Engine
 from dct_hil.studies.sweep import JOURNAL, load_spec, read_journal, run_sweep
@@ -217,45 +217,37 @@ def test_the_same_sweep_on_a_separate_scheduler_and_worker(tmp_path):
 
 
 # ------------------------------------------------------------------ bad input
-def _error(capsys, argv):
-    code = main(argv)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert code == 2, err
-    assert len(lines) == 1 and lines[0].startswith("dct-hil: error: "), err
-    assert "Traceback" not in err
-    return lines[0]
 
 
 @pytest.mark.slow
 def test_bad_sweep_input_is_one_line(tmp_path, capsys):
     spec = _write(tmp_path, SPEC_32.replace('key = "vehicle.mass_kg"', 'key = "vehicle.mass_kgs"'))
-    line = _error(capsys, ["sweep", str(spec), "--out", str(tmp_path / "o")])
+    line = one_line_error(capsys, ["sweep", str(spec), "--out", str(tmp_path / "o")])
     assert "vehicle.mass_kgs" in line and "did you mean vehicle.mass_kg" in line
 
     spec = _write(tmp_path, SPEC_32.replace("range = [1200, 1760]", "range = [1200, 90000]"))
-    line = _error(capsys, ["sweep", str(spec), "--out", str(tmp_path / "o")])
+    line = one_line_error(capsys, ["sweep", str(spec), "--out", str(tmp_path / "o")])
     assert "vehicle.mass_kg = 90000" in line and "out of range [100.0, 40000.0]" in line
     assert "ranges.toml" in line
 
     spec = _write(tmp_path, SPEC_32.replace('key = "clutch[0].mu_static"',
                                             'key = "tcu.UPSHIFT_RPMS[4]"'))
-    line = _error(capsys, ["sweep", str(spec)])
+    line = one_line_error(capsys, ["sweep", str(spec)])
     assert "tcu.UPSHIFT_RPMS[4]" in line and "did you mean tcu.UPSHIFT_RPM" in line
 
     spec = _write(tmp_path, SPEC_32.replace('"coastdown"', '"coast-down"'))
-    line = _error(capsys, ["sweep", str(spec)])
+    line = one_line_error(capsys, ["sweep", str(spec)])
     assert "unknown scenario 'coast-down'" in line
 
     spec = _write(tmp_path, SPEC_32)
     t0 = time.monotonic()
-    line = _error(capsys, ["sweep", str(spec), "--out", str(tmp_path / "o"),
+    line = one_line_error(capsys, ["sweep", str(spec), "--out", str(tmp_path / "o"),
                            "--scheduler", f"tcp://127.0.0.1:{_free_port()}",
                            "--connect-timeout", "1"])
     assert "cannot reach the Dask scheduler at tcp://127.0.0.1:" in line
     assert time.monotonic() - t0 < 30
 
-    line = _error(capsys, ["sweep", str(tmp_path / "missing.toml")])
+    line = one_line_error(capsys, ["sweep", str(tmp_path / "missing.toml")])
     assert "missing.toml" in line and "cannot read" in line
 
 

@@ -18,6 +18,14 @@ def wait_until(predicate, timeout=WAIT_S, step=0.01):
         time.sleep(step)
 
 
+def wait_for(predicate, what, timeout=WAIT_S, step=0.01):
+    """``wait_until``, and an AssertionError naming ``what`` when it did not come."""
+    value = wait_until(predicate, timeout, step)
+    if not value:
+        raise AssertionError(f"waited {timeout:g} s for {what}")
+    return value
+
+
 def free_udp_port():
     """A UDP port no socket of this host is bound to right now."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:

@@ -17,6 +17,7 @@ import sys
 import time
 
 import pytest
+from waiting import wait_for
 
 pytestmark = pytest.mark.vcan
 
@@ -24,14 +25,8 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 WAIT_S = 600.0
 
 
-def _wait(pred, what, timeout=WAIT_S, step=0.1):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(step)
-    raise AssertionError(f"waited {timeout:g} s for {what}")
+def _wait(pred, what, timeout=WAIT_S):
+    return wait_for(pred, what, timeout, step=0.1)
 
 
 def _serve(vcan0, d, name):

@@ -27,6 +27,7 @@ import sys
 import time
 
 import pytest
+from waiting import wait_for
 
 from can_dbc import codec
 
@@ -51,14 +52,8 @@ def if_tx(name):
         return int(f.read())
 
 
-def _wait(pred, what, timeout=WAIT_S, step=0.05):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(step)
-    raise AssertionError(f"waited {timeout:g} s for {what}")
+def _wait(pred, what, timeout=WAIT_S):
+    return wait_for(pred, what, timeout, step=0.05)
 
 
 def _taken(c):
