@@ -134,6 +134,13 @@ static uint64_t field_mask(unsigned length)
     return length >= 64u ? ~(uint64_t)0 : (((uint64_t)1 << length) - 1u);
 }
 
+/* the width of a field's next piece: the bits left in the byte, at most the
+ * bits left of the field */
+CT_INLINE unsigned chunk_bits(unsigned in_byte, unsigned left)
+{
+    return in_byte < left ? in_byte : left;
+}
+
 CT_INLINE uint64_t get_bits(const uint8_t *d, const ct_signal *s)
 {
     unsigned len = s->length;
@@ -148,10 +155,7 @@ CT_INLINE uint64_t get_bits(const uint8_t *d, const ct_signal *s)
         unsigned shift = 0;
         while (shift < len) {
             unsigned off = pos & 7u;
-            unsigned n = 8u - off;
-            if (n > len - shift) {
-                n = len - shift;
-            }
+            unsigned n = chunk_bits(8u - off, len - shift);
             uint64_t chunk = (uint64_t)((d[pos >> 3] >> off) & ((1u << n) - 1u));
             v |= chunk << shift;
             shift += n;
@@ -162,10 +166,7 @@ CT_INLINE uint64_t get_bits(const uint8_t *d, const ct_signal *s)
         unsigned top = (unsigned)s->start & 7u;   /* highest bit of the field in this byte */
         unsigned rem = len;
         while (rem > 0u) {
-            unsigned n = top + 1u;
-            if (n > rem) {
-                n = rem;
-            }
+            unsigned n = chunk_bits(top + 1u, rem);
             uint64_t chunk = (uint64_t)((d[byte] >> (top + 1u - n)) & ((1u << n) - 1u));
             v = (v << n) | chunk;
             rem -= n;
@@ -189,10 +190,7 @@ CT_INLINE void put_bits(uint8_t *d, const ct_signal *s, uint64_t v)
         unsigned shift = 0;
         while (shift < len) {
             unsigned off = pos & 7u;
-            unsigned n = 8u - off;
-            if (n > len - shift) {
-                n = len - shift;
-            }
+            unsigned n = chunk_bits(8u - off, len - shift);
             unsigned m = ((1u << n) - 1u) << off;
             unsigned chunk = (unsigned)((v >> shift) & ((1u << n) - 1u)) << off;
             d[pos >> 3] = (uint8_t)((d[pos >> 3] & ~m) | chunk);
@@ -204,10 +202,7 @@ CT_INLINE void put_bits(uint8_t *d, const ct_signal *s, uint64_t v)
         unsigned top = (unsigned)s->start & 7u;
         unsigned rem = len;
         while (rem > 0u) {
-            unsigned n = top + 1u;
-            if (n > rem) {
-                n = rem;
-            }
+            unsigned n = chunk_bits(top + 1u, rem);
             unsigned lo = top + 1u - n;
             unsigned m = ((1u << n) - 1u) << lo;
             unsigned chunk = (unsigned)((v >> (rem - n)) & ((1u << n) - 1u)) << lo;
