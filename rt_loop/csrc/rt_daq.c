@@ -39,6 +39,7 @@ static int daq_config_ok(const rt_daq_config *c)
 }
 
 /* at the start of a tick: a new configuration published since the last one? */
+RT_TICK_CODE
 void rt_daq_pickup(rt_run *r)
 {
     rt_loop *l = r->l;
@@ -60,6 +61,7 @@ void rt_daq_pickup(rt_run *r)
 
 /* at the end of a tick (inside its measured time): the ODTs of every running
  * list whose event fires now, into the DAQ ring; then the generation used */
+RT_TICK_CODE
 void rt_daq_copy(rt_run *r, int64_t deadline_ns, uint64_t tick)
 {
     rt_loop *l = r->l;

@@ -228,6 +228,7 @@ static void thread_restore(const rt_thread_saved *sv)
         (void)pthread_setaffinity_np(self, sizeof sv->old_cpus, &sv->old_cpus);
 }
 
+RT_TICK_CODE
 int rt_loop_run(rt_loop *l)
 {
     /* not prepared, or already run since rt_loop_prepare */

@@ -87,6 +87,7 @@ static void maneuver_command(rt_run *r, uint32_t seq)
 
 /* the scripted driver: starts the maneuver when due, writes the pedals of
  * the maneuver time of this tick (the plant time before its step) */
+RT_TICK_CODE
 void rt_drive(rt_run *r)
 {
     rt_loop *l = r->l;

@@ -72,6 +72,7 @@ static inline double target_value(const rt_target *t, const rt_range *ranges, do
 }
 
 /* one received frame of channel c; well_formed: the transport delivered a whole frame */
+RT_TICK_CODE
 static inline void rx_one(rt_run *r, int c, rt_frame *f, int well_formed, uint64_t n)
 {
     rt_loop *l = r->l;
@@ -140,6 +141,7 @@ static inline void rx_one(rt_run *r, int c, rt_frame *f, int well_formed, uint64
 }
 
 /* drains channel c's received frames; returns 0, or the errno of a fatal transport error */
+RT_TICK_CODE
 int rt_rx_drain(rt_run *r, int c, uint64_t n)
 {
     rt_loop *l = r->l;
@@ -213,6 +215,7 @@ int rt_rx_drain(rt_run *r, int c, uint64_t n)
     return 0;
 }
 
+RT_TICK_CODE
 void rt_rx_timeouts(rt_run *r, uint64_t n)
 {
     rt_loop *l = r->l;

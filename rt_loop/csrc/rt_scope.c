@@ -4,15 +4,9 @@
  * rt_loop.h, "the scope"); the configuration's hand-over between Python
  * (rt_scope_publish) and the tick (rt_scope_acked).
  */
-#include "rt_scope.h"
+#include "rt_internal.h"
 
-#include <math.h>
-#include <stdatomic.h>
 #include <stddef.h>
-#include <string.h>
-
-#define A32(p) ((_Atomic uint32_t *)(void *)(p))
-#define A64(p) ((_Atomic uint64_t *)(void *)(p))
 
 static void bucket_reset(rt_scope_run *s)
 {
@@ -74,6 +68,7 @@ static void push(rt_scope_run *s, rt_loop *l, uint64_t tick, double time_s)
     atomic_store_explicit(A32(&g->head), head + 1u, memory_order_release);
 }
 
+RT_TICK_CODE
 void rts_tick(rt_scope_run *s, rt_loop *l, uint64_t tick, double time_s)
 {
     uint32_t gen = atomic_load_explicit(A32(&l->scope_gen), memory_order_acquire);

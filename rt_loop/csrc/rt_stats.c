@@ -69,6 +69,7 @@ static inline int hist_bin(double us)
 }
 
 /* inside a write section: the counts, the messages whose counts changed, the plant */
+RT_TICK_CODE
 static void copy_counts(rt_stats *s, rt_run *r)
 {
     const rt_counts *c = &r->c;
@@ -120,6 +121,7 @@ static void copy_counts(rt_stats *s, rt_run *r)
     }
 }
 
+RT_TICK_CODE
 void rt_stats_publish_tick(rt_run *r, double turnaround_us, double exec_us, double latency_us)
 {
     rt_stats *s = &r->l->stats;

@@ -82,6 +82,7 @@ void rt_tx_plan(rt_run *r)
 }
 
 /* sends tx_frames[0 .. nf) on channel c; returns 0 or the errno of a fatal error */
+RT_TICK_CODE
 static int tx_send(rt_run *r, int c, int nf)
 {
     rt_loop *l = r->l;
@@ -139,6 +140,7 @@ static int tx_send(rt_run *r, int c, int nf)
     return err;
 }
 
+RT_TICK_CODE
 static void sim_status(rt_run *r, double state)
 {
     r->status[RT_STATUS_SIM_TIME_S] = r->l->plant.state.time_s;
@@ -191,6 +193,7 @@ static void fault_frame(rt_run *r, int g, const ct_message *cm, rt_frame *f, uns
 }
 
 /* the next frame of sent message m of channel c, into tx_frames[nf] */
+RT_TICK_CODE
 static void make_frame(rt_run *r, int c, int m, int nf)
 {
     rt_loop *l = r->l;
@@ -263,6 +266,7 @@ void rt_tx_replan(rt_run *r)
 
 /* encodes and sends the frames due at this executed tick, channel by channel
  * (called once per executed tick: tx_wait counts the ticks down) */
+RT_TICK_CODE
 int rt_tx_tick(rt_run *r)
 {
     rt_loop *l = r->l;

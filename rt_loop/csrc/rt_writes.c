@@ -42,6 +42,7 @@ static int apply_write(rt_loop *l, const rt_write *w)
 
 /* applies the writes due: every queued calibration write, and the stimulus
  * writes whose time has come (plant time before this tick's step) */
+RT_TICK_CODE
 void rt_apply_writes(rt_loop *l, rt_write_ring *ring, int timed)
 {
     uint32_t tail = atomic_load_explicit(A32(&ring->tail), RELAXED);
