@@ -492,8 +492,8 @@ def bench(iterations=200_000, repeat=5, mapping=None) -> dict:
 
     One tick's work, as the loop does it: the frames due in the costliest
     tick of the loop's send schedule (``send_schedule``, the staggering of
-    rt_loop.c) encoded and protected, and one frame of every message the
-    plant receives (a full burst) checked and decoded, timed together
+    rt_loop/csrc/rt_tx.c) encoded and protected, and one frame of every
+    message the plant receives (a full burst) checked and decoded, timed together
     (``schedule``, see _schedule_figure). That figure, ``ns_per_tick``, is
     the one held against ``BOUND_NS`` (``pass``). For comparison
     ``all_messages_ns`` times every sent message at once with the burst: an
@@ -649,7 +649,7 @@ def _bench_call(t, call, iterations):
 
 
 def send_schedule(mapping):
-    """The loop's send schedule for a loaded mapping, as rt_loop.c (plan_tx)
+    """The loop's send schedule for a loaded mapping, as rt_tx.c (rt_tx_plan)
     computes it: [(bus, message, div, offset)], a message of cycle c sent at
     the ticks k with k % div == offset, div = round(c / period) (at least 1);
     the offsets chosen message by message, in the order of their cycle times

@@ -1,4 +1,4 @@
-"""The real-time loop in C (rt_loop/csrc/rt_loop.c), driven from Python on the host.
+"""The real-time loop in C (rt_loop/csrc/), driven from Python on the host.
 
 No CAN needed: the loop runs in a Python thread (cffi releases the GIL for
 rt_loop_run) and exchanges frames through its rings (the bridge transport),

@@ -1,5 +1,5 @@
 """The table-driven channels of the real-time loop (rt_loop/channels.py ->
-rt_loop.c), on the host, through the loop's rings.
+rt_loop/csrc), on the host, through the loop's rings.
 
 A small rig written here (two DBCs, a mapping with two buses; a CAN FD bus
 of its own) exercises what the table path adds to the loop: where each sent
