@@ -2,7 +2,7 @@
 
 Each check takes what a caller gave and returns the value the server keeps,
 or raises ``ServerError`` with one line naming what is wrong. The loop's own
-limits are those of ``rt_loop_prepare`` (``csrc/rt_loop.c``).
+limits are those of ``rt_loop_prepare`` (``csrc/rt_prepare.c``).
 """
 
 from __future__ import annotations
