@@ -35,16 +35,31 @@
 #define KELVIN 273.15
 
 /* Walther: log10 log10 (nu + 0.7) linear in log10 T (kelvin) */
-double dct_walther_viscosity(double nu40_mm2_s, double nu100_mm2_s, double temp_degc)
+void dct_walther_line_of(double nu40_mm2_s, double nu100_mm2_s, dct_walther_line *line)
 {
     double w40 = log10(log10(nu40_mm2_s + 0.7));
     double w100 = log10(log10(nu100_mm2_s + 0.7));
     double l40 = log10(40.0 + KELVIN), l100 = log10(100.0 + KELVIN);
+    line->w40 = w40;
+    line->dw = w100 - w40;
+    line->l40 = l40;
+    line->dl = l100 - l40;
+}
+
+double dct_walther_at(const dct_walther_line *line, double temp_degc)
+{
     double t = temp_degc + KELVIN;
     if (t < 150.0)
         t = 150.0; /* the law's range ends long before: keeps the log finite */
-    double w = w40 + (w100 - w40) * (log10(t) - l40) / (l100 - l40);
+    double w = line->w40 + line->dw * (log10(t) - line->l40) / line->dl;
     return pow(10.0, pow(10.0, w)) - 0.7;
+}
+
+double dct_walther_viscosity(double nu40_mm2_s, double nu100_mm2_s, double temp_degc)
+{
+    dct_walther_line line;
+    dct_walther_line_of(nu40_mm2_s, nu100_mm2_s, &line);
+    return dct_walther_at(&line, temp_degc);
 }
 
 void dct_thermal_init(const dct_thermal_params *p, dct_thermal_state *s, double coolant_degc,
@@ -65,24 +80,20 @@ static double coldness(const dct_thermal_params *p, double t)
 
 void dct_thermal_prepare(const dct_thermal_params *p, dct_thermal_derived *d)
 {
-    d->engine_oil_ref_mm2_s = dct_walther_viscosity(p->engine_oil_viscosity_40c_mm2_s,
-                                                    p->engine_oil_viscosity_100c_mm2_s,
-                                                    p->engine_ref_temp_degc);
-    d->trans_oil_ref_mm2_s = dct_walther_viscosity(p->trans_oil_viscosity_40c_mm2_s,
-                                                   p->trans_oil_viscosity_100c_mm2_s,
-                                                   p->trans_ref_temp_degc);
+    dct_walther_line_of(p->engine_oil_viscosity_40c_mm2_s, p->engine_oil_viscosity_100c_mm2_s,
+                        &d->engine_oil);
+    dct_walther_line_of(p->trans_oil_viscosity_40c_mm2_s, p->trans_oil_viscosity_100c_mm2_s,
+                        &d->trans_oil);
+    d->engine_oil_ref_mm2_s = dct_walther_at(&d->engine_oil, p->engine_ref_temp_degc);
+    d->trans_oil_ref_mm2_s = dct_walther_at(&d->trans_oil, p->trans_ref_temp_degc);
 }
 
 void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_thermal_derived *d,
                               const dct_oil_params *trans_oil, const dct_thermal_state *s,
                               dct_thermal_effects *fx)
 {
-    double ro = dct_walther_viscosity(p->engine_oil_viscosity_40c_mm2_s,
-                                      p->engine_oil_viscosity_100c_mm2_s, s->engine_oil_temp_degc) /
-                d->engine_oil_ref_mm2_s;
-    double rt = dct_walther_viscosity(p->trans_oil_viscosity_40c_mm2_s,
-                                      p->trans_oil_viscosity_100c_mm2_s, s->trans_oil_temp_degc) /
-                d->trans_oil_ref_mm2_s;
+    double ro = dct_walther_at(&d->engine_oil, s->engine_oil_temp_degc) / d->engine_oil_ref_mm2_s;
+    double rt = dct_walther_at(&d->trans_oil, s->trans_oil_temp_degc) / d->trans_oil_ref_mm2_s;
     double lo = log(ro), lt = log(rt);
     fx->engine_oil_viscosity_ratio = ro;
     fx->engine_drag_factor = 1.0 + p->engine_rubbing_share * (exp(p->engine_friction_viscosity_exponent * lo) - 1.0);
