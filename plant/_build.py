@@ -16,7 +16,7 @@ from cffi import FFI
 _HERE = os.path.dirname(os.path.abspath(__file__))
 _CSRC = os.path.join(_HERE, "csrc")
 _HEADERS = ("dct_plant.h", "dct_bench.h")
-COMPILE_ARGS = ["-O2", "-std=c11", "-fno-math-errno", "-Wall", "-Wextra"]
+COMPILE_ARGS = ["-O3", "-std=c11", "-fno-math-errno", "-Wall", "-Wextra"]
 
 _INT_DEFINE = re.compile(
     r"^\s*#\s*define\s+[A-Za-z_]\w*\s+-?(0[xX][0-9a-fA-F]+|\d+)[uUlL]*\s*(/\*.*\*/)?\s*$"
