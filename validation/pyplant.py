@@ -1518,22 +1518,30 @@ class PyPlant:
         a["selector_lever"] = float(math.floor(lim(u["selector_lever"], SELECTOR_P, SELECTOR_D) + 0.5))
 
     # ---------------------------------------------------- one evaluation
-    def _evaluate(self):
+    def _evaluate_thermal(self):
+        """What the temperatures change (thermal effects, pack gaps, chamber law):
+        once a step, at its start, for all its sub-steps (plant.c, evaluate_thermal)."""
         p = self.p
-        u = self.applied
-        c = Coupling()
-        fx = c.thermal_fx = thermal_effects(p.thermal, self.thermal_derived, p.hydraulics.oil, self.thermal)
+        fx = thermal_effects(p.thermal, self.thermal_derived, p.hydraulics.oil, self.thermal)
         # the pack gaps at this oil temperature (thermal expansion) and their chamber law
-        c.clutch_params = []
+        clutch_params = []
         for k in range(2):
             cp = SimpleNamespace(**vars(p.clutch[k]))
             gap = p.clutch[k].pack_gap_mm + fx.clutch_gap_change_mm
             cp.pack_gap_mm = gap if gap > 0.0 else 0.0
-            c.clutch_params.append(cp)
+            clutch_params.append(cp)
         if fx.clutch_gap_change_mm != 0.0:
-            c.chamber = hydraulics_prepare(p.hydraulics, c.clutch_params)
+            chamber = hydraulics_prepare(p.hydraulics, clutch_params)
         else:
-            c.chamber = self.chambers
+            chamber = self.chambers
+        return fx, clutch_params, chamber
+
+    def _evaluate(self, thermal=None):
+        p = self.p
+        u = self.applied
+        c = Coupling()
+        fx, c.clutch_params, c.chamber = self._evaluate_thermal() if thermal is None else thermal
+        c.thermal_fx = fx
         c.current_a = (u["solenoid_current1_a"], u["solenoid_current2_a"])
         c.line_current_a = u["line_solenoid_current_a"]
         # hydraulics: clamp forces from the chambers, or from commanded pressures
@@ -1770,8 +1778,9 @@ class PyPlant:
         self._apply_inputs()
         c = None
         for _ in range(n):
+            thermal = self._evaluate_thermal()
             for _ in range(sub):
-                c = self._evaluate()
+                c = self._evaluate(thermal)
                 self._advance(c, h)
             self.step_count += 1.0
             shaft = self._drive_shaft(c)

@@ -73,11 +73,14 @@ static double pump_torque(const dct_supply_params *p, double line_pressure_pa, d
            dct_smooth_sign(speed_rad_s, smoothing_rad_s);
 }
 
-static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
+/* What the temperatures change: the thermal effects, the pack gaps at this
+ * oil temperature and the chamber law that goes with them. The temperatures
+ * move by millikelvin a second: taken once a step, at its start, for all its
+ * sub-steps (plant_steps) */
+static void evaluate_thermal(const dct_plant *pl, coupling *c)
 {
     const dct_params *p = &pl->effective;
     const dct_state *s = &pl->state;
-    /* what the temperatures change (from the state) */
     dct_thermal_effects_eval(&p->thermal, &pl->derived.thermal, &p->hydraulics.oil, &s->thermal, &c->thermal_fx);
     c->hydraulics_in.oil_viscosity_m2_s = c->thermal_fx.trans_oil_viscosity_m2_s;
     /* the pack gaps at this oil temperature (thermal expansion), and the
@@ -94,6 +97,13 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
     } else {
         c->chamber = &pl->derived.hydraulics;
     }
+}
+
+/* every coupling of one sub-step, the thermal part (evaluate_thermal) given */
+static void evaluate_at(const dct_plant *pl, const dct_inputs *u, coupling *c)
+{
+    const dct_params *p = &pl->effective;
+    const dct_state *s = &pl->state;
     /* hydraulics: clamp forces from the chamber pressures, or from the
      * commanded pressures through the same pistons */
     c->hydraulics_in.current_a[0] = u->solenoid_current1_a;
@@ -210,6 +220,12 @@ static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
                                  c->pump_torque_nm * w;
     c->thermal_in.vehicle_speed_m_s = s->vehicle.speed_m_s;
     dct_thermal_output_eval(&p->thermal, &s->thermal, &c->thermal_fx, &c->thermal_in, &c->thermal);
+}
+
+static void evaluate(const dct_plant *pl, const dct_inputs *u, coupling *c)
+{
+    evaluate_thermal(pl, c);
+    evaluate_at(pl, u, c);
 }
 
 static void advance(dct_plant *pl, const coupling *c, double h)
@@ -455,8 +471,9 @@ static int plant_steps(dct_plant *pl, int n)
     if (st != DCT_OK)
         return st;
     for (int i = 0; i < n; i++) {
+        evaluate_thermal(pl, &c);
         for (int j = 0; j < sub; j++) {
-            evaluate(pl, &pl->applied, &c);
+            evaluate_at(pl, &pl->applied, &c);
             advance(pl, &c, h);
         }
         pl->step_count += 1.0;
