@@ -122,7 +122,9 @@ def test_bench_writes_the_json_report(capsys, tiny, tmp_path):
     assert report["steps"] == 3000 and report["scenario"] == "tiny"
     assert 0 < report["median_us"] <= report["p90_us"] <= report["p99_us"] <= report["max_us"]
     assert report["real_time_factor"] == pytest.approx(500.0 / report["mean_us"])
-    assert "-O2" in report["machine"]["compiler_flags"]
+    from plant._build import COMPILE_ARGS
+
+    assert report["machine"]["compiler_flags"] == " ".join(COMPILE_ARGS)   # the flags of this build
 
 
 def test_bench_writes_out_bench_json_by_default(capsys, tiny, tmp_path, monkeypatch):
