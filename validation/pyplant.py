@@ -78,7 +78,9 @@ def smooth_sign(x, width):
         return 1.0
     if a < -20.0:
         return -1.0
-    return math.tanh(a)
+    e = math.exp(-2.0 * abs(a))              # tanh from one exp, as dct_util.h computes it
+    t = (1.0 - e) / (1.0 + e)
+    return -t if a < 0.0 else t
 
 
 def gauss(x):
