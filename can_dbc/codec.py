@@ -94,6 +94,9 @@ TCU_SAFE_VALUES = {
 
 def load_database(path):
     """The cantools database of the DBC at ``path`` (strict checks: no overlapping signals)."""
+    from can_dbc.python_can import python_can
+
+    python_can()  # cantools imports can: without asammdf (can_dbc.python_can)
     import cantools
 
     try:

@@ -97,6 +97,7 @@ from plant.describe import SUFFIX_UNITS
 
 from . import codec
 from .protection import Protection, ProtectionError, parse_protection
+from .python_can import python_can
 
 __all__ = [
     "DEFAULT_MAPPING", "DEFAULT_RATE_HZ", "DEFAULT_TIMEOUT_CYCLES", "LOAD_WARNING", "MAPPINGS_DIR",
@@ -502,6 +503,7 @@ def _quiet_cantools():
 
 def read_dbc(path):
     """The cantools database of a DBC read leniently; ValueError with one line."""
+    python_can()  # cantools imports can: without asammdf (can_dbc.python_can)
     import cantools
 
     try:

@@ -33,6 +33,7 @@ import time
 from . import codec
 from .node import ReceivingNode, RxStats
 from .own_frames import OwnFrames, is_echoing_bus
+from .python_can import python_can
 
 SIDES = {"tcu": ("TCU", "PLANT"), "plant": ("PLANT", "TCU")}
 
@@ -95,7 +96,7 @@ class CanPeer(ReceivingNode):
     def open(cls, side="tcu", interface="socketcan", channel="vcan0", bitrate=None, values=None, start=True,
              send_thread=True, **bus_kwargs):
         """A peer on a new python-can Bus (closed again by ``close()``)."""
-        import can
+        can = python_can()
 
         kwargs = dict(bus_kwargs)
         if bitrate:
@@ -168,7 +169,7 @@ class CanPeer(ReceivingNode):
 
     def inject(self, frame_id, data, is_extended_id=False):
         """Puts one raw frame on the bus as given (any id, any length 0..8, any CRC)."""
-        import can
+        can = python_can()
 
         data = bytes(data)
         if len(data) > 8:
@@ -243,7 +244,7 @@ class CanPeer(ReceivingNode):
             return self._send_one_locked(msg)
 
     def _send_one_locked(self, msg):
-        import can
+        can = python_can()
 
         with self._lock:
             if not self._enabled[msg.name]:

@@ -30,6 +30,7 @@ import sys
 
 from . import codec
 from .protection import KINDS, P1_DATA_ID_MODES, Protection
+from .python_can import python_can
 
 __all__ = ["CodecTable", "TableError", "bench", "contract_protection", "contract_table"]
 
@@ -49,6 +50,7 @@ def _c():
 def _arithmetic(signal):
     """The conversion whose arithmetic cantools' decode runs for a signal:
     its own, or for a signal with named values the numeric one it wraps."""
+    python_can()  # cantools imports can: without asammdf (can_dbc.python_can)
     from cantools.database.conversion import BaseConversion, NamedSignalConversion
     conv = signal.conversion
     if isinstance(conv, NamedSignalConversion):
@@ -348,6 +350,7 @@ def _runs(ids):
 
 
 def _fill_signal(c, msg, s):
+    python_can()
     from cantools.database.conversion import IdentityConversion
     lib = _c()[1]
     c.start = s.start

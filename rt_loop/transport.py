@@ -44,6 +44,7 @@ import time
 from typing import Any
 
 from can_dbc.own_frames import ECHOING_INTERFACES, OwnFrames
+from can_dbc.python_can import python_can
 
 __all__ = [
     "BRIDGE_POLL_S",
@@ -165,7 +166,7 @@ def default_interface(channel: str) -> tuple[str, str]:
 
 def valid_interfaces() -> list[str]:
     """Every interface name ``open_transport`` accepts."""
-    import can  # only when asked
+    can = python_can()  # only when asked
 
     return sorted(set(can.interfaces.VALID_INTERFACES) | {"socketcan"})
 
@@ -743,7 +744,7 @@ class BridgeTransport(Transport):
             raise TransportError(f"interface {interface}: {_NOT_BRIDGED[interface]}")
         check_interface(interface)
         rcvbuf_bytes = _check_rcvbuf(rcvbuf_bytes)
-        import can  # python-can only for the bridge
+        can = python_can()  # python-can only for the bridge
 
         self._can = can
         try:

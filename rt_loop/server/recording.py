@@ -17,6 +17,7 @@ import os
 from collections.abc import Callable
 from typing import Any
 
+from can_dbc.python_can import python_can
 from rt_loop.drain import RingDrain
 from rt_loop.drain import one_line as _one_line
 from rt_loop.measure.recorder import Recorder
@@ -47,13 +48,12 @@ class TrafficLogger(RingDrain):
         "log", "rt_log_pop_many", "rt_log_entry", _LOG_BATCH, 0.02, "can-log")
 
     def __init__(self, path: str | os.PathLike, channel: str | list[str]) -> None:
-        import can
-
         super().__init__(path)
         channels = [channel] if isinstance(channel, str) else list(channel)
         self.channel = channels[0]
         self.channels = channels
         suffix = os.path.splitext(self.path)[1].lower()
+        can = python_can(mf4=suffix == ".mf4")
         self.format = LOG_FORMATS.get(suffix, suffix)
         try:
             self.writer = can.Logger(self.path)
@@ -121,9 +121,7 @@ def _log_channel(channel: str, suffix: str) -> str | int | None:
     (None; a name like "bench-12345" would give a number the format cannot hold)."""
     if suffix == ".log":
         return channel
-    from can.util import channel2int
-
-    number = channel2int(channel)
+    number = python_can().util.channel2int(channel)
     return number if number is not None and 0 <= number <= 63 else None
 
 

@@ -77,6 +77,7 @@ import sys
 import time
 from typing import Any
 
+from can_dbc.python_can import python_can
 from plant import argtypes
 from plant.machine import write_figures
 from rt_loop.console import StopSignals
@@ -246,9 +247,7 @@ class Generator:
 
 class Sender:
     def __init__(self, transport: str, channel: str, fd: bool) -> None:
-        import can
-
-        self.can = can
+        self.can = can = python_can()
         kwargs: dict[str, Any] = {}
         if transport == "embedded":
             iface = "virtual"
