@@ -12,12 +12,34 @@ INVALID (``rt_loop.verdict``).
 
 import argparse
 import importlib
+import os
 import sys
 
 from dct_hil import __version__
 from dct_hil.commands import COMMANDS
 from dct_hil.commands.options import UserError
 from plant.extras import install_hint, missing_extra
+
+
+#: commands whose process runs the real-time loop, which locks all its memory (mlockall)
+LOOP_COMMANDS = ("serve", "demo")
+
+
+def _single_threaded_blas(argv):
+    """For a command that runs the loop: NumPy's OpenBLAS with one thread.
+
+    OpenBLAS starts a thread per CPU when NumPy is imported, each with an 8 MB stack and
+    a 32 MB buffer; under mlockall every page of them is resident (40 MB a CPU beyond
+    the first, docs/server.md "Memory"), for linear algebra these commands never do.
+    The variables must be set before NumPy is first imported (building the parser
+    imports it); a value the user set is kept."""
+    if "numpy" in sys.modules:
+        return
+    args = sys.argv[1:] if argv is None else list(argv)
+    command = next((a for a in args if not a.startswith("-")), None)
+    if command in LOOP_COMMANDS:
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+            os.environ.setdefault(var, "1")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -57,6 +79,7 @@ def main(argv=None):
         print(f"dct-hil: error: {_one_line(message)}", file=sys.stderr)
         return 2
 
+    _single_threaded_blas(argv)
     try:
         parser = build_parser()     # a Ctrl-C this early is one line too
         args = parser.parse_args(argv)

@@ -299,7 +299,8 @@ class Server(StartupMixin, RecordingMixin, ReportsMixin, ManeuverMixin, RemoteAc
         errors: list[Exception] = []
         for step in (self._stop_control, self._stop_player, self._stop_xcp, self._release_pm_qos,
                      self._stop_scope, self._stop_transport, self._stop_logger,
-                     self._stop_recorder, self._close_transport, self._release_cpu):
+                     self._stop_recorder, self._close_transport, self._release_cpu,
+                     self._release_threads):
             try:
                 step()
             except Exception as e:  # every step runs; the first error is raised

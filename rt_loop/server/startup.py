@@ -12,6 +12,7 @@ a PM QoS request keeps idle CPUs from sleeping deeply.
 from __future__ import annotations
 
 import atexit
+import ctypes
 import errno
 import os
 import threading
@@ -23,7 +24,8 @@ from rt_loop.drain import one_line as _one_line
 from rt_loop.server.errors import ServerError
 from rt_loop.transport import open_transport
 
-__all__ = ["SOCKET_FRAMES_WANTED", "START_LIMIT_S", "START_NOTE_S", "StartupMixin"]
+__all__ = ["SOCKET_FRAMES_WANTED", "START_LIMIT_S", "START_NOTE_S", "StartupMixin",
+           "THREAD_STACK_BYTES"]
 
 #: below this many frames of receive buffer a SocketCAN run warns
 SOCKET_FRAMES_WANTED = 10_000
@@ -34,6 +36,37 @@ SOCKET_FRAMES_WANTED = 10_000
 #: machine), and names what it waits for after START_NOTE_S
 START_LIMIT_S = 600.0
 START_NOTE_S = 2.0
+
+#: the stack of every thread the process starts while a server that locks its memory
+#: runs (the loop's, the bridge's, the drains', XCP's, the control's, the bench view's):
+#: under mlockall a thread's whole stack is resident, and the default is 8 MB. Measured
+#: high-water marks (docs/server.md, "Memory"): the loop thread 216 kB (128 kB of it
+#: touched on purpose before the first tick), the bench view's thread 44 kB after
+#: rendering its page, every other thread at most 16 kB; 1 MiB is 4.7x the largest
+THREAD_STACK_BYTES = 1 << 20
+#: glibc's M_ARENA_MAX (malloc.h): threads that start later share the malloc arenas
+#: there are, with no new ones: each new arena reserves 64 MB of address space that
+#: mlockall counts as locked (VmLck, against RLIMIT_MEMLOCK) though it is never touched
+#: (190 MB of a plain serve's VmLck). glibc fixes the limit at the first arena it would
+#: add after this, for the rest of the process: it is not undone by stop()
+_M_ARENA_MAX = -8
+
+
+def _lean_threads() -> int:
+    """Small stacks for the threads started from now on, and no new malloc arenas: what
+    a server that locks its memory sets before it starts its threads; returns the stack
+    size of before (``_restore_stack``)."""
+    before = threading.stack_size(THREAD_STACK_BYTES)
+    try:
+        ctypes.CDLL(None).mallopt(_M_ARENA_MAX, 1)
+    except (OSError, AttributeError):       # not glibc: the stacks alone
+        pass
+    return before
+
+
+def _restore_stack(before: int | None) -> None:
+    if before is not None and threading.stack_size() == THREAD_STACK_BYTES:
+        threading.stack_size(before)
 
 
 # servers whose loop thread may run: stopped at interpreter exit, so that no
@@ -78,6 +111,8 @@ class StartupMixin:
             raise ServerError("the server was already started (one run per Server)")
         self._started = True
         ffi, lib, loop = self._ffi, self._lib, self._l
+        if self.lock_memory:
+            self._lean = _lean_threads()
         try:
             self._open_transports()
             self._open_outputs()                  # log and recording files (recording.py)
@@ -267,6 +302,12 @@ class StartupMixin:
             except OSError:           # a thread that ended meanwhile
                 continue
         self._confined = (others, moved)
+
+    def _release_threads(self) -> None:
+        """Threads started from now on get the stack size of before ``start``
+        (``_lean_threads``)."""
+        before, self._lean = getattr(self, "_lean", None), None
+        _restore_stack(before)
 
     def _release_cpu(self) -> None:
         """Gives the threads ``_confine_others`` moved their CPUs back (those still
