@@ -287,8 +287,16 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
         f"{cfg['rate_hz']:g} Hz, {run['sim_time_s']:.3f} s simulated; {cfg['real_time']} real "
         f"time over {cfg['transport']}"
         + ("" if cfg["rt_policy_ok"] and cfg["memory_locked"] else " (timing not real time)"),
-        "timing (us)            p50      p90      p99    p99.9      max",
     ]
+    if run.get("start_to_first_tick_s") is not None:
+        mem = report.get("memory") or {}
+        since = run.get("process_to_first_tick_s")
+        lines.append(
+            f"start-up          first tick {run['start_to_first_tick_s']:.2f} s after start"
+            + (f" ({since:.2f} s after the process started)" if since is not None else "")
+            + (f"; {mem['vm_rss_mb']:.0f} MB resident, {mem['vm_lck_mb']:.0f} MB locked"
+               if mem.get("vm_rss_mb") is not None and mem.get("vm_lck_mb") is not None else ""))
+    lines.append("timing (us)            p50      p90      p99    p99.9      max")
     for key, label in (("turnaround", "turnaround"), ("execution", "execution"),
                        ("wakeup_latency", "wake-up latency")):
         f = report[key]

@@ -99,6 +99,7 @@
 #include <pthread.h>
 #include <sched.h>
 #include <sys/mman.h>
+#include <unistd.h>
 #include <time.h>
 
 #define RT_STACK_PREFAULT (128 * 1024)
@@ -182,6 +183,67 @@ __attribute__((noinline)) static void prefault_stack(void)
         buf[i] = 0;
 }
 
+/* the whole pages inside [p, p + n) */
+static int inner_pages(void *p, size_t n, uintptr_t *lo, uintptr_t *hi)
+{
+    uintptr_t page = (uintptr_t)sysconf(_SC_PAGESIZE);
+    *lo = ((uintptr_t)p + page - 1) & ~(page - 1);
+    *hi = ((uintptr_t)p + n) & ~(page - 1);
+    return *hi > *lo;
+}
+
+/* gives back the pages of a ring's storage that mlockall made resident: the ring was
+   never written (zeroed, untouched by this run), so they read as zeros again later */
+static void release_storage(void *p, size_t n)
+{
+    uintptr_t lo, hi;
+    if (inner_pages(p, n, &lo, &hi)) {
+        (void)munlock((void *)lo, hi - lo);
+        (void)madvise((void *)lo, hi - lo, MADV_DONTNEED);
+    }
+}
+
+/* before the first tick, after mlockall: the rings this run does not use stay out of
+   the locked memory (rt_config.release_rings; docs/server.md, "Memory") */
+static void release_unused_rings(rt_loop *l)
+{
+    for (int c = l->n_channels; c < RT_MAX_CHANNELS; c++) {
+        release_storage(l->rx[c].frames, sizeof l->rx[c].frames);
+        release_storage(l->tx[c].frames, sizeof l->tx[c].frames);
+    }
+    /* (not when a recording started meanwhile, from another thread) */
+    if ((l->cfg.release_rings & RT_RELEASE_LOG) && !l->cfg.log_frames)
+        release_storage(l->log.entries, sizeof l->log.entries);
+    if ((l->cfg.release_rings & RT_RELEASE_REC) && !l->cfg.record_every)
+        release_storage(l->rec.samples, sizeof l->rec.samples);
+    if (l->cfg.release_rings & RT_RELEASE_DAQ)
+        release_storage(l->daq_ring.dtos, sizeof l->daq_ring.dtos);
+}
+
+static int hold_storage(void *p, size_t n)
+{
+    uintptr_t lo, hi;
+    if (inner_pages(p, n, &lo, &hi) && mlock((void *)lo, hi - lo) != 0)
+        return -errno;
+    return 0;
+}
+
+int rt_loop_hold_rings(rt_loop *l, uint32_t rings)
+{
+    int rc = 0;
+    if (!l)
+        return -EINVAL;
+    if (!l->cfg.lock_memory)
+        return 0;
+    if (rings & RT_RELEASE_LOG)
+        rc = rc ? rc : hold_storage(l->log.entries, sizeof l->log.entries);
+    if (rings & RT_RELEASE_REC)
+        rc = rc ? rc : hold_storage(l->rec.samples, sizeof l->rec.samples);
+    if (rings & RT_RELEASE_DAQ)
+        rc = rc ? rc : hold_storage(l->daq_ring.dtos, sizeof l->daq_ring.dtos);
+    return rc;
+}
+
 typedef struct {
     int policy_set;
     int old_policy;
@@ -213,8 +275,10 @@ static void thread_setup(rt_loop *l, rt_thread_saved *sv, int *policy_ok, int *a
             *affinity_ok = sv->affinity_set = 1;
     }
     rt_stats_publish_phase(l, RT_START_LOCKING_MEMORY);
-    if (l->cfg.lock_memory && mlockall(MCL_CURRENT | MCL_FUTURE) == 0)
+    if (l->cfg.lock_memory && mlockall(MCL_CURRENT | MCL_FUTURE) == 0) {
         *memory_locked = 1;
+        release_unused_rings(l);
+    }
     rt_stats_publish_phase(l, RT_START_PREFAULTING);
     prefault_stack();
 }

@@ -492,7 +492,17 @@ typedef struct {
     int record_every;                 /* push a recorder sample every this many ticks (0: off;
                                          read every tick: a recording may start and stop while
                                          the loop runs) */
+    uint32_t release_rings;           /* RT_RELEASE_*: rings this run does not use when it
+                                         starts; with lock_memory, their storage is left out
+                                         of the locked memory (rt_loop_hold_rings takes it
+                                         back before a feature that uses one starts) */
 } rt_config;
+
+/* rt_config.release_rings: the log, recorder and DAQ rings (the rx and tx rings of the
+   channels beyond n_channels are always released: no run uses them) */
+#define RT_RELEASE_LOG 1
+#define RT_RELEASE_REC 2
+#define RT_RELEASE_DAQ 4
 
 /* the driver of a scripted maneuver, played by the loop itself: pedals (and
  * the selector lever, when the table has it) as a function of maneuver time,
@@ -733,6 +743,10 @@ typedef struct {
 int rt_loop_prepare(rt_loop *l);
 /* runs the loop in the calling thread until stopped; returns the final state */
 int rt_loop_run(rt_loop *l);
+/* locks (and so touches) the storage of the RT_RELEASE_* rings in ``rings`` again, so
+   that the tick never faults on it: called outside the tick, before a feature that uses
+   a ring the run released starts (a recording while the loop runs); 0 or -errno */
+int rt_loop_hold_rings(rt_loop *l, uint32_t rings);
 void rt_loop_request_stop(rt_loop *l);
 /* a consistent copy of the statistics without stopping the loop; 0 ok,
  * -1 if the loop kept writing through every retry (1000 and 2 s at least) */

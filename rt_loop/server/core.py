@@ -259,6 +259,8 @@ class Server(StartupMixin, RecordingMixin, ReportsMixin, ManeuverMixin, RemoteAc
         self._final_state: int | None = None
         self._loop_error: str | None = None
         self._started = self._stopped = False
+        #: start-up times and memory at the first tick (``StartupMixin.start``), None before
+        self.startup: dict | None = None
         self._t_start = self._t_end = None
 
     @property

@@ -211,6 +211,13 @@ class RecordingMixin:
                 raise ServerError("the loop is not running")
             if self._recording is not None:
                 raise ServerError(f"a recording runs already: {self._recording['path']}")
+            # the rings the run left out of its locked memory, locked before the loop
+            # writes them (rt_loop_hold_rings; nothing when memory is not locked)
+            rc = lib.rt_loop_hold_rings(loop, lib.RT_RELEASE_REC | lib.RT_RELEASE_LOG)
+            if rc != 0 and not getattr(self, "_hold_warned", False):
+                self._hold_warned = True
+                self.warnings.append(f"the recording's rings could not be locked "
+                                     f"({os.strerror(-rc)}): the tick may fault on them")
             try:
                 rec = self._new_recorder(path)
             except OSError as e:

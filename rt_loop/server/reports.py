@@ -106,6 +106,17 @@ class ReportsMixin:
                     self._rings[key] = max(self._rings[key], waiting)
         self._rings["samples"] += 1
 
+    def memory_report(self) -> dict:
+        """The process's memory (MB, /proc/self/status): VmRSS and VmLck at the first tick
+        (the run's locked memory), VmHWM (peak resident) now; with mlockall (priority > 0)
+        every page mapped is resident, docs/server.md "Memory"."""
+        from rt_loop.server.startup import process_memory
+
+        first = (self.startup or {}).get("memory_at_first_tick") or {}
+        now = process_memory()
+        return {"vm_rss_mb": first.get("vm_rss_mb"), "vm_lck_mb": first.get("vm_lck_mb"),
+                "vm_hwm_mb": now.get("vm_hwm_mb"), "locked": bool(self.lock_memory)}
+
     def rings_report(self) -> dict | None:
         """The most frames seen waiting in the bridge's rx and tx rings at a status read
         (``snapshot``), and how many reads there were; None without a bridge. A sampled
@@ -213,6 +224,8 @@ class ReportsMixin:
                 "maneuver": MANEUVER_STATES.get(int(s.maneuver_state), "?"),
                 "maneuver_time_s": float(s.maneuver_time_s) if s.maneuver_time_s >= 0 else None,
                 "ticks": int(s.ticks),
+                "start_to_first_tick_s": (self.startup or {}).get("start_to_first_tick_s"),
+                "process_to_first_tick_s": (self.startup or {}).get("process_to_first_tick_s"),
                 "warnings": list(self.warnings),
                 "stats_read_failures": self.stats.read_failures,
             },
@@ -231,6 +244,7 @@ class ReportsMixin:
                 "start": self.stimulus_start, **self.player.counters()},
             "plant": self.stats.plant(),
             "faults": self.faults.report(s),
+            "memory": self.memory_report(),
             "machine": machine,
         }
 

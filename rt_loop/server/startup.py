@@ -25,7 +25,7 @@ from rt_loop.server.errors import ServerError
 from rt_loop.transport import open_transport
 
 __all__ = ["SOCKET_FRAMES_WANTED", "START_LIMIT_S", "START_NOTE_S", "StartupMixin",
-           "THREAD_STACK_BYTES"]
+           "THREAD_STACK_BYTES", "process_memory"]
 
 #: below this many frames of receive buffer a SocketCAN run warns
 SOCKET_FRAMES_WANTED = 10_000
@@ -110,6 +110,7 @@ class StartupMixin:
         if self._started:
             raise ServerError("the server was already started (one run per Server)")
         self._started = True
+        t_called = time.monotonic()
         ffi, lib, loop = self._ffi, self._lib, self._l
         if self.lock_memory:
             self._lean = _lean_threads()
@@ -135,6 +136,13 @@ class StartupMixin:
             self.stop()
             raise
         self._await_running(progress, cancel)
+        t_first = time.monotonic()
+        #: seconds to the loop's first tick (within the 2 ms of the wait's polling) from
+        #: start() and from the process's start; the process's memory at that moment
+        #: (its locking done: what the run holds), read from /proc/self/status
+        self.startup = {"start_to_first_tick_s": round(t_first - t_called, 3),
+                        "process_to_first_tick_s": _process_age_s(),
+                        "memory_at_first_tick": process_memory()}
         self._confine_others()
         self._check_real_time()
 
@@ -164,6 +172,11 @@ class StartupMixin:
         cfg.spin_us = self.spin_us
         cfg.duration_s = 0.0 if self.duration_s is None else self.duration_s
         cfg.log_frames = int(self._logs_frames())  # recording.py
+        # the rings this run does not use as it starts stay out of the locked memory
+        # (a recording started later holds its rings first: start_recording)
+        cfg.release_rings = ((0 if cfg.log_frames else lib.RT_RELEASE_LOG)
+                             | (0 if self.recorder is not None else lib.RT_RELEASE_REC)
+                             | (0 if self.xcp_address is not None else lib.RT_RELEASE_DAQ))
         self.channels.install(loop, self.transports)
         from rt_loop.measure.xcp import a2l as _a2l
         from rt_loop.measure.xcp.loop_backend import set_regions
@@ -332,6 +345,37 @@ def _thread_ids() -> list[int]:
         return [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:
         return [threading.get_native_id()]
+
+
+#: /proc/PID/status fields of ``process_memory`` and their keys
+_MEMORY_FIELDS = {"VmRSS": "vm_rss_mb", "VmLck": "vm_lck_mb", "VmHWM": "vm_hwm_mb"}
+
+
+def process_memory(pid: int | str = "self") -> dict:
+    """Resident (VmRSS), locked (VmLck) and peak resident (VmHWM) memory of a process in
+    MB, from /proc/PID/status; {} where it cannot be read."""
+    out: dict = {}
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key in _MEMORY_FIELDS:
+                    out[_MEMORY_FIELDS[key]] = round(int(value.split()[0]) / 1024, 1)
+    except (OSError, ValueError, IndexError):
+        return {}
+    return out
+
+
+def _process_age_s() -> float | None:
+    """Seconds since this process started (its start time in /proc/self/stat, clock ticks
+    since boot, against CLOCK_BOOTTIME), or None."""
+    try:
+        with open("/proc/self/stat", encoding="ascii") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        started = int(fields[19]) / os.sysconf("SC_CLK_TCK")
+        return round(time.clock_gettime(time.CLOCK_BOOTTIME) - started, 2)
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
 
 
 def _resident_mb() -> float:
