@@ -53,7 +53,10 @@ Percentiles come from 1 us histograms (``rt_loop.stats.hist_percentiles``:
 the upper edge of the bin of the nearest-rank sample). One progress line per
 round goes to stderr; the table to stdout; the JSON file (every round with
 its histograms, the config, the machine, the targets) is rewritten after
-every round. Ctrl-C (or SIGTERM) stops the round in progress, keeps what it
+every round. Each loop round's report has the bench process's memory (VmRSS,
+VmLck at the first tick, VmHWM: ``memory``) and its start-to-first-tick
+(``run``); after the rounds, ``serve_process``: the same figures of a plain
+``dct-hil serve`` run for 2 s in a process of its own (written, not judged). Ctrl-C (or SIGTERM) stops the round in progress, keeps what it
 measured and writes everything (exit 130, after SIGTERM 143; a second one
 aborts at once).
 Exit 0, or 1 with ``--check`` and a missed target; bad options or a missing
@@ -557,6 +560,33 @@ def measure_loop_round(args, stop, progress, duration_s=None, beside=None):
     return rep, (peer.report() if peer is not None else None)
 
 
+def measure_serve_process(seconds=2.0):
+    """A plain ``dct-hil serve`` (the contract, no options but a short duration, quiet, its
+    stats in a temporary file) in a process of its own: its memory (VmRSS and VmLck at
+    the first tick, VmHWM) and its start-to-first-tick times from its stats; written,
+    not judged (issue 26: at most 150 MB resident is a test, tests/test_lean_server.py).
+    None for each figure it could not get, with the reason."""
+    import json
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        stats = os.path.join(tmp, "stats.json")
+        argv = [sys.executable, "-m", "dct_hil.cli", "serve", "--duration", f"{seconds:g}",
+                "--quiet", "--stats", stats]
+        try:
+            r = subprocess.run(argv, capture_output=True, text=True, timeout=600, cwd=tmp)
+            rep = json.loads(open(stats, encoding="utf-8").read())
+        except (OSError, ValueError, subprocess.TimeoutExpired) as e:
+            return {"command": "dct-hil serve", "error": str(e).splitlines()[0] if str(e)
+                    else type(e).__name__}
+    run = rep.get("run", {})
+    return {"command": f"dct-hil serve --duration {seconds:g} --quiet --stats FILE",
+            "exit_status": r.returncode, "memory": rep.get("memory"),
+            "memory_locked": rep.get("config", {}).get("memory_locked"),
+            "start_to_first_tick_s": run.get("start_to_first_tick_s"),
+            "process_to_first_tick_s": run.get("process_to_first_tick_s")}
+
+
 def _note(progress, line):
     print(f"rt_loop.tools.bench: {line}", file=progress, flush=True)
 
@@ -643,6 +673,11 @@ def run_rounds(args, progress=sys.stderr, stop=None, write=None):
         report["rounds"].append(rec)
         _refresh(report)
         print(progress_line(report, rec, len(kinds)), file=progress, flush=True)
+        if write is not None:
+            write(report)
+    if not stop.is_set():
+        # a plain serve's memory and start-up, after the rounds (nothing beside them)
+        report["serve_process"] = measure_serve_process()
         if write is not None:
             write(report)
     report["interrupted"] = stop.is_set()
