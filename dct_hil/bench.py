@@ -103,7 +103,7 @@ class Bench:
               time_scale: float = 1.0, priority: int = 0, faults: str | os.PathLike | None = None,
               control: str | os.PathLike | None = None, log: str | os.PathLike | None = None,
               tcu_clock: str | None = None, record_every_s: float = 0.002,
-              tcu_timeout_s: float = TCU_HEARD_TIMEOUT_S) -> Bench:
+              tcu_timeout_s: float = TCU_HEARD_TIMEOUT_S, tcu_impl: str = "c") -> Bench:
         """Starts a server (and the reference TCU unless ``tcu`` is False) and
         returns once the TCU is heard.
 
@@ -117,13 +117,18 @@ class Bench:
         with its last row held); ``params``, ``mapping``, ``time_scale``,
         ``priority`` (0: normal scheduling), ``faults`` (a [[fault]] TOML
         file), ``control`` (also serve a control socket), ``log`` (the CAN
-        traffic) as ``rt_loop.server.Server`` takes them."""
-        from dct_hil.demo import can_netdev_up
-        from rt_loop.server import Server, ServerError
+        traffic) as ``rt_loop.server.Server`` takes them. ``tcu_impl``: the
+        reference TCU, "c" (``tcu_stub.c_node``; on the embedded transport its
+        frames go through the loop's own rings, no bus between them) or
+        "python" (``tcu_stub.can_tcu``)."""
+        from dct_hil.demo import can_netdev_up, make_server
+        from rt_loop.server import ServerError
         from rt_loop.transport import TransportError
 
         if transport not in TRANSPORTS:
             raise BenchError(f"transport {transport!r}: choose " + " or ".join(TRANSPORTS))
+        if tcu_impl not in ("c", "python"):
+            raise BenchError(f"tcu_impl {tcu_impl!r}: choose c or python")
         if transport == "embedded":
             interface = "virtual"
             chan = channel or f"dct-hil-bench-{os.getpid()}-{next(_ids)}"
@@ -156,12 +161,12 @@ class Bench:
         if tcu_clock is None:
             tcu_clock = "wall" if float(time_scale) >= 1.0 else "bus"
         try:
-            server = Server(chan, interface=interface, priority=priority, driver=driver,
-                            maneuver_start="tcu", maneuver_inputs=maneuver_inputs,
-                            record_path=record,
-                            record_every_s=record_every_s, params_path=params, mapping=mapping,
-                            time_scale=time_scale, faults_path=faults, control_path=control,
-                            log_path=log)
+            server = make_server(tcu_impl if tcu else "python", transport != "embedded", chan,
+                                 interface=interface, priority=priority, driver=driver,
+                                 maneuver_start="tcu", maneuver_inputs=maneuver_inputs,
+                                 record_path=record, record_every_s=record_every_s,
+                                 params_path=params, mapping=mapping, time_scale=time_scale,
+                                 faults_path=faults, control_path=control, log_path=log)
         except (ServerError, TransportError, OSError, ValueError) as e:
             raise BenchError(_one_line(e)) from None
         from rt_loop.control import ControlServer
@@ -179,7 +184,8 @@ class Bench:
                         time_scale=server.time_scale, transport=transport, channel=chan,
                         work_dir=work)
             if tcu:
-                bench._tcu = _start_tcu(interface, chan, server, mapping, tcu_clock, work.name)
+                bench._tcu = _start_tcu(interface, chan, server, mapping, tcu_clock, work.name,
+                                        tcu_impl)
                 bench._await_tcu(tcu_timeout_s / min(1.0, server.time_scale))
         except BaseException:
             if bench is not None:
@@ -458,17 +464,14 @@ def _local(handler: Any) -> Any:
 
 
 def _start_tcu(interface: str, channel: str, server: Any, mapping: Any, clock: str,
-               folder: str) -> Any:
-    """The reference TCU: a thread on the in-process bus, else a second process."""
-    from dct_hil.demo import _TcuProcess, _TcuThread
+               folder: str, impl: str = "c") -> Any:
+    """The reference TCU: in this process (the C node on the loop's rings, or the
+    Python node on the in-process bus), else a second process."""
+    from dct_hil.demo import start_tcu
 
     tcu_mapping = None if mapping is None else server.mapping
-    report = Path(folder) / "tcu-report.json"
-    if interface == "virtual":
-        return _TcuThread(channel, server.time_scale, report, clock, tcu_mapping,
-                          server.bus_channels)
-    return _TcuProcess(interface, channel, server.time_scale, report, Path(folder) / "tcu.out",
-                       clock, tcu_mapping, server.bus_channels)
+    return start_tcu(impl, interface != "virtual", interface, channel, server, server.time_scale,
+                     Path(folder) / "tcu-report.json", Path(folder) / "tcu.out", clock, tcu_mapping)
 
 
 def _dtc_decoder() -> Any:

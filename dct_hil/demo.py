@@ -8,9 +8,13 @@ clutches, forks and engine interventions through the CAN contract only.
 Transport:
 - vcan0 (or the ``--channel`` given) is a CAN network interface that is up:
   SocketCAN, the server in this process, the TCU stub as a second process
-  (``python -m tcu_stub.can_tcu``), exactly as a TCU on the bench would be;
-- otherwise the embedded default: python-can's in-process ``virtual`` bus,
-  the server bridged onto it and the TCU stub in a thread of this process.
+  (``python -m tcu_stub.command``), exactly as a TCU on the bench would be;
+- otherwise the embedded default: the TCU stub in a thread of this process
+  exchanging frames with the loop. With the C TCU (``tcu_impl="c"``, the
+  default: ``tcu_stub.c_node``) the thread is C and the frames go through
+  the loop's own rings (``dct_hil.embedded``): no bus and no Python between
+  them; with the Python TCU (``tcu_impl="python"``) over python-can's
+  in-process ``virtual`` bus, the server bridged onto it.
   The demo says which, and why.
 
 The maneuver starts when the TCU's first frame is accepted and the run ends
@@ -100,23 +104,30 @@ def _driver_for(name: str):
     return get_maneuver(name)
 
 
-def offline_shifts(maneuver: str, duration_s: float) -> list[tuple[float, int, int]]:
+def offline_shifts(maneuver: str, duration_s: float, mapping=None) -> list[tuple[float, int, int]]:
     """The plant's shifts (t_s, from, to) in the offline run of ``maneuver`` over
     its first ``duration_s``: the same TCU logic in-process, every message through
-    the CAN contract at its cycle time (``tcu_stub.offline.run_offline``), the gear
-    recorded every 2 ms as in the demo and read by ``plant.maneuvers.gear_shifts``.
-    A few seconds of CPU for the whole paper-cycle; kept in memory for the rest of
-    the process."""
+    the CAN matrix of the live run at its cycle time (``tcu_stub.offline.run_offline``:
+    the project's contract, or with ``mapping`` (a ``can_dbc.mapping.Mapping``) its
+    matrix through ``tcu_stub.mapped_link.MappedLink``, so that the matrix's own
+    scaling is in both runs), the gear recorded every 2 ms as in the demo and read by
+    ``plant.maneuvers.gear_shifts``. A few seconds of CPU for the whole paper-cycle;
+    kept in memory for the rest of the process."""
     from plant.maneuvers import gear_shifts, get_maneuver
     from plant.model import Plant
     from tcu_stub.offline import run_offline
 
-    key = (maneuver, round(float(duration_s), 6))
+    key = (maneuver, round(float(duration_s), 6), None if mapping is None else mapping.path)
     if key not in _OFFLINE_SHIFTS:
         m = get_maneuver(maneuver)
         plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
         m.start(plant)                      # its reset and fixed inputs (the road grade)
-        rec = run_offline(plant, m.driver, float(duration_s), record_every_s=RECORD_EVERY_S)
+        link = None
+        if mapping is not None:
+            from tcu_stub.mapped_link import MappedLink
+
+            link = MappedLink(mapping)
+        rec = run_offline(plant, m.driver, float(duration_s), record_every_s=RECORD_EVERY_S, link=link)
         _OFFLINE_SHIFTS[key] = gear_shifts(rec["time_s"], rec["gear"])
     return list(_OFFLINE_SHIFTS[key])
 
@@ -125,12 +136,13 @@ class _TcuProcess:
     """The TCU stub as a second process on the same CAN channel."""
 
     def __init__(self, interface: str, channel: str, time_scale: float, report: Path,
-                 log: Path, clock: str, mapping=None, bus_channels=None) -> None:
+                 log: Path, clock: str, mapping=None, bus_channels=None, impl: str = "c",
+                 priority: int = 0) -> None:
         self.report_path = report
         self.log_path = log
-        cmd = [sys.executable, "-m", "tcu_stub.can_tcu", "--channel", channel,
+        cmd = [sys.executable, "-m", "tcu_stub.command", "--channel", channel,
                "--interface", interface, "--time-scale", repr(time_scale), "--clock", clock,
-               "--report", str(report), "--quiet"]
+               "--report", str(report), "--quiet", "--impl", impl, "--priority", str(priority)]
         if mapping is not None:                   # the same matrix, DBCs and channels
             cmd += ["--mapping", mapping.path]
             for b in mapping.buses:
@@ -197,6 +209,45 @@ class _TcuThread:
             return None
 
 
+class _TcuEmbedded(_TcuThread):
+    """The C TCU on a thread of its own, its frames the loop's rings (``dct_hil.embedded``)."""
+
+    def __init__(self, server, time_scale: float, report: Path, clock: str, mapping=None,
+                 priority: int = 0) -> None:
+        from dct_hil.embedded import connect_tcu
+
+        self.report_path = report
+        self.tcu = connect_tcu(server, time_scale=time_scale, clock=clock, mapping=mapping,
+                               priority=priority)
+
+
+def start_tcu(impl: str, two: bool, interface: str, channel: str, server, time_scale: float,
+              report: Path, log: Path, clock: str, mapping=None):
+    """The reference TCU of a demo or test bench: a second process on a real bus
+    (``two``), else the C node on the loop's rings (``impl`` "c": the server must be
+    ``dct_hil.embedded.embedded_server``'s) or the Python node on the in-process bus."""
+    from dct_hil.embedded import tcu_priority
+
+    priority = tcu_priority(server.priority)
+    if two:
+        return _TcuProcess(interface, channel, time_scale, report, log, clock, mapping,
+                           server.bus_channels, impl=impl, priority=priority)
+    if impl == "c":
+        return _TcuEmbedded(server, time_scale, report, clock, mapping, priority)
+    return _TcuThread(channel, time_scale, report, clock, mapping, server.bus_channels)
+
+
+def make_server(impl: str, two: bool, channel: str, **kwargs):
+    """The plant server for ``start_tcu``: on the loop's rings for the embedded C TCU."""
+    if not two and impl == "c":
+        from dct_hil.embedded import embedded_server
+
+        return embedded_server(channel, **kwargs)
+    from rt_loop.server import Server
+
+    return Server(channel, **kwargs)
+
+
 def _status_line(snap: dict, tcu_line: str) -> str:
     p, c = snap["plant"], snap["counts"]
     mt = snap.get("maneuver_time_s")
@@ -216,7 +267,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
              pm_qos_us: int | str | None = "auto", strict: bool = False, out=None, err=None,
              mapping=None, bus_channels: dict | None = None, mf4: bool = False,
              control_path: str | os.PathLike | None = None,
-             ui: tuple | None = None) -> int:
+             ui: tuple | None = None, tcu_impl: str = "c") -> int:
     """Runs the demo; returns the exit code (0 done, 1 failed, 130 Ctrl-C; with
     ``strict``, 3 for a run that would exit 0 but whose timing verdict is INVALID).
 
@@ -227,7 +278,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     ``mapping`` (a ``can_dbc.mapping.Mapping``, default the project's own
     contract) is the CAN matrix both the server and the TCU stub use, its
     buses on the channels ``bus_channels`` names (``Server``); the shifts are
-    compared with the offline run over the project's own contract. ``mf4``:
+    compared with the offline run over the same matrix. ``tcu_impl``: "c" (the
+    C TCU node, ``tcu_stub.c_node``; on the embedded transport on the loop's own
+    rings) or "python" (``tcu_stub.can_tcu.CanTcu``). ``mf4``:
     the recording is ``plant.mf4`` (ASAM MDF4 with the CAN traffic as bus
     logging) instead of ``plant.csv``. ``control_path``: the server's control
     channel on that Unix socket (``rt_loop.control``). ``ui``: (host, port,
@@ -246,15 +299,20 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     from rt_loop import verdict as vd
     from rt_loop.console import StopSignals
     from rt_loop.measure.recorder import read_recording
-    from rt_loop.server import Server
+    from tcu_stub.c_node import IMPLS
 
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
+    if tcu_impl not in IMPLS:
+        raise DemoError(f"TCU implementation {tcu_impl!r}: one of {', '.join(IMPLS)}")
     m = _driver_for(maneuver)
     if tcu_clock is None:
         tcu_clock = "wall" if time_scale >= 1.0 else "bus"
     end_s = m.duration_s if duration_s is None else min(float(duration_s), m.duration_s)
     iface, chan, why, two = choose_transport(channel, interface)
+    if not two and tcu_impl == "c":
+        why += ("; the TCU in C on a thread of its own, its frames through the loop's own "
+                "rings (no bus, no Python between them)")
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
     paths = {"recording": folder / ("plant.mf4" if mf4 else "plant.csv"), "can_log": folder / "can.log",
@@ -265,7 +323,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
             p.unlink()
     if priority is None:
         priority = 80 if os.geteuid() == 0 else 0
-    server = Server(chan, interface=iface, priority=priority, driver=m.driver,
+    server = make_server(tcu_impl, two, chan, interface=iface, priority=priority, driver=m.driver,
                     maneuver_inputs=m.inputs, maneuver_start="tcu", maneuver_end_s=end_s,
                     record_path=paths["recording"], record_every_s=RECORD_EVERY_S,
                     log_path=paths["can_log"], time_scale=time_scale, pm_qos_us=pm_qos_us,
@@ -311,12 +369,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
                      cancel=stop)
         for w in server.warnings:
             print(f"dct-hil: warning: {w}", file=err)
-        if two:
-            tcu = _TcuProcess(iface, chan, time_scale, paths["tcu_report"],
-                              folder / "tcu.out", tcu_clock, tcu_mapping, server.bus_channels)
-        else:
-            tcu = _TcuThread(chan, time_scale, paths["tcu_report"], tcu_clock, tcu_mapping,
-                             server.bus_channels)
+        tcu = start_tcu(tcu_impl, two, iface, chan, server, time_scale, paths["tcu_report"],
+                        folder / "tcu.out", tcu_clock, tcu_mapping)
         started = time.monotonic()
         # a machine slow enough for slow motion starts the TCU's process as slowly
         tcu_start_timeout_s = _TCU_START_TIMEOUT_S / min(1.0, time_scale)
@@ -380,7 +434,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         print(f"offline run       {maneuver} over {end_s:g} s with the TCU in-process, for the "
               "shift comparison ...", file=out, flush=True)
         try:
-            offline = offline_shifts(maneuver, end_s)
+            offline = offline_shifts(maneuver, end_s, tcu_mapping)
         except KeyboardInterrupt:
             not_compared, interrupted = "interrupted while computing the offline run", True
         except Exception as e:  # the verdict says why; the run's files stand
@@ -391,7 +445,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         "completed": run["maneuver"] == "done",
         "maneuver_time_s": run["maneuver_time_s"],
         "transport": {"interface": iface, "channel": chan, "why": why,
-                      "tcu": "second process" if two else "thread"},
+                      "tcu": "second process" if two else "thread",
+                      "tcu_impl": tcu_impl},
         "mapping": server.mapping.path,
         "buses": dict(server.bus_channels),
         "time_scale": time_scale,

@@ -1067,8 +1067,9 @@ def _time_scale_arg(text):
 
 
 
-def add_arguments(parser):
-    """The options of ``dct-hil tcu`` on an argparse parser (or subparser)."""
+def add_arguments(parser, impl=True):
+    """The options of ``dct-hil tcu`` on an argparse parser (or subparser);
+    ``impl``: with ``--impl`` and ``--priority`` (the C node's, ``tcu_stub.command``)."""
     parser.add_argument("--channel", default="vcan0", metavar="NAME",
                         help="CAN channel: a network interface for socketcan (vcan0, can0), the "
                              "python-can channel otherwise (default vcan0)")
@@ -1095,9 +1096,21 @@ def add_arguments(parser):
         bus_help="the CAN channel of the mapping's bus NAME (repeatable); the first bus "
                  "defaults to --channel, the others on virtual and udp_multicast to "
                  "CHANNEL-NAME, elsewhere each needs --bus")
+    if impl:
+        _add_impl_arguments(parser)
     parser.add_argument("--report", metavar="FILE.json", help="write the JSON report here at the end")
     parser.add_argument("--quiet", action="store_true", help="no live status and no summary")
     return parser
+
+
+def _add_impl_arguments(parser):
+    parser.add_argument("--impl", choices=("c", "python"), default="c",
+                        help="c: the C node (tcu_stub.c_node: the task, the codec and the logic in a "
+                             "C thread of its own, SCHED_FIFO when allowed; the default); python: this "
+                             "module's node, for editing tcu_stub/logic.py")
+    parser.add_argument("--priority", type=argtypes.priority, default=None, metavar="0..99",
+                        help="SCHED_FIFO priority of the C node's thread (default 70, below the "
+                             "server's 80; refused without the right: the normal scheduler)")
 
 
 def parse_bus_channels(items):
@@ -1182,11 +1195,13 @@ def _where(rep):
     return f"{rep['interface']} ({chans}) through {rep['mapping']}"
 
 
-def run(args, out=None, err=None, prog="dct-hil tcu"):
+def run(args, out=None, err=None, prog="dct-hil tcu", open_node=None):
     """``dct-hil tcu``: runs the node until ``--duration``, Ctrl-C or SIGTERM;
     returns the exit status (0 stopped cleanly by --duration or SIGTERM, 130
     after Ctrl-C (also clean), 1 the bus cannot be opened or the task failed,
-    2 bad options)."""
+    2 bad options). ``open_node``: opens the node as ``CanTcu.open`` does
+    (default ``CanTcu.open``; ``tcu_stub.command`` gives the C node's), and
+    raises ConnectionError, or RuntimeError for a node that cannot start."""
     out = out or sys.stdout
     err = err or sys.stderr
 
@@ -1229,9 +1244,10 @@ def run(args, out=None, err=None, prog="dct-hil tcu"):
     elif bus_items:
         return fail(2, "--bus: only with --mapping (the contract has one bus: --channel)")
     try:
-        tcu = CanTcu.open(args.interface, args.channel, bitrate=args.bitrate, time_scale=time_scale,
-                          clock=getattr(args, "clock", "wall"), mapping=setup, bus_channels=bus_channels)
-    except ConnectionError as e:
+        tcu = (open_node or CanTcu.open)(args.interface, args.channel, bitrate=args.bitrate,
+                                         time_scale=time_scale, clock=getattr(args, "clock", "wall"),
+                                         mapping=setup, bus_channels=bus_channels)
+    except (ConnectionError, RuntimeError) as e:
         return fail(1, e)
 
     done = threading.Event()
@@ -1303,7 +1319,7 @@ def main(argv=None):
     parser = _Parser(prog="python -m tcu_stub.can_tcu",
                      description="The reference TCU (tcu_stub.logic) as a CAN node against the plant "
                                  "server: 2 ms task, E2E-protected frames, safe frames on exit.")
-    add_arguments(parser)
+    add_arguments(parser, impl=False)
     args = parser.parse_args(argv)
     return run(args, prog=parser.prog)
 

@@ -404,7 +404,7 @@ def fill_calibration(c, values, gear_ratio, rpm_per_kmh, diag=None):
                  "SPEED_IMPLAUSIBLE_SET_S", "PRESSURE_INVALID_BAR", "PRESSURE_TOLERANCE_BAR",
                  "PRESSURE_TOLERANCE_SHARE", "PRESSURE_SET_S", "LINE_LOW_BAR", "LINE_SET_S", "SLIP_RPM",
                  "SLIP_SET_S", "SLIP_LIMP_S", "ENGAGE_SET_S", "ENGAGE_RELEASE_S", "MAX_DT_S",
-                 "PERIOD_FIRST_S"):
+                 "PERIOD_FIRST_S", "STARTUP_S"):
         setattr(c, name.lower(), d[name])
     c.limp_gear = list(d["LIMP_GEAR"])
 

@@ -42,6 +42,10 @@ def add_parser(sub):
                       help="the TCU stub's task clock: wall (2 ms of wall time, the default in "
                            "real time) or bus (a tick per 2 ms plant frame, the default with "
                            "--time-scale below 1)")
+    demo.add_argument("--tcu-impl", choices=("c", "python"), default="c",
+                      help="the TCU stub: c (the C node on a thread of its own; on the embedded "
+                           "transport its frames go through the loop's own rings; the default) or "
+                           "python (tcu_stub.can_tcu, for editing tcu_stub/logic.py)")
     demo.add_argument("--duration", type=argtypes.seconds, metavar="S",
                       help="play only the first S seconds of the maneuver")
     demo.add_argument("--quiet", action="store_true", help="no live status")
@@ -72,6 +76,6 @@ def run(args):
                         duration_s=args.duration, tcu_clock=args.tcu_clock,
                         pm_qos_us=args.pm_qos_us, strict=args.strict, mapping=mapping,
                         bus_channels=bus_channels, mf4=args.mf4, control_path=args.control,
-                        ui=ui)
+                        ui=ui, tcu_impl=args.tcu_impl)
     except (DemoError, ServerError, TransportError) as e:
         raise UserError(str(e)) from None

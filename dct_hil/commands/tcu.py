@@ -1,5 +1,6 @@
 """dct-hil tcu: the reference TCU as a CAN node against dct-hil serve
-(``tcu_stub.can_tcu``: its options and its run)."""
+(``tcu_stub.can_tcu``: its options; ``tcu_stub.command``: its run, the C node
+or the Python one)."""
 
 from tcu_stub import can_tcu
 
@@ -18,6 +19,6 @@ def add_parser(sub):
 
 
 def run(args):
-    from tcu_stub import can_tcu
+    from tcu_stub import command
 
-    return can_tcu.run(args)
+    return command.run(args)

@@ -2,10 +2,11 @@
  * tcu_diag.c - the reference TCU's on-board diagnostics (diagnostics.py):
  * debounced monitors, trouble code bits, latched reactions.
  *
- * Only the monitors a link without lost frames can trip are here (input
- * shaft speeds, clutch and line pressures, clutch slip, gear engagement);
- * the engine message and CAN monitors never count in process, so
- * Diagnostics.messages reduces to its timing (tcu_diag_messages).
+ * The signal monitors (input shaft speeds, clutch and line pressures,
+ * clutch slip, gear engagement) and the message monitors (the engine
+ * message, the CAN ones: tcu_diag_node, what a CAN node gives the TCU). In
+ * process no message is lost, so Diagnostics.messages reduces to its timing
+ * there (tcu_diag_messages).
  */
 #include "tcu_fast.h"
 #include "tcu_util.h"
@@ -70,6 +71,11 @@ static void recount(tcu_diag *d, int bit)
         if (m->bit == bit && m->active)
             now = 1;
     }
+    if (d->engine.bit == bit && d->engine.active)
+        now = 1;
+    for (int i = 0; i < 4; i++)
+        if (d->can[i].bit == bit && d->can[i].active)
+            now = 1;
     int before = (d->active_bits & mask) != 0;
     if (now == before)
         return;
@@ -120,6 +126,13 @@ void tcu_diag_reset(const tcu_cal *cal, tcu_diag *d)
     }
     monitor_init(&d->line, TCU_DTC_LINE_PRESSURE, cal->line_set_s, cal->heal_s);
     monitor_init(&d->engage, TCU_DTC_GEAR_ENGAGEMENT, 0.0, cal->heal_s);
+    monitor_init(&d->engine, TCU_DTC_ENGINE_MESSAGE, 0.0, cal->heal_s);
+    for (int i = 0; i < 4; i++)
+        monitor_init(&d->can[i], TCU_DTC_CAN_CRC + i, 0.0, cal->heal_s);
+    d->can_busy = 0;
+    d->stale = 0;
+    d->engine_lost = 0;
+    d->torque_ok = 1;
     d->active_bits = 0;
     d->stored_bits = 0;
     d->fault_count = 0;
@@ -155,6 +168,62 @@ void tcu_diag_messages(const tcu_cal *cal, tcu_diag *d, double t_s)
     }
 }
 
+/* a stale message's cause -> its DTC bit (diagnostics._CAUSE_DTC) */
+static int cause_dtc(int cause)
+{
+    switch (cause) {
+    case TCU_MSG_BAD_COUNTER: return TCU_DTC_CAN_COUNTER;
+    case TCU_MSG_BAD_LENGTH: return TCU_DTC_CAN_LENGTH;
+    case TCU_MSG_BAD_CRC:
+    case TCU_MSG_REJECTED: return TCU_DTC_CAN_CRC;
+    default: return TCU_DTC_CAN_TIMEOUT;
+    }
+}
+
+int tcu_diag_node(const tcu_cal *cal, tcu_diag *d, double t_s, const tcu_msgs *msgs)
+{
+    double dt = !d->have_t_prev ? cal->period_first_s
+                                : py_min(py_max(t_s - d->t_prev, 0.0), cal->max_dt_s);
+    d->t_prev = t_s;
+    d->have_t_prev = 1;
+    d->dt = dt;
+    d->t_s = t_s;
+    int seen = d->plant_seen;
+    int late = seen && t_s - d->plant_seen_t_s >= cal->startup_s - 1e-9;
+    int kinds = 0, engine = 0, engine_fault = 0, stale = 0;
+    for (int i = 0; i < msgs->n; i++) {
+        int why = msgs->cause[i];
+        if (why == TCU_MSG_OK)
+            continue;
+        int counts = why != TCU_MSG_MISSING || late;
+        if (msgs->engine[i]) {
+            engine = 1;
+            engine_fault = engine_fault || counts;
+        } else {
+            stale = 1;
+        }
+        if (counts)
+            kinds |= 1 << cause_dtc(why);
+    }
+    if (!stale && !seen) {
+        d->plant_seen = seen = 1;
+        d->plant_seen_t_s = t_s;
+    }
+    d->stale = stale;
+    d->engine_lost = engine;
+    if (kinds || d->can_busy) {
+        int busy = 0;
+        for (int i = 0; i < 4; i++) {
+            update(d, &d->can[i], (kinds >> d->can[i].bit) & 1);
+            busy = busy || d->can[i].active || d->can[i].fail_s > 0.0;
+        }
+        d->can_busy = busy;
+    }
+    update(d, &d->engine, seen ? engine_fault : NOT_EVALUATED);
+    d->torque_ok = !engine && !d->engine.active;
+    return stale;
+}
+
 static void block(tcu_diag *d, int shaft)
 {
     static const int shaft_gears_mask[2] = {0x15, 0x2A};   /* gears 1 3 5 / 2 4 6 */
@@ -184,7 +253,7 @@ void tcu_diag_monitor(const tcu_cal *cal, tcu_state *s)
     double dt = d->dt;
     /* line pressure first: the clutch pressures mean nothing without it (the
        contract always carries LinePressure) */
-    update(d, &d->line, !(s->line_bar >= cal->line_low_bar));
+    update(d, &d->line, s->line_absent ? NOT_EVALUATED : !(s->line_bar >= cal->line_low_bar));
     int line_low = d->line.active || d->line.fail_s > 0.0;
     int speed_bad[2] = {0, 0};
     for (int sh = 0; sh < 2; sh++) {
@@ -275,8 +344,7 @@ void tcu_diag_monitor(const tcu_cal *cal, tcu_state *s)
         d->safe_state = 1;
 }
 
-/* Diagnostics.state: TcuState 0 initialising, 1 normal, 2 substitute, 3 limp home, 4 fault
-   (torque requests are always allowed in process) */
+/* Diagnostics.state: TcuState 0 initialising, 1 normal, 2 substitute, 3 limp home, 4 fault */
 int tcu_diag_state(const tcu_diag *d, int phase)
 {
     if (!d->plant_seen)
@@ -285,7 +353,7 @@ int tcu_diag_state(const tcu_diag *d, int phase)
         return 4;
     if (d->limp_home)
         return 3;
-    if (d->active_bits || d->inhibited)
+    if (d->active_bits || d->inhibited || !d->torque_ok)
         return 2;
     return 1;
 }

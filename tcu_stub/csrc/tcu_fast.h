@@ -227,6 +227,8 @@ typedef struct {
     double engage_release_s;
     double max_dt_s;
     double period_first_s;
+    double startup_s;             /* a message never received counts as lost this long after
+                                     the plant's first frames (diagnostics.STARTUP_S) */
     int32_t limp_gear[2];
 } tcu_cal;
 
@@ -277,6 +279,13 @@ typedef struct {                  /* diagnostics.Diagnostics, without the CAN mo
     int32_t engage_failed;
     double release_s[2];
     double slip_limp_s[2];
+    /* the message monitors (Diagnostics.messages): only a CAN node counts them */
+    tcu_monitor engine;           /* the engine message stale (DTC 8) */
+    tcu_monitor can[4];           /* stale by bad CRC, bad counter, bad length, timeout (DTC 9..12) */
+    int32_t can_busy;             /* a CAN monitor active or debouncing */
+    int32_t stale;                /* plant messages lost: clutches open */
+    int32_t engine_lost;          /* the engine message stale now: its last values stand in */
+    int32_t torque_ok;            /* torque requests allowed */
     double t_s;                   /* the period's TCU time (the events') */
     int32_t n_events;             /* events since the last drain */
     int32_t events_lost;          /* events that did not fit */
@@ -323,6 +332,7 @@ typedef struct {                  /* logic.TcuLogic */
     double idle_load_nm;          /* the engine's torque with K1 open at the stop */
     double t_s;
     double held[3];               /* pedal, brake, engine torque last received */
+    int32_t line_absent;          /* no LinePressure this period: its monitor not evaluated */
     tcu_clutch_loop loops[2];
     tcu_diag diag;
     /* what _read took from the sensors this period */
@@ -343,6 +353,23 @@ typedef struct {                  /* logic.TcuLogic */
     tcu_shift shifts[TCU_MAX_SHIFTS];
 } tcu_state;
 
+/* a plant message as the CAN node saw it this period (sensors["stale_messages"]) */
+#define TCU_MSG_OK 0
+#define TCU_MSG_MISSING 1
+#define TCU_MSG_TIMEOUT 2
+#define TCU_MSG_BAD_CRC 3
+#define TCU_MSG_BAD_COUNTER 4
+#define TCU_MSG_BAD_LENGTH 5
+#define TCU_MSG_REJECTED 6
+
+/* what a CAN node adds to a period's sensors: the needed plant messages' state */
+typedef struct {
+    int32_t n;                    /* plant messages the TCU needs */
+    const int32_t *cause;         /* per message: TCU_MSG_* */
+    const int32_t *engine;        /* per message: 1 when its loss is ridden out (the engine's) */
+    int32_t line_absent;          /* LinePressure not received (Python's None) */
+} tcu_msgs;
+
 /* ------------------------------------------------------------------ */
 /* The TCU (tcu_logic.c, tcu_clutch.c, tcu_diag.c)                     */
 /* ------------------------------------------------------------------ */
@@ -352,6 +379,10 @@ const char *tcu_phase_name(int i);        /* logic.PHASES[i] */
 void tcu_reset(const tcu_cal *cal, tcu_state *s);
 /* one period: sensors (TCU_N_SENSORS) -> commands (TCU_N_COMMANDS), as TcuLogic.step */
 void tcu_step(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensors, double *commands);
+/* the same with the plant messages' state (a CAN node's period, TcuLogic.step with
+   sensors["stale_messages"]); msgs NULL: every message received, as tcu_step */
+void tcu_step_node(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensors,
+                   const tcu_msgs *msgs, double *commands);
 
 /* internal to the TCU's files */
 double tcu_clutch_current(const tcu_cal *cal, tcu_clutch_loop *loop, double target_bar,
@@ -362,6 +393,8 @@ double tcu_nm_per_bar(const tcu_cal *cal, const tcu_state *s, int clutch);
 double tcu_gear_input_rpm(const tcu_cal *cal, const tcu_state *s, int gear);
 void tcu_diag_reset(const tcu_cal *cal, tcu_diag *d);
 void tcu_diag_messages(const tcu_cal *cal, tcu_diag *d, double t_s);
+/* Diagnostics.messages: 1 when the plant is lost (a needed message but the engine's stale) */
+int tcu_diag_node(const tcu_cal *cal, tcu_diag *d, double t_s, const tcu_msgs *msgs);
 void tcu_diag_monitor(const tcu_cal *cal, tcu_state *s);
 int tcu_diag_state(const tcu_diag *d, int phase);
 int tcu_requested_gear(const tcu_state *s, int shaft);

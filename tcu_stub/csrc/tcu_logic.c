@@ -151,15 +151,21 @@ static double substitute(const tcu_cal *cal, const tcu_state *s, int shaft, doub
     return s->n_shaft[shaft];
 }
 
-/* _read (the engine message is never lost in process) */
+/* _read: the engine message stale, its last values stand in */
 static void read_sensors(const tcu_cal *cal, tcu_state *s, const double *x)
 {
-    s->pedal = x[TCU_S_ACCEL_PEDAL];
-    s->brake = x[TCU_S_BRAKE_PEDAL];
-    s->t_engine = x[TCU_S_ENGINE_TORQUE];
-    s->held[0] = s->pedal;
-    s->held[1] = s->brake;
-    s->held[2] = s->t_engine;
+    if (s->diag.engine_lost) {
+        s->pedal = s->held[0];
+        s->brake = s->held[1];
+        s->t_engine = s->held[2];
+    } else {
+        s->pedal = x[TCU_S_ACCEL_PEDAL];
+        s->brake = x[TCU_S_BRAKE_PEDAL];
+        s->t_engine = x[TCU_S_ENGINE_TORQUE];
+        s->held[0] = s->pedal;
+        s->held[1] = s->brake;
+        s->held[2] = s->t_engine;
+    }
     s->n_engine = x[TCU_S_ENGINE_SPEED];
     s->n_out[0] = x[TCU_S_OUTPUT_SHAFT1_SPEED];
     s->n_out[1] = x[TCU_S_OUTPUT_SHAFT2_SPEED];
@@ -537,7 +543,7 @@ static int hold_request(const tcu_cal *cal, const tcu_state *s, double *request_
     return 1;
 }
 
-/* _recover (the D again while rolling path): re-engage by slip control in the gear for the speed */
+/* _recover (plant messages back, or D again while rolling): re-engage by slip control in the gear for the speed */
 static void recover(const tcu_cal *cal, tcu_state *s)
 {
     for (int i = 0; i < 2; i++)
@@ -890,8 +896,8 @@ static void commands_out(const tcu_cal *cal, tcu_state *s, int stale, double *c)
             has = 1;
         }
     }
-    int active = has && !stale;
     const tcu_diag *d = &s->diag;
+    int active = has && !stale && d->torque_ok;
     c[TCU_C_SOLENOID_CURRENT1] = i1;
     c[TCU_C_SOLENOID_CURRENT2] = i2;
     c[TCU_C_LINE_SOLENOID_CURRENT] = cal->line_current_a;
@@ -910,11 +916,26 @@ static void commands_out(const tcu_cal *cal, tcu_state *s, int stale, double *c)
     c[TCU_C_TCU_STATE] = tcu_diag_state(d, s->phase);
 }
 
-void tcu_step(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensors, double *commands)
+void tcu_step_node(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensors,
+                   const tcu_msgs *msgs, double *commands)
 {
     s->t_s = t_s;
-    tcu_diag_messages(cal, &s->diag, t_s);
+    int stale = 0;
+    if (msgs == NULL) {
+        tcu_diag_messages(cal, &s->diag, t_s);
+        s->line_absent = 0;
+    } else {
+        stale = tcu_diag_node(cal, &s->diag, t_s, msgs);
+        s->line_absent = msgs->line_absent;
+    }
     read_sensors(cal, s, sensors);
+    if (stale) {
+        if (s->phase != TCU_STALE && s->phase != TCU_SAFE)
+            s->phase = TCU_STALE;
+        stale_outputs(s);
+        commands_out(cal, s, 1, commands);
+        return;
+    }
     tcu_diag_monitor(cal, s);
     if (s->diag.safe_state) {
         s->phase = TCU_SAFE;
@@ -922,6 +943,8 @@ void tcu_step(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensor
         commands_out(cal, s, 1, commands);
         return;
     }
+    if (s->phase == TCU_STALE)
+        recover(cal, s);          /* plant messages back: the gear for the speed, by slip */
     if (s->diag.inhibited && gear_taken(s))
         leave_gear(cal, s);
     switch (s->phase) {
@@ -936,6 +959,11 @@ void tcu_step(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensor
     default: break;               /* stale and safe have no handler (never reached here) */
     }
     commands_out(cal, s, 0, commands);
+}
+
+void tcu_step(const tcu_cal *cal, tcu_state *s, double t_s, const double *sensors, double *commands)
+{
+    tcu_step_node(cal, s, t_s, sensors, NULL, commands);
 }
 
 int tcu_gear_layout(int gear, int32_t *shaft, int32_t *sleeve, int32_t *side)
