@@ -3,7 +3,7 @@
 Every test calls one component's functions directly (output_eval / advance,
 or the pure helpers) with the default car's parameters, taken from a filled
 ``dct_params``; nothing else of the plant is involved. Where a test integrates,
-it uses the plant's own Euler sub-step h = step_s / substeps (0.25 ms).
+it uses the plant's own Euler sub-step h = step_s / substeps (0.5 ms).
 Every tolerance says why it is that number.
 """
 

@@ -92,7 +92,7 @@ def test_default_loads_and_fills(ffi, default):
     cparams = ffi.new("dct_params *")
     fill_params(ffi, cparams, default)
     assert cparams.solver.step_s == 0.0005
-    assert cparams.solver.substeps == 2.0
+    assert cparams.solver.substeps == 1.0
     assert cparams.engine.full_load.n == 10
     assert cparams.engine.drag.n == 8
     assert cparams.engine.bsfc.n_speed_rpm == 12

@@ -48,10 +48,10 @@ def test_energy_of_a_rolled_powertrain_rings_down():
     its stop and let go swings out on its mounts; the stored energy (now with
     the roll's kinetic and the mounts' spring energy) never grows at the 10 ms
     output rate (tolerance: rounding, 1e-9 of it) and within a step by at
-    most 0.5 %: explicit Euler adds (w h)^2 of a spring's energy at a
+    most 1 %: explicit Euler adds (w h)^2 of a spring's energy at a
     turning point (tests/test_plant_system.py), and the roll on the stops is
-    the stiffest of the plant's springs: w = sqrt(445000 / 18) = 157 rad/s,
-    (w h)^2 = 0.15 % per 0.25 ms sub-step, 0.31 % per step."""
+    the stiffest spring in play: w = sqrt(445000 / 18) = 157 rad/s,
+    (w h)^2 = 0.62 % per 0.5 ms step (measured 0.58 %)."""
     p = Plant(overrides={"hydraulics": {"pressure_commanded": 1}})
     p.reset(engine_on=0)
     for name in ("accel_pedal_pct", "brake_pedal_pct", "road_grade_pct"):
@@ -65,4 +65,4 @@ def test_energy_of_a_rolled_powertrain_rings_down():
     energy = np.array(energy)
     assert energy[-1] < 0.01 * energy[0]
     assert np.diff(energy[::20]).max() <= 1e-9 * energy[0]
-    assert np.diff(energy).max() <= 5e-3 * energy[0]
+    assert np.diff(energy).max() <= 1e-2 * energy[0]

@@ -1232,7 +1232,18 @@ def thermal_prepare(p):
                               p.trans_ref_temp_degc))
 
 
-def thermal_effects(p, d, trans_oil, s):
+def thermal_effects_key(p, s):
+    """The temperatures the effects are taken at: rounded to p.effects_resolution_k."""
+    q = p.effects_resolution_k
+
+    def rounded(t):
+        return math.floor(t / q + 0.5) * q if q > 0.0 else t
+    return (rounded(s.coolant_temp_degc), rounded(s.engine_oil_temp_degc), rounded(s.trans_oil_temp_degc))
+
+
+def thermal_effects(p, d, trans_oil, state):
+    key = thermal_effects_key(p, state)
+    s = SimpleNamespace(coolant_temp_degc=key[0], engine_oil_temp_degc=key[1], trans_oil_temp_degc=key[2])
     fx = ThermalEffects()
     ro = (walther_viscosity(p.engine_oil_viscosity_40c_mm2_s, p.engine_oil_viscosity_100c_mm2_s,
                             s.engine_oil_temp_degc) / d[0])
@@ -1691,7 +1702,11 @@ class PyPlant:
         p = self.p
         g = self.gearbox
         e = self.engine
+        # the chambers' pressures (and the pistons on them) at the state now,
+        # as the spools' and the line's (plant.c write_outputs)
         hy = c.hydraulics
+        if not p.hydraulics.pressure_commanded > 0.5:
+            hy = hydraulics_output(c.chamber, c.clutch_params, self.hydraulics)
         a = self.applied
         o = self.outputs
         o["time_s"] = self.time_s

@@ -108,6 +108,10 @@ def _save(fig, axes, sec: Section, plots: Path, doc_dir: Path, name: str) -> Non
 # 1. fixed step against a reference solution
 # --------------------------------------------------------------------------
 
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
 def _cycle_plant(step_div: int):
     from plant.maneuvers import get_maneuver
     from plant.model import Plant
@@ -179,6 +183,8 @@ def fixed_step(quick: bool, plots: Path, doc_dir: Path) -> Section:
     same = [(x, y) for _, x, y in shifts[1]] == [(x, y) for _, x, y in shifts[ref_div]]
     dts = [s[0] - r[0] for s, r in zip(shifts[1], shifts[ref_div])] if same else []
     h_us = runs[1][2] * 1e6
+    solver = _cycle_plant(1)[1].params
+    substeps, hy_substeps = int(solver["solver"]["substeps"]), int(solver["hydraulics"]["substeps"])
     # the same input history for every step: the reference run's pedals and TCU commands
     replay_divs = [d for d in (1, 2, 4, 8, 16, 32) if d < ref_div] + [ref_div]
     replays = {div: _replay(div, captured) for div in replay_divs}
@@ -192,7 +198,8 @@ def fixed_step(quick: bool, plots: Path, doc_dir: Path) -> Section:
     sec.lines += [
         f"`paper-cycle` ({duration:g} s) with the TCU stub in the loop, run three times with the "
         f"same C equations: explicit Euler at the real-time step h = {h_us:g} us "
-        f"({2} sub-steps), and at h/{check_div} and h/{ref_div}.",
+        f"({_plural(substeps, 'sub-step')}; the hydraulics in {_plural(hy_substeps, 'sub-step')} "
+        f"of each), and at h/{check_div} and h/{ref_div}.",
         "",
         f"**Reference**: the same equations at h/{ref_div} ({h_us / ref_div:.3g} us). The model "
         "is hybrid (synchronizer phases, stick-slip friction, end stops), so a variable-step "

@@ -795,6 +795,11 @@ typedef struct {
      *   gap(T) = gap + (alpha_housing - alpha_plates) L (T - trans_ref_temp_degc) */
     double clutch_gap_expansion_per_k;    /* alpha_housing - alpha_plates, 1/K */
     double clutch_gap_length_mm;          /* L: effective axial length of the pack and its seat */
+    /* the effects are taken at the temperatures rounded to this (0: as
+     * they are): they move by millikelvin a second, and the rounded ones
+     * change every few hundred steps, so the step computes the effects
+     * (Walther, the pack gaps' chamber law) again only then */
+    double effects_resolution_k;
     /* accessories on the crank */
     double alternator_load_w;             /* electrical load */
     double alternator_efficiency;
@@ -875,6 +880,9 @@ double dct_walther_at(const dct_walther_line *line, double temp_degc);
 void dct_thermal_init(const dct_thermal_params *p, dct_thermal_state *s, double coolant_degc,
                       double engine_oil_degc, double trans_oil_degc);
 void dct_thermal_prepare(const dct_thermal_params *p, dct_thermal_derived *d);
+/* the temperatures the effects are taken at: coolant, engine oil,
+ * transmission oil rounded to p->effects_resolution_k */
+void dct_thermal_effects_key(const dct_thermal_params *p, const dct_thermal_state *s, double key[3]);
 void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_thermal_derived *d,
                               const dct_oil_params *trans_oil, const dct_thermal_state *s,
                               dct_thermal_effects *fx);
@@ -1096,6 +1104,20 @@ typedef struct {
     double faults_on;                 /* 1: any of them is not zero (0: the step skips them) */
 } dct_derived;
 
+/* what the temperatures change (plant.c evaluate_thermal), kept from the
+ * step that computed it: the effects, the clutches with their pack gaps and
+ * the chamber law that goes with them, valid while the rounded temperatures
+ * (dct_thermal_effects_key) stay key. A function of the state alone: a
+ * restored state finds the same numbers. */
+typedef struct {
+    double valid;                     /* 0: compute at the next step (reset, dct_plant_prepare) */
+    double key[3];
+    dct_thermal_effects fx;
+    dct_clutch_params clutch[2];
+    double own_chambers;              /* 1: chambers below; 0: derived.hydraulics (gaps as given) */
+    dct_hydraulics_derived chambers;
+} dct_thermal_cache;
+
 typedef struct {
     dct_params params;
     dct_derived derived;
@@ -1114,6 +1136,7 @@ typedef struct {
                                          dct_plant_prepare */
     dct_params effective;             /* params with the parametric faults applied: what the
                                          step uses (set by dct_plant_prepare) */
+    dct_thermal_cache thermal;        /* the temperatures' effects (plant.c evaluate_thermal) */
 } dct_plant;
 
 int dct_plant_init(dct_plant *plant);            /* checks params, prepares, resets to rest */

@@ -23,8 +23,7 @@ int dct_plant_input_size(void) { return N_INPUT; }
 
 /* every coupling variable of one evaluation */
 typedef struct {
-    dct_clutch_params clutch_params[2];   /* the clutches with the pack gap at this oil temperature */
-    dct_hydraulics_derived chamber_local; /* their chambers, when the gap is not the parameter's */
+    const dct_clutch_params *clutch_params; /* the two clutches with the pack gap at this oil temperature */
     const dct_hydraulics_derived *chamber;
     dct_hydraulics_input hydraulics_in;
     dct_hydraulics_output hydraulics;
@@ -76,27 +75,41 @@ static double pump_torque(const dct_supply_params *p, double line_pressure_pa, d
 /* What the temperatures change: the thermal effects, the pack gaps at this
  * oil temperature and the chamber law that goes with them. The temperatures
  * move by millikelvin a second: taken once a step, at its start, for all its
- * sub-steps (plant_steps) */
-static void evaluate_thermal(const dct_plant *pl, coupling *c)
+ * sub-steps (plant_steps), and computed again only when a temperature
+ * rounded to thermal.effects_resolution_k changed (pl->thermal) */
+static void refresh_thermal(dct_plant *pl)
 {
     const dct_params *p = &pl->effective;
-    const dct_state *s = &pl->state;
-    dct_thermal_effects_eval(&p->thermal, &pl->derived.thermal, &p->hydraulics.oil, &s->thermal, &c->thermal_fx);
-    c->hydraulics_in.oil_viscosity_m2_s = c->thermal_fx.trans_oil_viscosity_m2_s;
+    dct_thermal_cache *t = &pl->thermal;
+    double key[3];
+    dct_thermal_effects_key(&p->thermal, &pl->state.thermal, key);
+    if (t->valid > 0.5 && key[0] == t->key[0] && key[1] == t->key[1] && key[2] == t->key[2])
+        return;
+    dct_thermal_effects_eval(&p->thermal, &pl->derived.thermal, &p->hydraulics.oil, &pl->state.thermal, &t->fx);
     /* the pack gaps at this oil temperature (thermal expansion), and the
      * chamber law that goes with them; at the reference temperature the
      * prepared one */
     for (int k = 0; k < 2; k++) {
-        c->clutch_params[k] = p->clutch[k];
-        double gap = p->clutch[k].pack_gap_mm + c->thermal_fx.clutch_gap_change_mm;
-        c->clutch_params[k].pack_gap_mm = gap > 0.0 ? gap : 0.0;
+        t->clutch[k] = p->clutch[k];
+        double gap = p->clutch[k].pack_gap_mm + t->fx.clutch_gap_change_mm;
+        t->clutch[k].pack_gap_mm = gap > 0.0 ? gap : 0.0;
     }
-    if (c->thermal_fx.clutch_gap_change_mm != 0.0) {
-        dct_hydraulics_prepare(&p->hydraulics, c->clutch_params, &c->chamber_local);
-        c->chamber = &c->chamber_local;
-    } else {
-        c->chamber = &pl->derived.hydraulics;
-    }
+    t->own_chambers = t->fx.clutch_gap_change_mm != 0.0 ? 1.0 : 0.0;
+    if (t->own_chambers > 0.5)
+        dct_hydraulics_prepare(&p->hydraulics, t->clutch, &t->chambers);
+    for (int i = 0; i < 3; i++)
+        t->key[i] = key[i];
+    t->valid = 1.0;
+}
+
+/* the thermal part of the couplings, from pl->thermal (refresh_thermal) */
+static void evaluate_thermal(const dct_plant *pl, coupling *c)
+{
+    const dct_thermal_cache *t = &pl->thermal;
+    c->thermal_fx = t->fx;
+    c->hydraulics_in.oil_viscosity_m2_s = t->fx.trans_oil_viscosity_m2_s;
+    c->clutch_params = t->clutch;
+    c->chamber = t->own_chambers > 0.5 ? &t->chambers : &pl->derived.hydraulics;
 }
 
 /* every coupling of one sub-step, the thermal part (evaluate_thermal) given */
@@ -321,6 +334,12 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     const dct_state *s = &pl->state;
     dct_outputs *o = &pl->outputs;
     const dct_gearbox_state *g = &s->gearbox;
+    /* the chambers' pressures (and the pistons on them) at the state now,
+     * as the spools' and the line's: the couplings are those of the last
+     * step's start, a whole step older */
+    dct_hydraulics_output hy = c->hydraulics;
+    if (!(p->hydraulics.pressure_commanded > 0.5))
+        dct_hydraulics_output_eval(&p->hydraulics, c->chamber, c->clutch_params, &s->hydraulics, &hy);
     o->time_s = s->time_s;
     o->engine_speed_rpm = s->engine.speed_rad_s * DCT_RPM_PER_RAD_S;
     o->engine_torque_nm = c->engine.torque_nm;
@@ -333,14 +352,14 @@ static void write_outputs(dct_plant *pl, const coupling *c)
     o->solenoid_current2_a = pl->applied.solenoid_current2_a;
     o->line_solenoid_current_a = pl->applied.line_solenoid_current_a;
     o->line_pressure_bar = s->hydraulics.line_pressure_pa / DCT_PA_PER_BAR;
-    o->clutch1_pressure_bar = c->hydraulics.clutch_pressure_pa[0] / DCT_PA_PER_BAR;
-    o->clutch2_pressure_bar = c->hydraulics.clutch_pressure_pa[1] / DCT_PA_PER_BAR;
-    o->piston1_position_mm = c->hydraulics.piston_position_m[0] * 1e3;
-    o->piston2_position_mm = c->hydraulics.piston_position_m[1] * 1e3;
+    o->clutch1_pressure_bar = hy.clutch_pressure_pa[0] / DCT_PA_PER_BAR;
+    o->clutch2_pressure_bar = hy.clutch_pressure_pa[1] / DCT_PA_PER_BAR;
+    o->piston1_position_mm = hy.piston_position_m[0] * 1e3;
+    o->piston2_position_mm = hy.piston_position_m[1] * 1e3;
     o->spool1_position_mm = s->hydraulics.valve[0].spool_position_m * 1e3;
     o->spool2_position_mm = s->hydraulics.valve[1].spool_position_m * 1e3;
-    o->clutch1_clamp_force_n = c->hydraulics.clamp_force_n[0];
-    o->clutch2_clamp_force_n = c->hydraulics.clamp_force_n[1];
+    o->clutch1_clamp_force_n = hy.clamp_force_n[0];
+    o->clutch2_clamp_force_n = hy.clamp_force_n[1];
     o->clutch1_torque_nm = c->clutch[0].torque_nm;
     o->clutch2_torque_nm = c->clutch[1].torque_nm;
     o->clutch1_slip_rpm = (s->engine.speed_rad_s - g->input_speed_rad_s[0]) * DCT_RPM_PER_RAD_S;
@@ -471,6 +490,7 @@ static int plant_steps(dct_plant *pl, int n)
     if (st != DCT_OK)
         return st;
     for (int i = 0; i < n; i++) {
+        refresh_thermal(pl);
         evaluate_thermal(pl, &c);
         for (int j = 0; j < sub; j++) {
             evaluate_at(pl, &pl->applied, &c);
@@ -502,6 +522,7 @@ void dct_plant_update_outputs(dct_plant *pl)
 {
     coupling c;
     dct_fp_mode mode = dct_fp_flush_begin();
+    refresh_thermal(pl);
     evaluate(pl, &pl->applied, &c);
     write_outputs(pl, &c);
     dct_fp_flush_end(mode);
@@ -560,7 +581,7 @@ static int check_params(const dct_params *p)
         !(th->accessory_smoothing_rad_s > 0.0) || !(th->engine_oil_viscosity_40c_mm2_s > th->engine_oil_viscosity_100c_mm2_s) ||
         !(th->engine_oil_viscosity_100c_mm2_s > 0.0) ||
         !(th->trans_oil_viscosity_40c_mm2_s > th->trans_oil_viscosity_100c_mm2_s) ||
-        !(th->trans_oil_viscosity_100c_mm2_s > 0.0))
+        !(th->trans_oil_viscosity_100c_mm2_s > 0.0) || !(th->effects_resolution_k >= 0.0))
         return DCT_ERR_PARAM;
     if (!(p->front_wheel.inertia_kgm2 > 0.0) || !(p->rear_wheels.inertia_kgm2 > 0.0) ||
         !(p->front_wheel.brake.stiffness_nm_per_rad > 0.0) || !(p->rear_wheels.brake.stiffness_nm_per_rad > 0.0))
@@ -599,6 +620,7 @@ int dct_plant_prepare(dct_plant *pl)
     dct_thermal_prepare(&p->thermal, &pl->derived.thermal);
     pl->derived.front_static_n = dct_vehicle_static_front_n(&p->vehicle);
     pl->derived.rear_static_n = dct_vehicle_static_rear_n(&p->vehicle);
+    pl->thermal.valid = 0.0; /* the effects of the new parameters */
     return DCT_OK;
 }
 

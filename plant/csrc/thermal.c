@@ -88,10 +88,29 @@ void dct_thermal_prepare(const dct_thermal_params *p, dct_thermal_derived *d)
     d->trans_oil_ref_mm2_s = dct_walther_at(&d->trans_oil, p->trans_ref_temp_degc);
 }
 
+/* t rounded to the nearest multiple of q (q = 0: t) */
+static double rounded(double t, double q)
+{
+    return q > 0.0 ? floor(t / q + 0.5) * q : t;
+}
+
+void dct_thermal_effects_key(const dct_thermal_params *p, const dct_thermal_state *s, double key[3])
+{
+    double q = p->effects_resolution_k;
+    key[0] = rounded(s->coolant_temp_degc, q);
+    key[1] = rounded(s->engine_oil_temp_degc, q);
+    key[2] = rounded(s->trans_oil_temp_degc, q);
+}
+
 void dct_thermal_effects_eval(const dct_thermal_params *p, const dct_thermal_derived *d,
-                              const dct_oil_params *trans_oil, const dct_thermal_state *s,
+                              const dct_oil_params *trans_oil, const dct_thermal_state *state,
                               dct_thermal_effects *fx)
 {
+    /* at the rounded temperatures (effects_resolution_k) */
+    double key[3];
+    dct_thermal_effects_key(p, state, key);
+    dct_thermal_state at = {key[0], key[1], key[2]};
+    const dct_thermal_state *s = &at;
     double ro = dct_walther_at(&d->engine_oil, s->engine_oil_temp_degc) / d->engine_oil_ref_mm2_s;
     double rt = dct_walther_at(&d->trans_oil, s->trans_oil_temp_degc) / d->trans_oil_ref_mm2_s;
     double lo = log(ro), lt = log(rt);
