@@ -20,7 +20,6 @@ from dct_hil.commands import COMMANDS
 from dct_hil.commands.options import UserError
 from plant.extras import install_hint, missing_extra
 
-
 #: commands whose process runs the real-time loop, which locks all its memory (mlockall)
 LOOP_COMMANDS = ("serve", "demo")
 
