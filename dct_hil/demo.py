@@ -311,8 +311,9 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
     end_s = m.duration_s if duration_s is None else min(float(duration_s), m.duration_s)
     iface, chan, why, two = choose_transport(channel, interface)
     if not two and tcu_impl == "c":
-        why += ("; the TCU in C on a thread of its own, its frames through the loop's own "
-                "rings (no bus, no Python between them)")
+        why = why.split(":", 1)[0] + (": the embedded transport, the TCU in C on a thread of its "
+                                      "own, its frames through the loop's own rings (no bus, no "
+                                      "Python between them)")
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
     paths = {"recording": folder / ("plant.mf4" if mf4 else "plant.csv"), "can_log": folder / "can.log",
