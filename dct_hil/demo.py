@@ -104,20 +104,38 @@ def _driver_for(name: str):
     return get_maneuver(name)
 
 
-def offline_shifts(maneuver: str, duration_s: float, mapping=None) -> list[tuple[float, int, int]]:
+def offline_shifts(maneuver: str, duration_s: float, mapping=None, start_tick: int = 0,
+                   schedule=None) -> list[tuple[float, int, int]]:
     """The plant's shifts (t_s, from, to) in the offline run of ``maneuver`` over
-    its first ``duration_s``: the same TCU logic in-process, every message through
-    the CAN matrix of the live run at its cycle time (``tcu_stub.offline.run_offline``:
-    the project's contract, or with ``mapping`` (a ``can_dbc.mapping.Mapping``) its
-    matrix through ``tcu_stub.mapped_link.MappedLink``, so that the matrix's own
-    scaling is in both runs), the gear recorded every 2 ms as in the demo and read by
-    ``plant.maneuvers.gear_shifts``. A few seconds of CPU for the whole paper-cycle;
+    its first ``duration_s``: the live run's loop without a bus
+    (``tcu_stub.offline.run_scheduled``): the same plant, the same pedal table
+    played every tick, the same TCU logic in-process every 2 ms, every message
+    through the CAN matrix of the live run (the project's contract, or with
+    ``mapping`` (a ``can_dbc.mapping.Mapping``) its matrix through
+    ``tcu_stub.mapped_link.MappedLink``, so that the matrix's own scaling is in
+    both runs) and sent at the ticks the server sends it (``schedule``:
+    ``can_dbc.table.send_schedule`` of the live run's mapping; default the
+    contract's), the maneuver started at the live run's tick ``start_tick``
+    (the plant idling until then as the live one did, so that both start it
+    from the same plant state and the same phase of the send schedule), the
+    gear recorded at the ticks the demo's recorder records it and read by
+    ``plant.maneuvers.gear_shifts``. About a second of CPU for 10 s of maneuver;
     kept in memory for the rest of the process."""
+    from can_dbc.table import send_schedule
     from plant.maneuvers import gear_shifts, get_maneuver
     from plant.model import Plant
-    from tcu_stub.offline import run_offline
+    from tcu_stub.offline import run_scheduled
 
-    key = (maneuver, round(float(duration_s), 6), None if mapping is None else mapping.path)
+    if schedule is None:
+        if mapping is None:
+            from can_dbc.mapping import load
+
+            schedule = send_schedule(load())
+        else:
+            schedule = send_schedule(mapping)
+    schedule = tuple(tuple(x) for x in schedule)
+    key = (maneuver, round(float(duration_s), 6), None if mapping is None else mapping.path,
+           int(start_tick), schedule)
     if key not in _OFFLINE_SHIFTS:
         m = get_maneuver(maneuver)
         plant = Plant(overrides={"hydraulics": {"pressure_commanded": 0}})
@@ -127,9 +145,24 @@ def offline_shifts(maneuver: str, duration_s: float, mapping=None) -> list[tuple
             from tcu_stub.mapped_link import MappedLink
 
             link = MappedLink(mapping)
-        rec = run_offline(plant, m.driver, float(duration_s), record_every_s=RECORD_EVERY_S, link=link)
+        every = max(1, int(round(RECORD_EVERY_S / plant.step_s)))
+        rec = run_scheduled(plant, m.driver, float(duration_s), schedule, start_tick=int(start_tick),
+                            link=link, record_every_ticks=every)
         _OFFLINE_SHIFTS[key] = gear_shifts(rec["time_s"], rec["gear"])
     return list(_OFFLINE_SHIFTS[key])
+
+
+def maneuver_start_tick(rec: dict, step_s: float) -> int | None:
+    """The loop's tick at which a recorded run's maneuver started (the plant's
+    idle before it, in ticks), from its first recorded sample of maneuver time
+    (plant time and maneuver time after the same step; plant time advances
+    only with executed ticks); None when it never started."""
+    mt = np.asarray(rec["maneuver_time_s"], dtype=float)
+    idx = np.flatnonzero(~np.isnan(mt))
+    if not len(idx):
+        return None
+    i = idx[0]
+    return max(0, int(round((float(rec["time_s"][i]) - float(mt[i])) / step_s)))
 
 
 class _TcuProcess:
@@ -427,6 +460,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
             plots = write_plots(ran, folder, title=f"demo {maneuver}")
     tcu_report = tcu.report() if tcu is not None else None
     offline, not_compared, interrupted = None, None, signals.interrupted
+    start_tick = maneuver_start_tick(rec, server.step_s) if len(rec["time_s"]) else None
     if received:
         not_compared = "the run was stopped"
     elif run["maneuver"] != "done":
@@ -435,7 +469,10 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         print(f"offline run       {maneuver} over {end_s:g} s with the TCU in-process, for the "
               "shift comparison ...", file=out, flush=True)
         try:
-            offline = offline_shifts(maneuver, end_s, tcu_mapping)
+            from can_dbc.table import send_schedule
+
+            offline = offline_shifts(maneuver, end_s, tcu_mapping, start_tick or 0,
+                                     send_schedule(server.mapping))
         except KeyboardInterrupt:
             not_compared, interrupted = "interrupted while computing the offline run", True
         except Exception as e:  # the verdict says why; the run's files stand
@@ -454,6 +491,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         "tcu_clock": tcu_clock,
         "figures": figures,
         "shifts": [{"time_s": t, "from": a, "to": b} for t, a, b in shifts],
+        "maneuver_start_tick": start_tick,
         "offline_shifts": None if offline is None else [
             {"time_s": t, "from": a, "to": b} for t, a, b in offline],
         "verdict": verdict,

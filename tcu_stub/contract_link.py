@@ -109,6 +109,18 @@ class ContractLink:
     def apply(self, plant, commands, k):
         apply_commands(plant, commands, k % 16, lambda name: _due(TCU_PLAN, name, k))
 
+    def refresh(self, outputs, due):
+        """The plant messages named in ``due`` ((bus, message) pairs, as
+        ``can_dbc.table.send_schedule`` gives them) sent now with ``outputs``:
+        what the TCU reads of them until they are sent again (``view``)."""
+        names = {name for _, name in due}
+        if names:
+            sensors_from_plant(outputs, 0, self._sensors, lambda name: name in names)
+
+    def view(self):
+        """The TCU's view: each plant message as last sent (``refresh``)."""
+        return dict(self._sensors, stale=False)
+
 
 RECORDED = ("vehicle_speed_kmh", "vehicle_accel_mps2", "engine_speed_rpm", "input_shaft1_speed_rpm",
             "input_shaft2_speed_rpm", "clutch1_pressure_bar", "clutch2_pressure_bar",

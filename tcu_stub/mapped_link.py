@@ -366,6 +366,21 @@ class MappedLink:
         view["stale"] = False
         return view
 
+    def refresh(self, outputs, due):
+        """The plant messages named in ``due`` ((bus, message) pairs, as
+        ``can_dbc.table.send_schedule`` gives them) sent now with ``outputs``:
+        what the TCU reads of them until they are sent again (``view``)."""
+        keys = {f"{bus}:{name}" for bus, name in due}
+        for m in self.sent:
+            if message_key(m) in keys:
+                self._send(m, outputs)
+
+    def view(self):
+        """The TCU's view: each plant message as last sent (``refresh``)."""
+        view = self.matrix.view(self._decoded)
+        view["stale"] = False
+        return view
+
     def apply(self, plant, commands, k):
         for m in self.received:
             if k % _divisor(m.cycle_ms) != 0:

@@ -10,6 +10,10 @@ and TCU ported operation for operation, the same results to the bit) unless
 what it is given needs the Python loop: ``stale_fn``, ``sensor_fault``,
 ``on_period``, another ``link``, or a ``tcu`` that is not the reference
 TcuLogic. ``tcu_impl="python"`` runs the Python loop anyway.
+
+``run_scheduled`` is the plant server's loop offline: tick by tick, each plant
+message at the ticks the server sends it, the maneuver from the tick the live
+run started it (the reference of ``dct-hil demo``).
 """
 
 import warnings
@@ -140,6 +144,92 @@ def run_offline(plant, driver_fn, duration_s, record_every_s=0.01, tcu=None, sta
             rec["tcu_kiss2_bar"].append(tcu.kiss_bar[1])
         plant.step(steps_per_tcu)
     result = {k: (np.array(v) if k != "tcu_phase" else v) for k, v in rec.items()}
+    result["shifts"] = list(tcu.events)
+    return result
+
+
+# ------------------------------------------------- the server's loop, offline
+def run_scheduled(plant, driver_fn, duration_s, schedule, start_tick=0, link=None,
+                  record_every_ticks=4, tcu=None):
+    """The plant server's loop and the reference TCU in one process, tick by
+    tick as the server runs them, without a bus: the reference a run over CAN
+    is compared with (``dct-hil demo``).
+
+    ``run_offline`` steps the plant a TCU period at a time, the driver every
+    10 ms, and shows the TCU every plant message as fresh at its period. The
+    server does otherwise, and so does this loop: from its first tick (0) the
+    plant sends each message at the ticks of ``schedule`` ((bus, message,
+    divisor, offset): ``can_dbc.table.send_schedule`` of the live run's
+    mapping; a message with divisor d and offset o is sent after the step of
+    the ticks n with n % d == o, carrying the outputs of that step), and the
+    TCU reads each message as last sent. Until ``start_tick`` the plant idles
+    on the driver's first pedals with no TCU command (the server waiting for
+    the TCU); from that tick the maneuver plays: the driver's pedals set
+    before every step at maneuver time (the plant time since that tick, as
+    the loop's pedal table), the TCU stepping every TCU period from that tick
+    on (its commands driving the plant from the tick it steps at: the loop
+    starts the maneuver at the first tick that applies a TCU frame), its 10 ms
+    messages at every fifth period. The gear is recorded after the step of
+    the ticks n with n % ``record_every_ticks`` == 0, at maneuver time (the
+    server's recorder). ``link``: ``ContractLink`` (default) or
+    ``tcu_stub.mapped_link.MappedLink``: the same matrix as the live run.
+
+    What differs from a run over CAN is what a bus and two clocks add: the
+    TCU reading its frames and its frames reaching the plant a tick or more
+    later than the schedule (a late wake-up, a skipped tick or period), lost
+    or rejected frames. Returns a dict of arrays (``time_s``: maneuver time,
+    ``gear``, ``vehicle_speed_kmh``, ``tcu_target_gear``) and ``shifts`` (the
+    TCU's events)."""
+    import math
+
+    if duration_s <= 0:
+        raise ValueError(f"duration_s must be positive, got {duration_s}")
+    if start_tick < 0 or record_every_ticks < 1:
+        raise ValueError("start_tick must be >= 0 and record_every_ticks >= 1")
+    tcu = tcu or TcuLogic()
+    link = ContractLink() if link is None else link
+    steps_per_tcu = max(1, int(round(PERIOD_S / plant.step_s)))
+    plan = [(bus, name, int(div), int(off)) for bus, name, div, off in schedule]
+    hyper = 1
+    for _, _, div, _ in plan:
+        hyper = hyper * div // math.gcd(hyper, div)
+    table = None
+    if hyper <= 100_000:
+        table = [[(b, m) for b, m, d, o in plan if n % d == o] for n in range(hyper)]
+
+    def due(n):
+        return table[n % hyper] if table is not None else [(b, m) for b, m, d, o in plan if n % d == o]
+
+    for name, value in driver_inputs(driver_fn, 0.0, plant.outputs).items():
+        plant.inputs[name] = value
+    plant.update_outputs()
+    longest = max((div for _, _, div, _ in plan), default=1)
+    quiet = max(0, start_tick - longest)       # nothing sent before that is read
+    if quiet:
+        plant.step(quiet)
+    for n in range(quiet, start_tick):
+        plant.step(1)
+        link.refresh(plant.outputs, due(n))
+    rec = {k: [] for k in ("time_s", "gear", "vehicle_speed_kmh", "tcu_target_gear")}
+    t0 = plant.time_s
+    out = plant.outputs
+    for j in range(int(round(duration_s / plant.step_s))):
+        n = start_tick + j
+        t = plant.time_s - t0
+        if j % steps_per_tcu == 0:
+            k = j // steps_per_tcu
+            cmd = tcu.step(t, link.view())
+            link.apply(plant, cmd, k)
+        for name, value in driver_inputs(driver_fn, t, out).items():
+            plant.inputs[name] = value
+        plant.step(1)
+        if n % record_every_ticks == 0:
+            rec["time_s"].append(plant.time_s - t0)
+            rec["gear"].append(float(out["gear"]))
+            rec["vehicle_speed_kmh"].append(float(out["vehicle_speed_kmh"]))
+            rec["tcu_target_gear"].append(tcu.target_gear)
+        link.refresh(out, due(n))
+    result = {k: np.array(v) for k, v in rec.items()}
     result["shifts"] = list(tcu.events)
     return result
 

@@ -208,7 +208,7 @@ def test_a_demo_with_a_starved_tcu_is_invalid_names_why_and_strict_exits_3(
                 paused.append(self.tcu.t_s)
 
     monkeypatch.setattr(demo, "_TcuThread", StarvedTcu)
-    code = cli.main(["demo", "--duration", "8", "--priority", "0", "--quiet", "--strict",
+    code = cli.main(["demo", "--duration", "8", "--priority", "0", "--quiet", "--strict", "--tcu-impl", "python",
                      "--out", str(tmp_path)])
     out, err = capsys.readouterr()
     assert paused, "the TCU was never paused"
