@@ -23,7 +23,7 @@ _CSRC = os.path.join(_HERE, "csrc")
 # loaded by path: setuptools runs build files by path, not as package modules
 _plant = SimpleNamespace(**runpy.run_path(os.path.join(_ROOT, "plant", "_build.py")))
 # the plant builder's helpers, for this builder and the ones that load it
-cdef_text, rel, COMPILE_ARGS = _plant.cdef_text, _plant.rel, _plant.COMPILE_ARGS
+cdef_text, rel, COMPILE_ARGS, LINK_ARGS = _plant.cdef_text, _plant.rel, _plant.COMPILE_ARGS, _plant.LINK_ARGS
 #: the codec's C source and header, for the extensions that compile it in
 SOURCE = os.path.join(_CSRC, "can_table.c")
 HEADER = os.path.join(_CSRC, "can_table.h")
@@ -39,6 +39,7 @@ def make_builder():
         include_dirs=[rel(_CSRC)],
         depends=[rel(HEADER)],
         extra_compile_args=COMPILE_ARGS,
+        extra_link_args=LINK_ARGS,
         libraries=["m"],
     )
     return ffi

@@ -53,6 +53,7 @@ def make_builder():
         sources=_sources(),
         include_dirs=[_can.rel(d) for d in (_RT_CSRC, _CAN_CSRC, _PLANT_CSRC)],
         extra_compile_args=_can.COMPILE_ARGS,
+        extra_link_args=_can.LINK_ARGS,
         define_macros=[("_GNU_SOURCE", None)],   # recvmmsg, sendmmsg, CPU_SET
         libraries=["m", "pthread"],
     )

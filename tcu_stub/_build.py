@@ -56,6 +56,7 @@ def make_builder():
                                    os.path.join(_TCU_CSRC, "tcu_node.h"),
                                    os.path.join(_TCU_CSRC, "tcu_util.h"))],
         extra_compile_args=_can.COMPILE_ARGS,
+        extra_link_args=_can.LINK_ARGS,
         libraries=["m", "pthread"],
     )
     return ffi

@@ -1169,3 +1169,35 @@ def test_vehicle_rolls_back_on_a_grade(car):
         out = Vehicle(car, road_grade_pct=grade_pct).eval()
         assert out.accel_m_s2 == pytest.approx(
             -p.gravity_m_s2 * math.sin(math.atan(0.01 * grade_pct)), rel=EXACT)
+
+
+def test_gearbox_takes_dampers_implicitly_only_in_a_tie_up(car):
+    """One gear engaged on each shaft (all a TCU does): no implicit dampers,
+    the explicit step. Two gears on one input shaft (a tie-up): the tied
+    shaft and the carrier report their dampers (each engaged sleeve's b /
+    ratio^2 on the shaft, b final_drive^2 on the carrier, plus the stuck
+    clutch's on the tied shaft), which dct_gearbox_advance adds, times h,
+    to their inertias; the other shaft stays explicit."""
+    box = Gearbox(car, 0, carrier_speed=20.0)        # 1st on shaft 1 (sleeve 1-3)
+    box.inp.clutch_damping_nms_per_rad[0] = 20.0
+    box.inp.clutch_damping_nms_per_rad[1] = 20.0
+    s2 = box.s.sync[1]                                 # and 2nd on shaft 2: no tie-up
+    s2.phase, s2.side = lib.DCT_SYNC_ENGAGED, 1
+    out = box.eval(0.0)
+    assert list(out.input_damping_nms_per_rad) == [0.0, 0.0] and out.carrier_damping_nms_per_rad == 0.0
+    s3 = box.s.sync[2]                                 # 5th (sleeve 5-R) on shaft 1 too: a tie-up
+    s3.phase, s3.side = lib.DCT_SYNC_ENGAGED, 1
+    out = box.eval(0.0)
+    p = box.p
+    b = [p.sync[k].damping_nms_per_rad for k in range(4)]
+    assert out.input_damping_nms_per_rad[0] == pytest.approx(
+        b[0] / p.ratio[0] ** 2 + b[2] / p.ratio[4] ** 2 + 20.0, rel=1e-12)
+    assert out.input_damping_nms_per_rad[1] == 0.0
+    assert out.carrier_damping_nms_per_rad == pytest.approx(
+        b[0] * p.final_drive[0] ** 2 + b[1] * p.final_drive[0] ** 2 + b[2] * p.final_drive[1] ** 2, rel=1e-12)
+    # the advance divides by the inertia plus h x the dampers
+    h = 5e-4
+    before = box.s.input_speed_rad_s[0]
+    lib.dct_gearbox_advance(p, box.d, box.s, box.inp, out, h)
+    expected = before + h * out.input_torque_nm[0] / (box.d.input_inertia_kgm2[0] + h * out.input_damping_nms_per_rad[0])
+    assert box.s.input_speed_rad_s[0] == pytest.approx(expected, rel=1e-15)

@@ -183,6 +183,29 @@ def test_cold_start_agrees(monkeypatch):
     assert co[-1, OUTPUT_NAMES.index("sync1_state")] == 2.0
 
 
+def test_a_tie_up_agrees():
+    """Two gears on one input shaft (3rd and 5th on shaft 1, a tie-up a
+    faulty TCU can command) with K1 stuck, driving: the step takes the tied
+    shaft's and the carrier's dampers implicitly (gearbox.c); both
+    implementations agree step by step and stay finite."""
+    c = Plant(overrides={"hydraulics": {"pressure_commanded": 1}})
+    c.reset(vehicle_speed_kmh=60.0, sleeves=(-1, 0, 0, 0), clutch_locked=(1, 0))
+    py = PyPlant(c.params)
+    py.init_from(c)
+    for name, value in (("accel_pedal_pct", 60.0), ("clutch1_pressure_bar", 12.0), ("fork_force3_n", 2000.0)):
+        c.inputs[name] = py.inputs[name] = value
+    n = 1200
+    cs, ps = np.empty((n, len(STATE_NAMES))), np.empty((n, len(STATE_NAMES)))
+    for k in range(n):
+        c.step(1)
+        py.step(1)
+        cs[k], ps[k] = c.state, py.state
+    err, where = _worst(cs, ps, STATE_NAMES)
+    assert err <= REL_TOL, where
+    assert c.outputs["sync1_gear"] == 3.0 and c.outputs["sync3_gear"] == 5.0   # both in: tied up
+    assert np.all(np.isfinite(cs))
+
+
 def test_reset_matches_the_c_reset():
     c = Plant(overrides=HYDRAULICS)
     py = PyPlant(c.params)

@@ -11,6 +11,7 @@ here with the coupling named. The last test checks the step itself: the default 
 ten times finer one over a whole launch.
 """
 
+import itertools
 import math
 
 import numpy as np
@@ -149,6 +150,83 @@ def hydraulic_modes():
         c0 = vol * oil["air_fraction"] / 1e5
         out.append((f"K{k_clutch + 1} chamber draining at 0 bar", at_hh(-g / c0)))
     return out
+
+
+SHAFT_OF_GEAR = (0, 1, 0, 1, 0, 1, 0)
+SLEEVE_OF_GEAR = (0, 1, 0, 1, 2, 3, 2)
+
+
+def tie_up_radius(clutches, gears):
+    """Spectral radius of the step's map for the engine, both input shafts,
+    the carrier and the two front wheels, with the stuck clutches and the
+    engaged gears given, and the half-shafts. Two gears engaged on one input
+    shaft lock it to the output at two ratios (a tie-up: a faulty TCU or bad
+    frames can command one); then, as gearbox.c does, the tied shafts and the
+    carrier take their dampers implicitly (the step divides by the inertia
+    plus h x the dampers); everything else is explicit Euler."""
+    je, jw = P["engine"]["inertia_kgm2"], P["front_wheel"]["inertia_kgm2"]
+    fd, ratio = GB["final_drive"], GB["ratio"]
+    jc = GB["differential_inertia_kgm2"] + sum(j * f * f for j, f in zip(GB["output_shaft_inertia_kgm2"], fd))
+    m = np.diag([je, input_inertia(0), input_inertia(1), jc, jw, jw])
+    k_mat, c_mat = np.zeros((6, 6)), np.zeros((6, 6))
+
+    def link(i, j, k, c, ri=1.0, rj=1.0):   # torque k (ri x_i - rj x_j) + c (ri v_i - rj v_j)
+        v = np.zeros(6)
+        v[i] += ri
+        v[j] -= rj
+        k_mat[:] += k * np.outer(v, v)
+        c_mat[:] += c * np.outer(v, v)
+    for k in clutches:
+        f = P["clutch"][k]["friction"]
+        link(0, 1 + k, f["stiffness_nm_per_rad"], f["damping_nms_per_rad"])
+    for g in gears:
+        s = GB["sync"][SLEEVE_OF_GEAR[g]]
+        link(1 + SHAFT_OF_GEAR[g], 3, s["stiffness_nm_per_rad"], s["damping_nms_per_rad"],
+             1 / ratio[g], fd[0 if g < 4 else 1])
+    dl = P["driveline"]
+    link(3, 4, dl["left_stiffness_nm_per_rad"], dl["left_damping_nms_per_rad"])
+    link(3, 5, dl["right_stiffness_nm_per_rad"], dl["right_damping_nms_per_rad"])
+    step_m = m.copy()
+    tied = [sum(1 for g in gears if SHAFT_OF_GEAR[g] == shaft) > 1 for shaft in (0, 1)]
+    if any(tied):
+        for shaft in (0, 1):
+            if tied[shaft]:
+                c = sum(GB["sync"][SLEEVE_OF_GEAR[g]]["damping_nms_per_rad"] / ratio[g] ** 2
+                        for g in gears if SHAFT_OF_GEAR[g] == shaft)
+                c += P["clutch"][shaft]["friction"]["damping_nms_per_rad"] if shaft in clutches else 0.0
+                step_m[1 + shaft, 1 + shaft] += H * c
+        step_m[3, 3] += H * sum(GB["sync"][SLEEVE_OF_GEAR[g]]["damping_nms_per_rad"] * fd[0 if g < 4 else 1] ** 2
+                                for g in gears)
+    inv = np.linalg.inv(step_m)
+    a = np.block([[np.eye(6), H * np.eye(6)], [-H * inv @ k_mat, np.eye(6) - H * inv @ c_mat]])
+    return float(np.abs(np.linalg.eigvals(a)).max())
+
+
+def tie_ups():
+    """Every combination: each clutch stuck or not, each sleeve in neutral or
+    on either of its gears."""
+    sleeves = ((0, 2), (1, 3), (4, 6), (5,))
+    for clutches in ((), (0,), (1,), (0, 1)):
+        for choice in itertools.product(*[(None, *g) for g in sleeves]):
+            yield clutches, tuple(g for g in choice if g is not None)
+
+
+def test_every_tie_up_is_stable():
+    """Any gears engaged, either clutch stuck: the step never amplifies (the
+    largest eigenvalue of its map is the rigid turning of everything, 1, to
+    rounding). All explicit, 105 of these combinations (each with two gears
+    on one input shaft) grow at 0.5 ms, the worst (both clutches stuck, four
+    gears in) 2.9x a step: a fuzz run's random frames found it."""
+    worst = max((tie_up_radius(c, g), c, g) for c, g in tie_ups())
+    assert worst[0] <= 1.0 + 1e-6, f"clutches {worst[1]} stuck, gears {worst[2]}: x{worst[0]:.3f} per step"
+
+
+def test_without_a_tie_up_explicit_euler_is_stable():
+    """Every gearbox state a TCU uses (at most one gear on each input shaft)
+    is stable with the explicit step gearbox.c keeps there
+    (tests/test_components.py: no implicit dampers without a tie-up)."""
+    assert all(tie_up_radius(c, g) <= 1.0 + 1e-6 for c, g in tie_ups()
+               if all(sum(1 for x in g if SHAFT_OF_GEAR[x] == s) <= 1 for s in (0, 1)))
 
 
 @pytest.mark.parametrize("name,kept", modes(), ids=[m[0] for m in modes()])

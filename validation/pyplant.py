@@ -776,7 +776,7 @@ class GearboxState:
 
 class GearboxOutput(_Struct):
     __slots__ = ("gear_torque_nm", "input_torque_nm", "carrier_torque_nm", "output_speed_rad_s",
-                 "power_loss_w", "sync", "sync_in")
+                 "power_loss_w", "input_damping_nms_per_rad", "carrier_damping_nms_per_rad", "sync", "sync_in")
 
 
 def gearbox_prepare(p):
@@ -807,7 +807,8 @@ def _gear_drag(c0, c1, w, smooth):
     return c0 * smooth_sign(w, smooth) + c1 * w
 
 
-def gearbox_output(p, d, s, clutch_torque_nm, fork_force_n, load_torque_nm, viscous_drag_excess=0.0):
+def gearbox_output(p, d, s, clutch_torque_nm, fork_force_n, load_torque_nm, viscous_drag_excess=0.0,
+                   clutch_damping_nms_per_rad=(0.0, 0.0)):
     out = GearboxOutput()
     visc = 1.0 + viscous_drag_excess
     w_out = [s.carrier_speed_rad_s * p.final_drive[0], s.carrier_speed_rad_s * p.final_drive[1]]
@@ -830,6 +831,26 @@ def gearbox_output(p, d, s, clutch_torque_nm, fork_force_n, load_torque_nm, visc
         g = sleeve_gear(k, int(so.side))
         if g >= 0:
             gear_torque[g] += so.torque_nm
+    # a tie-up (two gears engaged on one input shaft): the tied shafts and the
+    # carrier take their dampers implicitly (gearbox.c); none otherwise
+    engaged = [0, 0]
+    for k in range(N_SLEEVES):
+        g = sleeve_gear(k, int(out.sync[k].side))
+        if g >= 0 and s.sync[k].phase == SYNC_ENGAGED:
+            engaged[GEAR_INPUT[g]] += 1
+    c_in = [0.0, 0.0]
+    c_car = 0.0
+    if engaged[0] > 1 or engaged[1] > 1:
+        for k in range(N_SLEEVES):
+            g = sleeve_gear(k, int(out.sync[k].side))
+            if g < 0 or s.sync[k].phase != SYNC_ENGAGED:
+                continue
+            b = p.sync[k].damping_nms_per_rad
+            c_in[GEAR_INPUT[g]] += b / (p.ratio[g] * p.ratio[g])
+            c_car += b * (p.final_drive[GEAR_OUTPUT[g]] * p.final_drive[GEAR_OUTPUT[g]])
+        c_in = [c_in[k] + clutch_damping_nms_per_rad[k] if engaged[k] > 1 else 0.0 for k in range(2)]
+    out.input_damping_nms_per_rad = c_in
+    out.carrier_damping_nms_per_rad = c_car
     loss = 0.0
     t_in = [0.0, 0.0]
     for k in range(2):
@@ -861,9 +882,12 @@ def gearbox_output(p, d, s, clutch_torque_nm, fork_force_n, load_torque_nm, visc
 
 
 def gearbox_advance(p, d, s, out, h):
+    # linearly implicit in a shaft's own dampers in a tie-up (gearbox.c); explicit otherwise
     for k in range(2):
-        s.input_speed_rad_s[k] += h * out.input_torque_nm[k] / d.input_inertia_kgm2[k]
-    s.carrier_speed_rad_s += h * out.carrier_torque_nm / d.carrier_inertia_kgm2
+        s.input_speed_rad_s[k] += h * out.input_torque_nm[k] / (d.input_inertia_kgm2[k]
+                                                               + h * out.input_damping_nms_per_rad[k])
+    s.carrier_speed_rad_s += h * out.carrier_torque_nm / (d.carrier_inertia_kgm2
+                                                          + h * out.carrier_damping_nms_per_rad)
     for k in range(N_SLEEVES):
         sync_advance(p.sync[k], s.sync[k], out.sync_in[k], out.sync[k], h)
 
@@ -1606,7 +1630,9 @@ class PyPlant:
         forks = (u["fork_force1_n"], u["fork_force2_n"], u["fork_force3_n"], u["fork_force4_n"])
         c.gearbox = gearbox_output(p.gearbox, self.gearbox_derived, self.gearbox,
                                    (c.clutch[0].torque_nm, c.clutch[1].torque_nm), forks,
-                                   c.driveline.carrier_load_nm, fx.churning_factor - 1.0)
+                                   c.driveline.carrier_load_nm, fx.churning_factor - 1.0,
+                                   tuple(0.0 if c.clutch[k].friction.sliding > 0.5
+                                         else p.clutch[k].friction.damping_nms_per_rad for k in range(2)))
 
         # tyres and wheels
         fz_front, fz_rear = vehicle_tyre_loads(p.vehicle, self.vehicle)

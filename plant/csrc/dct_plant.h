@@ -328,6 +328,7 @@ typedef struct {
     double load_torque_nm;                  /* taken from the carrier by the differential */
     double fork_jammed[DCT_N_SLEEVES];      /* 1: that sleeve held where it is (fault) */
     double viscous_drag_excess;             /* thermal: viscous drags x (1 + this) */
+    double clutch_damping_nms_per_rad[2];   /* a stuck clutch's damper on its input shaft (0: sliding) */
 } dct_gearbox_input;
 
 typedef struct {
@@ -336,6 +337,12 @@ typedef struct {
     double carrier_torque_nm;               /* net torque on the carrier */
     double output_speed_rad_s[2];
     double power_loss_w;
+    /* in a tie-up (two gears engaged on one input shaft) the dampers on the
+     * tied shafts and the carrier (engaged synchronizers, a stuck clutch),
+     * d(torque)/d(speed), which dct_gearbox_advance takes implicitly; 0
+     * otherwise (explicit Euler) */
+    double input_damping_nms_per_rad[2];
+    double carrier_damping_nms_per_rad;
     dct_sync_output sync[DCT_N_SLEEVES];
     dct_sync_input sync_in[DCT_N_SLEEVES];
 } dct_gearbox_output;
@@ -343,6 +350,8 @@ typedef struct {
 /* derived constants, computed once by dct_gearbox_prepare() */
 typedef struct {
     double input_inertia_kgm2[2];           /* incl. loose gears reduced to the shaft */
+    double gear_side_inertia_kgm2[DCT_N_GEARS]; /* what a synchronizer turns at gear g: its input shaft
+                                              (incl. loose gears) reflected through g's ratio */
     double carrier_inertia_kgm2;            /* incl. output shafts reduced to the carrier */
     double signed_ratio[DCT_N_GEARS];       /* R negative */
 } dct_gearbox_derived;

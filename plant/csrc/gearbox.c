@@ -43,6 +43,15 @@ int dct_sleeve_gear(int sleeve, int side)
     return side > 0 ? SLEEVE_POS[sleeve] : SLEEVE_NEG[sleeve];
 }
 
+/* the gear side a synchronizer turns, at gear g: the input shaft that drives
+ * g (shaft, clutch hub, fixed gears and the loose gears meshing with them;
+ * its clutch open) reflected through g's ratio. It includes the loose gear
+ * g itself. */
+static double gear_side_inertia(const dct_gearbox_params *p, const dct_gearbox_derived *d, int g)
+{
+    return d->input_inertia_kgm2[GEAR_INPUT[g]] * dct_sq(p->ratio[g]);
+}
+
 void dct_gearbox_prepare(const dct_gearbox_params *p, dct_gearbox_derived *d)
 {
     for (int k = 0; k < 2; k++)
@@ -51,18 +60,11 @@ void dct_gearbox_prepare(const dct_gearbox_params *p, dct_gearbox_derived *d)
         d->signed_ratio[g] = g == DCT_GEAR_R ? -p->ratio[g] : p->ratio[g];
         d->input_inertia_kgm2[GEAR_INPUT[g]] += p->idle_gear_inertia_kgm2[g] / dct_sq(p->ratio[g]);
     }
+    for (int g = 0; g < DCT_N_GEARS; g++)
+        d->gear_side_inertia_kgm2[g] = gear_side_inertia(p, d, g);
     d->carrier_inertia_kgm2 = p->differential_inertia_kgm2;
     for (int o = 0; o < 2; o++)
         d->carrier_inertia_kgm2 += p->output_shaft_inertia_kgm2[o] * dct_sq(p->final_drive[o]);
-}
-
-/* the gear side a synchronizer turns, at gear g: the input shaft that drives
- * g (shaft, clutch hub, fixed gears and the loose gears meshing with them;
- * its clutch open) reflected through g's ratio. It includes the loose gear
- * g itself. */
-static double gear_side_inertia(const dct_gearbox_params *p, const dct_gearbox_derived *d, int g)
-{
-    return d->input_inertia_kgm2[GEAR_INPUT[g]] * dct_sq(p->ratio[g]);
 }
 
 static double efficiency_factor(double eta, double power_w, double scale_w)
@@ -100,13 +102,43 @@ void dct_gearbox_output_eval(const dct_gearbox_params *p, const dct_gearbox_deri
         si->slip_pos_rad_s = w_gear[SLEEVE_POS[k]] - wo;
         si->has_neg = SLEEVE_NEG[k] >= 0 ? 1.0 : 0.0;
         si->slip_neg_rad_s = SLEEVE_NEG[k] >= 0 ? w_gear[SLEEVE_NEG[k]] - wo : 0.0;
-        si->gear_inertia_pos_kgm2 = gear_side_inertia(p, d, SLEEVE_POS[k]);
-        si->gear_inertia_neg_kgm2 = SLEEVE_NEG[k] >= 0 ? gear_side_inertia(p, d, SLEEVE_NEG[k]) : 0.0;
+        si->gear_inertia_pos_kgm2 = d->gear_side_inertia_kgm2[SLEEVE_POS[k]];
+        si->gear_inertia_neg_kgm2 = SLEEVE_NEG[k] >= 0 ? d->gear_side_inertia_kgm2[SLEEVE_NEG[k]] : 0.0;
         dct_sync_output_eval(&p->sync[k], &s->sync[k], si, &out->sync[k]);
         int g = dct_sleeve_gear(k, (int)out->sync[k].side);
         if (g >= 0)
             out->gear_torque_nm[g] += out->sync[k].torque_nm;
     }
+    /* a tie-up: two gears engaged on one input shaft lock it to the
+     * output at two ratios (a faulty TCU, bad frames). The synchronizers'
+     * dampers then act on the light shaft and the carrier from several
+     * sides at once, too stiff for the explicit 0.5 ms step: the tied
+     * shafts and the carrier take their dampers (a stuck clutch's, each
+     * engaged synchronizer's b: b / ratio^2 on the input shaft, b final
+     * drive^2 on the carrier) implicitly (dct_gearbox_advance). Without a
+     * tie-up (every gearbox state a TCU uses) none: explicit Euler. */
+    int engaged[2] = {0, 0};
+    for (int k = 0; k < DCT_N_SLEEVES; k++) {
+        int g = dct_sleeve_gear(k, (int)out->sync[k].side);
+        if (g >= 0 && s->sync[k].phase == DCT_SYNC_ENGAGED)
+            engaged[GEAR_INPUT[g]] += 1;
+    }
+    double c_car = 0.0, c_in[2] = {0.0, 0.0};
+    if (engaged[0] > 1 || engaged[1] > 1) {
+        for (int k = 0; k < DCT_N_SLEEVES; k++) {
+            int g = dct_sleeve_gear(k, (int)out->sync[k].side);
+            if (g < 0 || s->sync[k].phase != DCT_SYNC_ENGAGED)
+                continue;
+            double b = p->sync[k].damping_nms_per_rad;
+            c_in[GEAR_INPUT[g]] += b / dct_sq(p->ratio[g]);
+            c_car += b * dct_sq(p->final_drive[GEAR_OUTPUT[g]]);
+        }
+        for (int k = 0; k < 2; k++)
+            c_in[k] = engaged[k] > 1 ? c_in[k] + in->clutch_damping_nms_per_rad[k] : 0.0;
+    }
+    out->input_damping_nms_per_rad[0] = c_in[0];
+    out->input_damping_nms_per_rad[1] = c_in[1];
+    out->carrier_damping_nms_per_rad = c_car;
     for (int k = 0; k < 2; k++) {
         double w = s->input_speed_rad_s[k];
         double t = drag(p->input_drag_nm[k], p->input_drag_nms_per_rad[k] * visc, w, p->drag_smoothing_rad_s);
@@ -145,9 +177,14 @@ void dct_gearbox_advance(const dct_gearbox_params *p, const dct_gearbox_derived 
                          const dct_gearbox_output *out, double h)
 {
     (void)in;
+    /* linearly implicit in a shaft's own dampers in a tie-up (the shaft's
+     * inertia plus h x its dampers; dct_gearbox_output_eval), explicit
+     * Euler otherwise (the dampers are 0 then) */
     for (int k = 0; k < 2; k++)
-        s->input_speed_rad_s[k] += h * out->input_torque_nm[k] / d->input_inertia_kgm2[k];
-    s->carrier_speed_rad_s += h * out->carrier_torque_nm / d->carrier_inertia_kgm2;
+        s->input_speed_rad_s[k] +=
+            h * out->input_torque_nm[k] / (d->input_inertia_kgm2[k] + h * out->input_damping_nms_per_rad[k]);
+    s->carrier_speed_rad_s +=
+        h * out->carrier_torque_nm / (d->carrier_inertia_kgm2 + h * out->carrier_damping_nms_per_rad);
     for (int k = 0; k < DCT_N_SLEEVES; k++)
         dct_sync_advance(&p->sync[k], &s->sync[k], &out->sync_in[k], &out->sync[k], h);
 }

@@ -81,8 +81,15 @@ static void refresh_thermal(dct_plant *pl)
 {
     const dct_params *p = &pl->effective;
     dct_thermal_cache *t = &pl->thermal;
+    const dct_thermal_state *now = &pl->state.thermal;
+    /* within 0.49 of the resolution of the key the rounded temperatures
+     * are the key itself: no rounding needed (most steps) */
+    double near = 0.49 * p->thermal.effects_resolution_k;
+    if (t->valid > 0.5 && fabs(now->coolant_temp_degc - t->key[0]) < near &&
+        fabs(now->engine_oil_temp_degc - t->key[1]) < near && fabs(now->trans_oil_temp_degc - t->key[2]) < near)
+        return;
     double key[3];
-    dct_thermal_effects_key(&p->thermal, &pl->state.thermal, key);
+    dct_thermal_effects_key(&p->thermal, now, key);
     if (t->valid > 0.5 && key[0] == t->key[0] && key[1] == t->key[1] && key[2] == t->key[2])
         return;
     dct_thermal_effects_eval(&p->thermal, &pl->derived.thermal, &p->hydraulics.oil, &pl->state.thermal, &t->fx);
@@ -186,6 +193,9 @@ static void evaluate_at(const dct_plant *pl, const dct_inputs *u, coupling *c)
     c->gearbox_in.fork_force_n[3] = u->fork_force4_n;
     c->gearbox_in.load_torque_nm = c->driveline.carrier_load_nm;
     c->gearbox_in.viscous_drag_excess = c->thermal_fx.churning_factor - 1.0;
+    for (int k = 0; k < 2; k++)
+        c->gearbox_in.clutch_damping_nms_per_rad[k] =
+            c->clutch[k].friction.sliding > 0.5 ? 0.0 : p->clutch[k].friction.damping_nms_per_rad;
     dct_gearbox_output_eval(&p->gearbox, &pl->derived.gearbox, &s->gearbox, &c->gearbox_in,
                             &c->gearbox);
 
