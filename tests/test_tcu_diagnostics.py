@@ -26,6 +26,8 @@ from tcu_stub.offline import run_offline
 
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
 #: the shifts of paper-cycle and of the WLTC's low phase before the diagnostics existed
+#: (recorded again whenever the plant's numerics move them, its _about says by how much: last on
+#: b9cbebd's plant, paper-cycle's shifts up to 12 ms and one WLTC 3-2 190 ms from before)
 BASELINE = os.path.join(DATA, "tcu_shifts_before_diagnostics.json")
 WLTC_LOW_PHASE_S = 589.0
 EPS = 1e-6
