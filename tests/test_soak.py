@@ -78,6 +78,8 @@ def test_a_soak_of_one_paper_cycle_passes_and_writes_csv_json_plot_and_mf4(tmp_p
         t = mdf.get("vehicle_speed_kmh").timestamps
     assert t[-1] - t[0] > 60.0
     assert json.loads((out / "serve-stats.json").read_text())["run"]["error"] is None
+    tcu = json.loads((out / "tcu-report.json").read_text())
+    assert tcu["impl"] == "c" and tcu["error"] is None, tcu["error"]      # the C node by default
 
 
 def test_bad_options_are_refused():

@@ -5,7 +5,10 @@
 
 One process: ``rt_loop.server.Server`` on the embedded transport
 (python-can's in-process virtual bus, bridged into the loop's rings) and the
-reference TCU (``tcu_stub.can_tcu.CanTcu``) in a thread on the same bus.
+reference TCU on the same bus: the C node (``tcu_stub.c_node.CTcuNode``, its
+task on a C thread, a bridge thread moving its frames; ``--tcu-impl c``, the
+default, as the demo's) or the Python node (``tcu_stub.can_tcu.CanTcu``,
+``--tcu-impl python``). The TCU report names which (``impl``).
 The loop plays ``paper-cycle`` again each time it ends (65 s of pedals from
 standstill) and records every plant output and both directions of CAN to
 one MF4 file (``rt_loop.measure.mdf_recorder``) for the whole run.
@@ -288,14 +291,13 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
         except Exception as e:  # the plant's parameters, the build: one line
             raise SoakError(f"the server cannot be set up: {type(e).__name__}: "
                             f"{' '.join(str(e).split())}") from None
-        from tcu_stub.can_tcu import CanTcu
-
-        tcu = CanTcu.open("virtual", CHANNEL)
+        tcu = _open_tcu(args.tcu_impl, priority)
         server.start_recording(paths["mf4"], args.record_every)
         print(f"soak: {duration / 3600.0:.3g} h of {MANEUVER} ({cycle_s:g} s each) over the "
-              f"embedded transport, SCHED_FIFO {priority}" if priority else
+              f"embedded transport, SCHED_FIFO {priority}, the {args.tcu_impl.upper()} TCU"
+              if priority else
               f"soak: {duration / 3600.0:.3g} h of {MANEUVER} over the embedded transport "
-              "(no SCHED_FIFO: not real time)", file=out, flush=True)
+              f"(no SCHED_FIFO: not real time), the {args.tcu_impl.upper()} TCU", file=out, flush=True)
         t0 = time.monotonic()
         deadline = time.monotonic() + _TCU_START_S
         while not stop.is_set():
@@ -464,6 +466,19 @@ def _print_summary(doc: dict, paths: dict, out) -> None:
 
 
 
+def _open_tcu(impl: str, loop_priority: int) -> Any:
+    """The reference TCU on the soak's virtual bus: the C node (SCHED_FIFO below the
+    loop when the loop has it) or the Python node."""
+    if impl == "python":
+        from tcu_stub.can_tcu import CanTcu
+
+        return CanTcu.open("virtual", CHANNEL)
+    from tcu_stub.c_node import DEFAULT_PRIORITY, CTcuNode
+
+    priority = 0 if loop_priority <= 1 else min(DEFAULT_PRIORITY, loop_priority - 1)
+    return CTcuNode.open("virtual", CHANNEL, priority=priority)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scripts/soak", description=__doc__.split("\n\n")[0])
     length = p.add_mutually_exclusive_group()
@@ -483,6 +498,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"memory slope limit ({RSS_SLOPE_MB_H:g} MB/h)")
     p.add_argument("--rss-noise-mb", type=argtypes.non_negative, default=RSS_NOISE_MB, metavar="MB",
                    help=f"growth never judged a leak ({RSS_NOISE_MB:g} MB)")
+    p.add_argument("--tcu-impl", choices=("c", "python"), default="c",
+                   help="the reference TCU: the C node (default, as the demo's) or the Python "
+                        "node (tcu_stub/can_tcu.py)")
     p.add_argument("--quiet", action="store_true", help="no line per sample")
     return p
 
