@@ -42,7 +42,7 @@ Findings (INVALID):
   the plant stopping: neither counts);
 - demo: the plant's shift sequence (``plant.maneuvers.gear_shifts`` on the
   recorded gear) differs from the offline run of the same maneuver and
-  duration (in-process TCU, ``tcu_stub.offline``), or a shift comes more than
+  duration (in-process TCU, ``tcu_stub.offline.run_scheduled``), or a shift comes more than
   ``SHIFT_TOLERANCE_S`` from its offline time. Shifts in the last
   ``SHIFT_END_GUARD_S`` of the run are left out of both sequences (a gear
   must hold 0.1 s to count as a shift, so the end cuts them unevenly).
@@ -90,8 +90,16 @@ __all__ = [
 EXIT_INVALID = 3
 #: a wake-up latency maximum at or above this share of the period is a note
 LATENCY_NOTE_SHARE = 0.5
-#: largest difference of a shift's time from the offline run's
-SHIFT_TOLERANCE_S = 0.05
+#: largest difference of a shift's time from the offline run's. The demo's offline
+#: run is the server's loop without a bus (tcu_stub.offline.run_scheduled: the same
+#: send schedule, the maneuver from the live run's tick), so a run whose TCU frames
+#: land on their ticks gives its shifts to the recorder's 2 ms sample (0 ms in 6 of
+#: 12 runs under two CPU hogs, 2026-12-04, within 2 ms in 8). A TCU frame landing a tick late, or a
+#: skipped tick, can move a handover by one cycle of a 10 ms message: measured
+#: +10 to +20 ms. 25 ms holds that and no more; a shift further off was moved by
+#: more than one cycle of the run's timing (was 50 ms against a reference that
+#: played the pedals every 10 ms and showed the TCU every message fresh).
+SHIFT_TOLERANCE_S = 0.025
 #: shifts this close to the end of the run are not compared (gear_shifts needs
 #: a gear held 0.1 s, so the end of the run cuts them unevenly)
 SHIFT_END_GUARD_S = 0.2

@@ -16,10 +16,14 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-#: the largest difference of a shift's time from the offline run's held here
-#: (issue 26 asks for 10 ms; the live run idles, and its frames take up to a
-#: period each way, before the plant sees what offline it sees at once)
-SHIFT_TOLERANCE_S = 0.030
+#: the largest difference of a shift's time from the offline run's held here: issue
+#: 26's 10 ms. The offline run is the server's loop without a bus (the same send
+#: schedule and matrix, the maneuver from the live run's tick): runs whose TCU frames
+#: land on their ticks match it to the 2 ms sample. Measured 2026-12-04 (12 runs, 6 on
+#: each matrix): 9 within 10 ms (6 at 0 ms), 3 at 14-20 ms where the TCU's frames
+#: landed a tick late in a share of its periods (its 2 ms phase near the loop's tick)
+#: or the loop skipped ticks: those fail here, as the issue means them to.
+SHIFT_TOLERANCE_S = 0.010
 DURATION_S = 8.0
 
 

@@ -355,7 +355,7 @@ def test_a_different_shift_sequence_invalidates_and_names_the_difference():
 
 def test_shift_times_beyond_the_tolerance_invalidate_and_every_difference_is_noted():
     findings, notes = vd.shift_rules([(4.24, 1, 2), (6.87, 2, 3)], OFFLINE, 8.0)
-    assert findings == ["shift times differ from the offline run by more than 50 ms: "
+    assert findings == ["shift times differ from the offline run by more than 25 ms: "
                         "1-2 at 4.24 s (+170 ms)"]
     assert notes == ["shifts: the 2 of the offline run, in order, each within 170 ms "
                      "(ms: +170, +20)"]
