@@ -726,6 +726,9 @@ typedef struct {
     double spool_stuck[2];            /* 1: that valve's spool held where it is (fault); its
                                          edges still meter at the held opening */
     double oil_viscosity_m2_s;        /* thermal: the oil's viscosity now (<= 0: oil.viscosity_m2_s) */
+    double pressure_known;            /* 1: pressure_pa holds the chambers' pressures at the state
+                                         (dct_hydraulics_output_eval's): the first sub-step takes them */
+    double pressure_pa[2];
 } dct_hydraulics_input;
 
 typedef struct {

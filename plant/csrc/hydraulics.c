@@ -121,7 +121,8 @@ void dct_hydraulics_advance(const dct_hydraulics_params *p, const dct_hydraulics
     for (int i = 0; i < n; i++) {
         dct_valve_output vo[2];
         for (int k = 0; k < 2; k++) {
-            double pk = dct_chamber_pressure(&d->chamber[k], s->clutch_oil_m3[k]);
+            double pk = i == 0 && in->pressure_known > 0.5 ? in->pressure_pa[k]
+                                                          : dct_chamber_pressure(&d->chamber[k], s->clutch_oil_m3[k]);
             dct_valve_input vi = {in->current_a[k], s->line_pressure_pa, pk};
             dct_valve_output_eval(&p->valve, &oil, &s->valve[k], &vi, &vo[k]);
         }

@@ -150,6 +150,10 @@ static void evaluate_at(const dct_plant *pl, const dct_inputs *u, coupling *c)
         dct_hydraulics_output_eval(&p->hydraulics, c->chamber, c->clutch_params, &s->hydraulics,
                                    &c->hydraulics);
     }
+    /* the advance's first sub-step starts from these pressures */
+    c->hydraulics_in.pressure_known = p->hydraulics.pressure_commanded > 0.5 ? 0.0 : 1.0;
+    c->hydraulics_in.pressure_pa[0] = c->hydraulics.clutch_pressure_pa[0];
+    c->hydraulics_in.pressure_pa[1] = c->hydraulics.clutch_pressure_pa[1];
 
     /* clutches: engine drum to the input shafts */
     for (int k = 0; k < 2; k++) {
