@@ -20,12 +20,19 @@ def loop_figures(rep):
     under 20 us (the tick's own cost, without the machine's long interruptions)
     and the overruns."""
     ex = rep["execution"]
-    hist = [(b, c) for b, c in ex.get("histogram", []) if b < 20]
-    n = sum(c for _, c in hist)
     return {
         "ticks": rep["counts"]["ticks"],
         "turnaround": {k: rep["turnaround"][k] for k in ("p50_us", "p99_9_us", "max_us")},
         "execution": {k: ex[k] for k in ("p50_us", "p99_9_us", "max_us")},
-        "execution_mean_under_20us": sum((b + 0.5) * c for b, c in hist) / n if n else None,
+        "execution_mean_under_20us": execution_mean_under(ex.get("histogram", []), 20),
         "overruns": rep["counts"]["overruns"],
     }
+
+
+def execution_mean_under(histogram, limit_us):
+    """Mean execution of the ticks under ``limit_us`` from a 1 us histogram
+    ((bin, count) pairs, bin centres): the tick's own cost without the
+    machine's long interruptions; None without such ticks."""
+    hist = [(b, c) for b, c in histogram if b < limit_us]
+    n = sum(c for _, c in hist)
+    return sum((b + 0.5) * c for b, c in hist) / n if n else None
