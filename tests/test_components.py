@@ -1201,3 +1201,23 @@ def test_gearbox_takes_dampers_implicitly_only_in_a_tie_up(car):
     lib.dct_gearbox_advance(p, box.d, box.s, box.inp, out, h)
     expected = before + h * out.input_torque_nm[0] / (box.d.input_inertia_kgm2[0] + h * out.input_damping_nms_per_rad[0])
     assert box.s.input_speed_rad_s[0] == pytest.approx(expected, rel=1e-15)
+
+
+def test_tyre_load_coefficients_give_the_magic_formula_to_the_bit(car):
+    """The coefficients of one load (dct_tyre_load_eval, shared by the two
+    front tyres in the step) and the formula at a slip give dct_magic_formula
+    exactly; a tyre's output from them is its output from its input alone."""
+    p = part(car, "tyre")
+    load = new("dct_tyre_load")
+    for fz in (0.0, 1500.0, 4000.0, 7000.0):
+        lib.dct_tyre_load_eval(p, fz, load)
+        for kappa in (-0.3, -0.02, 0.0, 0.001, 0.08, 0.6):
+            assert lib.dct_magic_formula_at(load, kappa) == lib.dct_magic_formula(p, kappa, fz)
+    s, inp = new("dct_tyre_state"), new("dct_tyre_input")
+    s.deflection_m = 0.004
+    inp.wheel_speed_rad_s, inp.ground_speed_m_s, inp.normal_force_n, inp.count = 40.0, 12.0, 9000.0, 2.0
+    a, b = new("dct_tyre_output"), new("dct_tyre_output")
+    lib.dct_tyre_output_eval(p, s, inp, a)
+    lib.dct_tyre_load_eval(p, 9000.0 / 2.0, load)
+    lib.dct_tyre_output_eval_at(p, s, inp, load, b)
+    assert bytes(ffi.buffer(a)) == bytes(ffi.buffer(b))

@@ -471,10 +471,22 @@ typedef struct {
 } dct_tyre_output;
 
 double dct_magic_formula(const dct_tyre_params *p, double slip, double normal_force_n);
+/* the magic formula's coefficients at one tyre load (they hold an exp and
+ * divisions; the two front tyres carry the same load and share them) */
+typedef struct {
+    double fz;                        /* normal force per tyre; <= 0: no force */
+    double c, d, e, b;
+} dct_tyre_load;
+void dct_tyre_load_eval(const dct_tyre_params *p, double normal_force_n, dct_tyre_load *l);
+double dct_magic_formula_at(const dct_tyre_load *l, double slip);
 double dct_magic_formula_peak_slip(const dct_tyre_params *p, double normal_force_n);
 void dct_tyre_init(const dct_tyre_params *p, dct_tyre_state *s);
 void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
                           const dct_tyre_input *in, dct_tyre_output *out);
+/* the same with the load's coefficients given (dct_tyre_load_eval of
+ * in->normal_force_n / in->count) */
+void dct_tyre_output_eval_at(const dct_tyre_params *p, const dct_tyre_state *s,
+                             const dct_tyre_input *in, const dct_tyre_load *load, dct_tyre_output *out);
 void dct_tyre_advance(const dct_tyre_params *p, dct_tyre_state *s,
                       const dct_tyre_output *out, double h);
 double dct_tyre_deflection_energy(const dct_tyre_params *p, double deflection_m,

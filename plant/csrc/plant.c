@@ -209,12 +209,18 @@ static void evaluate_at(const dct_plant *pl, const dct_inputs *u, coupling *c)
     double fz[3] = {0.5 * fz_front, 0.5 * fz_front, fz_rear};
     double count[3] = {1.0, 1.0, 2.0};
     double shaft[3] = {c->driveline.shaft_torque_nm, c->driveline.shaft_torque_nm, 0.0};
+    /* the magic formula's coefficients per load: the front tyres share theirs */
+    dct_tyre_load load[2];
+    for (int a = 0; a < 2; a++) {
+        int i = a == 0 ? 0 : 2;
+        dct_tyre_load_eval(&p->tyre, (fz[i] > 0.0 ? fz[i] : 0.0) / count[i], &load[a]);
+    }
     for (int i = 0; i < 3; i++) {
         c->tyre_in[i].wheel_speed_rad_s = s->wheel[i].speed_rad_s;
         c->tyre_in[i].ground_speed_m_s = s->vehicle.speed_m_s;
         c->tyre_in[i].normal_force_n = fz[i];
         c->tyre_in[i].count = count[i];
-        dct_tyre_output_eval(&p->tyre, &s->tyre[i], &c->tyre_in[i], &c->tyre[i]);
+        dct_tyre_output_eval_at(&p->tyre, &s->tyre[i], &c->tyre_in[i], &load[i < 2 ? 0 : 1], &c->tyre[i]);
 
         c->wheel_in[i].drive_torque_nm = shaft[i];
         c->wheel_in[i].tyre_force_n = c->tyre[i].force_n;

@@ -24,10 +24,11 @@
 #include "dct_plant.h"
 #include "dct_util.h"
 
-double dct_magic_formula(const dct_tyre_params *p, double slip, double fz)
+void dct_tyre_load_eval(const dct_tyre_params *p, double fz, dct_tyre_load *l)
 {
+    l->fz = fz;
     if (fz <= 0.0)
-        return 0.0;
+        return;
     double dfz = (fz - p->nominal_load_n) / p->nominal_load_n;
     double c = p->pcx1;
     double mu = p->pdx1 + p->pdx2 * dfz;
@@ -36,9 +37,25 @@ double dct_magic_formula(const dct_tyre_params *p, double slip, double fz)
     if (e > 1.0)
         e = 1.0;
     double k = fz * (p->pkx1 + p->pkx2 * dfz) * exp(p->pkx3 * dfz);
-    double b = k / (c * d);
-    double bx = b * slip;
-    return d * sin(c * atan(bx - e * (bx - atan(bx))));
+    l->c = c;
+    l->d = d;
+    l->e = e;
+    l->b = k / (c * d);
+}
+
+double dct_magic_formula_at(const dct_tyre_load *l, double slip)
+{
+    if (l->fz <= 0.0)
+        return 0.0;
+    double bx = l->b * slip;
+    return l->d * sin(l->c * atan(bx - l->e * (bx - atan(bx))));
+}
+
+double dct_magic_formula(const dct_tyre_params *p, double slip, double fz)
+{
+    dct_tyre_load l;
+    dct_tyre_load_eval(p, fz, &l);
+    return dct_magic_formula_at(&l, slip);
 }
 
 /* slip of the force peak: D sin(C atan(x - E (x - atan x))) peaks where
@@ -74,6 +91,15 @@ void dct_tyre_init(const dct_tyre_params *p, dct_tyre_state *s)
 void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
                           const dct_tyre_input *in, dct_tyre_output *out)
 {
+    double fz = in->normal_force_n > 0.0 ? in->normal_force_n : 0.0;
+    dct_tyre_load load;
+    dct_tyre_load_eval(p, fz / in->count, &load);
+    dct_tyre_output_eval_at(p, s, in, &load, out);
+}
+
+void dct_tyre_output_eval_at(const dct_tyre_params *p, const dct_tyre_state *s,
+                             const dct_tyre_input *in, const dct_tyre_load *load, dct_tyre_output *out)
+{
     double n = in->count;
     double v = in->ground_speed_m_s;
     double wr = in->wheel_speed_rad_s * p->radius_m;
@@ -81,7 +107,7 @@ void dct_tyre_output_eval(const dct_tyre_params *p, const dct_tyre_state *s,
     double vref = fabs(v) > fabs(wr) ? fabs(v) : fabs(wr);
     double kappa = s->deflection_m / p->relaxation_length_m;
     double fz = in->normal_force_n > 0.0 ? in->normal_force_n : 0.0;
-    double f = n * dct_magic_formula(p, kappa, fz / n);
+    double f = n * dct_magic_formula_at(load, kappa);
     double w = dct_fade(v, p->low_speed_limit_m_s);
     f += n * p->low_speed_damping_ns_per_m * w * slip_speed;
     out->force_n = f;
