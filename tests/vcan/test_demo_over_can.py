@@ -55,7 +55,8 @@ def demo(vcan0, played_s, tmp_path_factory):
     timeout = played_s / TIME_SCALE * 2 + 300
     proc = subprocess.run(
         [sys.executable, "-m", "dct_hil.cli", "demo", "--out", str(out), "--time-scale",
-         repr(TIME_SCALE), "--priority", "0", "--quiet", "--duration", repr(played_s)],
+         repr(TIME_SCALE), "--priority", "0", "--quiet", "--duration", repr(played_s),
+         "--tcu-impl", "c"],
         capture_output=True, text=True, timeout=timeout, cwd=REPO)
     summary_path = out / "summary.json"
     assert summary_path.exists(), f"no summary; demo said:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
@@ -110,6 +111,43 @@ def test_the_same_shifts_as_offline_each_within_30_ms(demo, offline, played_s):
     assert worst <= SHIFT_TOLERANCE_S, (
         f"largest shift time difference {worst * 1000:.1f} ms; differences (ms): "
         f"{[round(d * 1000, 1) for d in diffs]}; skipped ticks {summary['skipped_ticks']}")
+
+
+def test_the_c_tcu_node_on_socketcan_holds_no_stale_no_timeout_and_the_offline_sequence(demo, played_s):
+    """The TCU's second process is the C node (``python -m tcu_stub.command --impl c``)
+    reading and writing its CAN_RAW sockets itself (no bridge): no stale episode of
+    the TCU beyond its start-up and the plant's last frames, no TCU message timed out
+    at the server, and the shifts of the demo's own offline reference (the server's
+    loop without a bus, the same matrix: ``summary["offline_shifts"]``) in the same
+    order. Shift times are not held here: timing in the guest means nothing (they
+    are written to out/vcan-vm/demo-c-node-*.json for a look)."""
+    from rt_loop.verdict import END_MARGIN_S
+
+    _, summary, out = demo
+    tcu = summary["tcu"]
+    assert summary["transport"]["tcu_impl"] == "c" and tcu["impl"] == "c", tcu.get("impl")
+    assert tcu["interface"] == "socketcan" and not tcu["bridge"], (tcu["interface"], tcu["bridge"])
+    assert tcu["error"] is None and summary["tcu_exit"] == 0
+    assert tcu["final_safe_frames"] is True
+    end = summary["maneuver_time_s"]
+    counted = [ep for ep in tcu["stale"]["episodes"]      # not the start-up, not the plant stopping
+               if not all(why == "missing" for why in ep["causes"].values())
+               and not (ep["end_s"] is None and ep["start_s"] >= end - END_MARGIN_S)]
+    assert not counted, counted
+    stats = json.loads((out / "serve-stats.json").read_text())
+    timeouts = {n: m["timeouts"] for n, m in stats["counts"]["tcu_messages"].items()}
+    assert not any(timeouts.values()), timeouts
+    run = [(s["time_s"], s["from"], s["to"]) for s in summary["shifts"]]
+    reference = [(s["time_s"], s["from"], s["to"]) for s in summary["offline_shifts"] or ()]
+    report = REPO / "out" / "vcan-vm" / f"demo-c-node-{played_s:g}s.json"
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(json.dumps({
+        "time_scale": TIME_SCALE, "played_s": played_s, "maneuver_start_tick": summary.get("maneuver_start_tick"),
+        "offline": reference, "over_can": run, "stale_episodes": tcu["stale"]["episodes"],
+        "differences_ms": [round((a[0] - b[0]) * 1000, 2) for a, b in zip(run, reference)],
+        "skipped_ticks": summary["skipped_ticks"]}, indent=1) + "\n")
+    assert len(reference) >= 6 and [(a, b) for _, a, b in run] == [(a, b) for _, a, b in reference], \
+        f"offline {reference}\nover CAN {run}"
 
 
 def test_the_demo_leaves_plots_recording_can_log_and_reports(demo):
