@@ -20,6 +20,7 @@ each ring has exactly one producer and one consumer).
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from rt_loop.transport import Transport
@@ -98,6 +99,17 @@ def _check_layout(ffi: Any) -> None:
                             "differ: rebuild both extensions (scripts/setup)")
 
 
+def _loop_t0_ns(server: Any, timeout_s: float = 10.0) -> int:
+    """The loop's first deadline (CLOCK_MONOTONIC ns), once it is ticking."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        t0 = int(server.stats.read().t0_ns)
+        if t0 > 0:
+            return t0
+        time.sleep(0.002)
+    raise EmbeddedError(f"the loop did not start ticking within {timeout_s:g} s")
+
+
 def connect_tcu(server: Any, start: bool = True, **node_kwargs: Any) -> Any:
     """A ``tcu_stub.c_node.CTcuNode`` whose frames are the running server's rings:
     per bus the loop's tx ring as its source and its rx ring as its sink.
@@ -121,6 +133,13 @@ def connect_tcu(server: Any, start: bool = True, **node_kwargs: Any) -> Any:
     ports = {name: (pop, address(t.rings[3]), push, address(t.rings[2]))
              for name, t in zip(names, transports)}
     node = CTcuNode(ports=ports, start=False, keepalive=server, **node_kwargs)
+    if node_kwargs.get("clock", "wall") == "wall":
+        # the TCU's periods half a loop tick after a tick: its commands are in
+        # the rings well before the next tick reads them, every period the
+        # same tick (a period ending just after a tick's read would land a
+        # tick late, now and then: a shift a 10 ms message cycle later)
+        step_ns = int(round(server.period_s * 1e9))
+        node.lock_phase(_loop_t0_ns(server), step_ns, step_ns // 2)
     node.interface, node.channel = "embedded", transports[0].channel
     node.channels = {name: t.channel for name, t in zip(names, transports)} \
         if node_kwargs.get("mapping") is not None else None

@@ -502,6 +502,17 @@ class CTcuNode:
         return node
 
     # ------------------------------------------------------------ life cycle
+    def lock_phase(self, ref_ns, step_ns, offset_ns):
+        """Before start: the periods begin on ref_ns + offset_ns + k step_ns
+        (CLOCK_MONOTONIC ns), not at the start (the embedded connection puts
+        them half a loop tick after a tick)."""
+        if self._thread_started:
+            raise NodeError("lock_phase: the node has started")
+        if not (ref_ns > 0 and step_ns > 0 and 0 <= offset_ns < step_ns):
+            raise NodeError(f"lock_phase: ref {ref_ns}, step {step_ns}, offset {offset_ns} ns: "
+                            "ref and step > 0, 0 <= offset < step")
+        self._n.phase_ref_ns, self._n.phase_step_ns, self._n.phase_offset_ns = ref_ns, step_ns, offset_ns
+
     def start(self):
         """Starts the bridges (if any) and the C thread (once)."""
         if self._thread_started:

@@ -258,6 +258,10 @@ def test_on_the_loops_own_rings_it_launches_the_car_with_a_matrix():
     server.start()
     try:
         tcu = connect_tcu(server, mapping=server.mapping, priority=0)
+        # its periods begin half a loop tick after a tick (the loop's first deadline t0_ns)
+        step = int(round(server.period_s * 1e9))
+        assert (tcu._n.phase_ref_ns, tcu._n.phase_step_ns, tcu._n.phase_offset_ns) == \
+            (int(server.stats.read().t0_ns), step, step // 2) and tcu._n.phase_ref_ns > 0
         assert tcu.wait_for(lambda t: not server.running, timeout=WAIT_S)
         tcu.stop()
     finally:
@@ -277,3 +281,13 @@ def test_the_command_line_takes_impl_and_refuses_a_bad_one_in_one_line():
                         "--channel", "nosuchcan0", "--duration", "1"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 1 and "nosuchcan0" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_a_bad_phase_is_refused_in_one_line():
+    from tcu_stub.c_node import NodeError
+
+    node = CTcuNode(ports=_Rings().ports, start=False)
+    for ref, step, offset in ((0, 500_000, 250_000), (1, 0, 0), (1, 500_000, 500_000)):
+        with pytest.raises(NodeError, match="lock_phase") as e:
+            node.lock_phase(ref, step, offset)
+        assert "\n" not in str(e.value)

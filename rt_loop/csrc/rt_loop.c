@@ -337,12 +337,13 @@ int rt_loop_run(rt_loop *l)
     l->stats.memory_locked = memory_locked;
     l->stats.state = RT_STATE_RUNNING;
     l->stats.startup_phase = RT_START_READY;
+    r.t0_ns = now_ns() + r.period_ns;
+    l->stats.t0_ns = r.t0_ns;
     stats_write_end(&l->stats);
 
     int state = RT_STATE_STOPPED, error = 0;
     double final_sim_state = RT_SIM_STOPPING;
     uint64_t n = 0; /* deadline index */
-    r.t0_ns = now_ns() + r.period_ns;
     for (;;) {
         if (stop_requested(l) || (limit && n >= limit))
             break;

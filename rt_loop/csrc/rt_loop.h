@@ -598,6 +598,8 @@ typedef struct {
     int memory_locked;                /* mlockall succeeded */
     int affinity_ok;
     int startup_phase;                /* RT_START_* */
+    int64_t t0_ns;                    /* the first tick's deadline (CLOCK_MONOTONIC, ns; 0 before
+                                         RT_START_READY): the ticks fall on t0_ns + k period */
     uint64_t ticks;                   /* ticks executed (plant steps) */
     uint64_t overruns;                /* ticks that ended after the next deadline */
     uint64_t skipped_ticks;           /* deadlines skipped to catch up after overruns */

@@ -446,10 +446,26 @@ static int starve(tcu_node *n)
     return 1;
 }
 
-static void run_wall(tcu_node *n)
+/* the first period's start: now, or the next instant on the phase grid */
+static struct timespec first_deadline(const tcu_node *n)
 {
     struct timespec t0;
     clock_gettime(CLOCK_MONOTONIC, &t0);
+    if (n->phase_ref_ns <= 0 || n->phase_step_ns <= 0)
+        return t0;
+    int64_t now = (int64_t)t0.tv_sec * 1000000000LL + t0.tv_nsec;
+    int64_t base = n->phase_ref_ns + n->phase_offset_ns;
+    int64_t at = base;
+    if (now > base)
+        at = base + ((now - base + n->phase_step_ns - 1) / n->phase_step_ns) * n->phase_step_ns;
+    t0.tv_sec = (time_t)(at / 1000000000LL);
+    t0.tv_nsec = (long)(at % 1000000000LL);
+    return t0;
+}
+
+static void run_wall(tcu_node *n)
+{
+    struct timespec t0 = first_deadline(n);
     double period = 1e-9 * (double)n->period_ns;
     int64_t k = 0;
     while (!stopping(n)) {

@@ -222,6 +222,13 @@ typedef struct {
     int32_t clock_ticks;              /* ... periods per frame of it */
     int32_t priority;                 /* SCHED_FIFO priority asked for, 0: normal scheduling */
     int32_t rejects_to_stale;
+    /* phase_ref_ns > 0: the periods start on phase_ref_ns + phase_offset_ns
+     * + k phase_step_ns (CLOCK_MONOTONIC; embedded: the loop's ticks, half a
+     * tick after one, so the commands a period sends are in the rings a
+     * half tick before the next tick reads them); 0: from the start */
+    int64_t phase_ref_ns;
+    int64_t phase_step_ns;
+    int64_t phase_offset_ns;
     /* the thread's (read by Python through figures and the logs) */
     int32_t stop;                     /* set by tcu_node_stop */
     int64_t pause_ns;                 /* a starvation asked for (tcu_node_pause) */
