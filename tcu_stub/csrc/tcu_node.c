@@ -561,9 +561,12 @@ int tcu_node_start(tcu_node *n)
     pthread_t th;
     pthread_attr_t attr;
     int rc = -1;
+    /* a stack of TCU_NODE_STACK_BYTES, not the default 8 MiB: a server that
+     * locks its memory (mlockall) locks the whole stack of every thread */
     if (n->priority > 0) {
         struct sched_param sp = {.sched_priority = n->priority};
         pthread_attr_init(&attr);
+        pthread_attr_setstacksize(&attr, TCU_NODE_STACK_BYTES);
         pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
         pthread_attr_setschedpolicy(&attr, SCHED_FIFO);
         pthread_attr_setschedparam(&attr, &sp);
@@ -572,8 +575,12 @@ int tcu_node_start(tcu_node *n)
         if (rc == 0)
             n->sched_fifo = 1;
     }
-    if (rc != 0)
-        rc = pthread_create(&th, NULL, thread_main, n);
+    if (rc != 0) {
+        pthread_attr_init(&attr);
+        pthread_attr_setstacksize(&attr, TCU_NODE_STACK_BYTES);
+        rc = pthread_create(&th, &attr, thread_main, n);
+        pthread_attr_destroy(&attr);
+    }
     n->start_errno = rc;
     if (rc != 0)
         return rc;

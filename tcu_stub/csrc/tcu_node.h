@@ -62,6 +62,8 @@
 #define TCU_TX_TABLE 2                /* the signal value of the first pair whose value is the command */
 
 /* one CAN or CAN FD frame: the layout of the plant loop's rt_frame */
+#define TCU_NODE_STACK_BYTES (1024 * 1024) /* the node thread's stack: ample for a period (its arrays are of sensors, signals and frames), an eighth of the default */
+
 typedef struct {
     uint32_t id;                      /* identifier with TCU_FRAME_EFF/RTR/ERR */
     uint8_t len;
