@@ -56,6 +56,7 @@ from tcu_stub.can_tcu import (
     TIMEOUT_CYCLES,
     MappedSetup,
     check_time_scale,
+    matrix_message_name,
     raise_rcvbuf,
 )
 from tcu_stub.diagnostics import (
@@ -612,15 +613,7 @@ class CTcuNode:
     def message_name(self, message):
         if self.matrix is None:
             return codec.message(message).name
-        known = self._rx_names + self._tx_names
-        if message in known:
-            return message
-        hits = [k for k in known if k.split(":", 1)[1] == message]
-        if len(hits) == 1:
-            return hits[0]
-        if hits:
-            raise ValueError(f"{message} is on more than one bus: name it as {' or '.join(hits)}")
-        raise ValueError(f"{message} is not a message of {self.mapping.path} the TCU receives or sends")
+        return matrix_message_name(message, tuple(self._rx_names + self._tx_names), self.mapping.path)
 
     def counts(self, message):
         """{received, accepted, bad_length, bad_crc, bad_counter} of a plant message."""

@@ -191,6 +191,20 @@ TCU_MESSAGES = tuple(codec.TCU_SIGNAL_TARGETS)
 DERIVE_INTERFACES = ("virtual", "udp_multicast")
 
 
+def matrix_message_name(message, known, mapping_path):
+    """``message`` as a node on a matrix counts it: ``bus:Message`` from
+    ``known`` (those names), a bare name when one bus has it; ValueError for
+    one on several buses or on none."""
+    if message in known:
+        return message
+    hits = [k for k in known if k.split(":", 1)[1] == message]
+    if len(hits) == 1:
+        return hits[0]
+    if hits:
+        raise ValueError(f"{message} is on more than one bus: name it as {' or '.join(hits)}")
+    raise ValueError(f"{message} is not a message of {mapping_path} the TCU receives or sends")
+
+
 def _one_line(text):
     return " ".join(str(text).split())
 
@@ -941,15 +955,8 @@ class CanTcu:
         receives nor sends."""
         if self.matrix is None:
             return codec.message(message).name
-        known = tuple(self.peer.rx_messages) + tuple(self.peer.tx_messages)
-        if message in known:
-            return message
-        hits = [k for k in known if k.split(":", 1)[1] == message]
-        if len(hits) == 1:
-            return hits[0]
-        if hits:
-            raise ValueError(f"{message} is on more than one bus: name it as {' or '.join(hits)}")
-        raise ValueError(f"{message} is not a message of {self.mapping.path} the TCU receives or sends")
+        return matrix_message_name(message, tuple(self.peer.rx_messages) + tuple(self.peer.tx_messages),
+                                   self.mapping.path)
 
     def counts(self, message):
         """{received, accepted, bad_length, bad_crc, bad_counter} of a plant message."""
