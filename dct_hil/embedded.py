@@ -37,7 +37,8 @@ class RingTransport(Transport):
     this process to take and fill (``connect_tcu``); no bus, no thread."""
 
     hard_real_time = False
-    interface = "virtual"
+    interface = "embedded"
+    kind = "rings"
 
     def __init__(self, channel: str, fd: bool = False) -> None:
         self.channel = channel

@@ -240,6 +240,13 @@ class Transport:
     #: the bus carries CAN FD frames
     fd: bool = False
 
+    @property
+    def kind(self) -> str:
+        """How the loop's frames travel, for reports: "socketcan" (the loop's
+        own socket), "bridge" (a python-can bus through a thread), or what a
+        transport of another kind names itself."""
+        return "socketcan" if self.hard_real_time else "bridge"
+
     def configure(self, chan: Any, lib: Any) -> None:
         raise NotImplementedError
 

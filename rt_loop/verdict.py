@@ -299,7 +299,8 @@ def transport_rules(report: dict | None) -> tuple[list[str], list[str]]:
         wall = _f(run.get("wall_s")) or 0.0
         rate = _n(tx.get("frames")) / wall if wall > 0 else 0.0     # plant frames per second
         if rate > 0 and max(rx_max, tx_max) / rate >= 0.002:        # a TCU period's worth
-            notes.append(f"bridge: up to {tx_max} plant frames waiting in the tx ring (about "
+            who = "rings" if _d(report.get("config")).get("transport") == "rings" else "bridge"
+            notes.append(f"{who}: up to {tx_max} plant frames waiting in the tx ring (about "
                          f"{1e3 * tx_max / rate:.0f} ms of the plant's traffic) and {rx_max} "
                          f"TCU frames in the rx ring, at {_n(rings['samples'])} status reads "
                          "(sampled: delays between reads are not seen)")

@@ -286,6 +286,10 @@ def test_notes_do_not_invalidate():
                   "up to 107 plant frames waiting in the tx ring (about 59 ms of the plant's "
                   "traffic) and 114 TCU frames in the rx ring, at 80 status reads"):
         assert words in notes, words
+    assert "bridge: up to 107" in notes
+    # the embedded TCU on the loop's own rings: no bridge to name
+    r["config"]["transport"] = "rings"
+    assert "rings: up to 107" in "\n".join(vd.serve_verdict(r)["notes"])
 
 
 def test_tcu_stale_episodes_during_the_maneuver_invalidate_but_not_start_up_or_the_end():

@@ -160,7 +160,7 @@ class ReportsMixin:
             "spin_us": self.spin_us,
             "pm_qos": None if self.pm_qos is None else self.pm_qos.report(),
             "duration_s": self.duration_s,
-            "transport": None if t is None else ("socketcan" if t.hard_real_time else "bridge"),
+            "transport": None if t is None else t.kind,
             "real_time": None if t is None else ("hard" if t.hard_real_time else "soft"),
             "interface": None if t is None else t.interface,
             "interface_chosen_because": None if t is None else t.chosen_because,
@@ -168,9 +168,7 @@ class ReportsMixin:
             "mapping": self.mapping.path,
             "buses": [{"name": b.name, "channel": self.bus_channels[b.name],
                        "dbc": b.dbc, "bitrate": b.bitrate, "fd": b.fd,
-                       "transport": (None if i >= len(self.transports) else
-                                     "socketcan" if self.transports[i].hard_real_time
-                                     else "bridge"),
+                       "transport": None if i >= len(self.transports) else self.transports[i].kind,
                        "sends": [m.name for m in self.mapping.messages
                                  if m.bus == b.name and m.direction == "send"],
                        "receives": [m.name for m in self.mapping.messages
