@@ -92,15 +92,31 @@ TCU_SAFE_VALUES = {
 }
 
 
+def dbc_encoding(path):
+    """The text encoding of the DBC at ``path``: ``utf-8`` when its bytes are valid
+    UTF-8 (``utf-8-sig`` with a byte order mark), else ``cp1252`` (the DBC
+    editors' default, which cantools assumes for every DBC). OSError when it cannot
+    be read."""
+    with open(path, "rb") as f:
+        data = f.read()
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError:
+        return "cp1252"
+    return "utf-8-sig" if data.startswith(b"\xef\xbb\xbf") else "utf-8"
+
+
 def load_database(path):
-    """The cantools database of the DBC at ``path`` (strict checks: no overlapping signals)."""
+    """The cantools database of the DBC at ``path`` (strict checks: no overlapping
+    signals), its text decoded as :func:`dbc_encoding` says."""
     from can_dbc.python_can import python_can
 
     python_can()  # cantools imports can: without asammdf (can_dbc.python_can)
     import cantools
 
     try:
-        return cantools.database.load_file(path, database_format="dbc", strict=True)
+        return cantools.database.load_file(path, database_format="dbc", encoding=dbc_encoding(path),
+                                           strict=True)
     except OSError as e:
         raise ValueError(f"cannot read DBC {path}: {e.strerror}") from None
     except Exception as e:  # cantools raises its own parse errors

@@ -96,6 +96,7 @@ from typing import Any
 from plant.describe import SUFFIX_UNITS
 
 from . import codec
+from .codec import dbc_encoding
 from .protection import Protection, ProtectionError, parse_protection
 from .python_can import python_can
 
@@ -103,7 +104,7 @@ __all__ = [
     "DEFAULT_MAPPING", "DEFAULT_RATE_HZ", "DEFAULT_TIMEOUT_CYCLES", "LOAD_WARNING", "MAPPINGS_DIR",
     "STATUS_FIELDS", "SUFFIX_UNITS", "UNITS", "Bus", "BusLoad", "MappedMessage", "MappedSignal",
     "Mapping", "MappingError", "Source", "Target", "bus_load", "check_report", "classic_frame_bits",
-    "conversion", "fd_frame_bits", "find_mapping", "frame_time_s", "load", "load_options",
+    "conversion", "dbc_encoding", "fd_frame_bits", "find_mapping", "frame_time_s", "load", "load_options",
     "parse_pairs", "show", "template", "unit_of_name",
 ]
 
@@ -502,13 +503,15 @@ def _quiet_cantools():
 
 
 def read_dbc(path):
-    """The cantools database of a DBC read leniently; ValueError with one line."""
+    """The cantools database of a DBC read leniently, its text decoded as UTF-8 when
+    it is valid UTF-8, else as cp1252 (:func:`dbc_encoding`); ValueError with one line."""
     python_can()  # cantools imports can: without asammdf (can_dbc.python_can)
     import cantools
 
     try:
         with _quiet_cantools():
-            return cantools.database.load_file(path, database_format="dbc", strict=False)
+            return cantools.database.load_file(path, database_format="dbc", encoding=dbc_encoding(path),
+                                               strict=False)
     except OSError as e:
         raise ValueError(f"cannot read {path}: {e.strerror}") from None
     except Exception as e:  # cantools' own parse errors
