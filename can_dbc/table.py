@@ -194,6 +194,39 @@ class CodecTable:
             self.lib.ct_protect(self.table, i, data, _counter(counter))
         return bytes(self.ffi.buffer(data, msg.length))
 
+    def saturated(self, message, values) -> list[str]:
+        """The signals of ``values`` (as ``encode`` takes them) whose value
+        ``encode`` limits, in the message's signal order: outside the DBC's
+        [minimum, maximum] (when minimum < maximum), or a raw value beyond the
+        bit field (an unsigned field and a negative value, say), as
+        ct_encode limits them (can_table.h), from the same signal tables. NaN
+        (sent as 0) is not counted, nor a multiplexed signal of a branch the
+        frame does not carry."""
+        i = self.index(message)
+        sigs = self._signals[i]
+        names = {s.name: k for k, s in enumerate(sigs)}
+        hits = []
+        for name, value in (values or {}).items():
+            k = names.get(name)
+            if k is None:
+                raise TableError(f"{self.messages[i].name} has no signal {name!r} "
+                                 f"(it has {', '.join(names)})")
+            v = _number(sigs[k], value)
+            c = self._c_signals[self._first[i] + k]
+            if math.isnan(v):
+                continue
+            limited = min(max(v, c.minimum), c.maximum) if c.limited else v
+            out = limited != v
+            if not out and not c.is_float:
+                r = round((limited - c.offset) / c.factor) if math.isfinite(limited) else limited
+                out = not c.raw_min <= r < c.raw_end
+            if out:
+                hits.append(k)
+        if not hits:
+            return []
+        carried = self.decode(i, self.encode(i, values))
+        return [sigs[k].name for k in sorted(hits) if sigs[k].name in carried]
+
     def decode(self, message, data) -> dict:
         """{signal name: physical value} of the signals the frame carries
         (multiplexed signals of other branches left out), by ct_decode."""

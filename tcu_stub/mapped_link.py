@@ -19,10 +19,12 @@ mapping). It names messages ``bus:Message`` (``message_key``), since one
 name may be on two buses.
 
 ``MappedLink(mapping)`` is a drop-in for ``tcu_stub.offline.ContractLink``:
-every message goes through cantools' encode and decode at its mapping cycle
-time, so the TCU sees the matrix's quantisation and refresh rates. The
-end-to-end protection is left to the codec and the loop (offline, nothing
-corrupts a frame). A matrix that does not carry what the TCU needs is refused
+every message goes through the table codec the real-time loop uses
+(``can_dbc.table.CodecTable``, one per bus) at its mapping cycle time, so the
+TCU sees the matrix's quantisation and refresh rates, and a value outside a
+signal's range (a negative torque into an unsigned signal) is limited as the
+loop limits it and counted (``saturated``). The end-to-end protection is left
+to the codec and the loop (offline, nothing corrupts a frame). A matrix that does not carry what the TCU needs is refused
 with one line naming the mapping file and the quantity
 (``MissingSignalError``).
 """
@@ -33,6 +35,7 @@ import math
 
 from can_dbc import codec
 from can_dbc.mapping import STATUS_FIELDS, Mapping
+from can_dbc.table import CodecTable
 from tcu_stub.logic import PERIOD_S
 
 __all__ = ["MappedLink", "MissingSignalError", "REQUIRED_READS", "TCU_READS", "TCU_RECORDS",
@@ -305,7 +308,11 @@ class MappedLink:
     ``sensors(outputs, k)`` gives the TCU's view at TCU period ``k``;
     ``apply(plant, commands, k)`` writes the TCU's messages due at ``k``
     into the plant inputs they drive. The signals are found, and scaled, by
-    ``TcuMatrix`` (the same search the CAN node ``tcu_stub.can_tcu`` uses)."""
+    ``TcuMatrix`` (the same search the CAN node ``tcu_stub.can_tcu`` uses).
+
+    ``saturated``: ``{"bus:Message.Signal": count}`` of the values the codec
+    limited to the signal's range or bit field (``CodecTable.saturated``),
+    both directions."""
 
     def __init__(self, mapping: Mapping) -> None:
         self.mapping = mapping
@@ -315,6 +322,24 @@ class MappedLink:
         self._decoded: dict[str, dict] = {}
         self._frames = {message_key(m): 0 for m in mapping.messages}
         self._plan = self._phases(self.sent)
+        self._codec = {}                         # message key -> (CodecTable of its bus, index)
+        for b in mapping.buses:
+            msgs = mapping.codec_order(b.name)
+            if msgs:
+                table = CodecTable([(m.message, m.protection) for m in msgs])
+                for i, m in enumerate(msgs):
+                    self._codec[message_key(m)] = (table, i)
+        self.saturated: dict[str, int] = {}
+
+    def _through(self, m, values):
+        """The values of message ``m`` as the receiver decodes them, packed by
+        the table codec (out-of-range values limited and counted)."""
+        key = message_key(m)
+        table, i = self._codec[key]
+        for name in table.saturated(i, values):
+            k = f"{key}.{name}"
+            self.saturated[k] = self.saturated.get(k, 0) + 1
+        return table.decode(i, table.encode(i, values))
 
     @staticmethod
     def _phases(messages):
@@ -349,11 +374,8 @@ class MappedLink:
         return values
 
     def _send(self, m, outputs):
-        values = self._values(m, outputs)
-        msg = m.message
-        data = msg.encode(values, scaling=True, strict=False)
         key = message_key(m)
-        self._decoded[key] = msg.decode(data, decode_choices=False, scaling=True)
+        self._decoded[key] = self._through(m, self._values(m, outputs))
         self._frames[key] += 1
 
     def sensors(self, outputs, k):
@@ -390,8 +412,7 @@ class MappedLink:
                 continue
             values = {s.name: 0 for s in m.signals if s.protection_field is not None}
             values.update(self.matrix.command_values(m, commands))
-            decoded = m.message.decode(m.message.encode(values, scaling=True, strict=False),
-                                       decode_choices=False, scaling=True)
+            decoded = self._through(m, values)
             for s in m.signals:
                 t = s.target
                 if t is None or t.kind != "input" or s.name not in written:

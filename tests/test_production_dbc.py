@@ -58,3 +58,57 @@ def test_a_utf8_dbc_is_read_as_utf8_and_any_other_as_cp1252(prod, capsys):
         "Motor_1").get_signal_by_name("Temperatur").unit == "°C"
     assert M.dbc_encoding(os.path.join(DATA, "prod_pt.dbc")) == "utf-8"
     assert M.dbc_encoding(os.path.join(DATA, "prod_pt_cp1252.dbc")) == "cp1252"
+
+
+# ------------------------------------------------------------ (b) out-of-range values offline
+
+VEHICLE = M.find_mapping("vehicle")
+VEHICLE_PT = os.path.join(M.MAPPINGS_DIR, "..", "matrices", "vehicle_pt.dbc")
+
+
+def _unsigned_torque_dbc(tmp_path):
+    """The example pt matrix with the engine's torque as an unsigned signal (as a
+    production matrix had it): 0 .. 409.5 %."""
+    text = open(VEHICLE_PT, encoding="utf-8").read()
+    old = 'SG_ EngTorqueActual : 12|12@1- (0.1,0) [-204.8|204.7] "%"'
+    assert old in text
+    path = tmp_path / "pt_unsigned.dbc"
+    path.write_text(text.replace(old, 'SG_ EngTorqueActual : 12|12@1+ (0.1,0) [0|409.5] "%"'),
+                    encoding="utf-8")
+    return str(path)
+
+
+def test_a_negative_value_into_an_unsigned_signal_offline_saturates_as_the_loop_does_and_is_counted(tmp_path):
+    from can_dbc.table import CodecTable
+    from plant.model import Plant
+    from tcu_stub.mapped_link import MappedLink
+
+    m = M.load_options(VEHICLE, [f"pt={_unsigned_torque_dbc(tmp_path)}"])
+    link = MappedLink(m)
+    plant = Plant()
+    out = plant.outputs.copy()
+    out["engine_torque_nm"] = -40.0                 # overrun: the engine drags
+    view = link.sensors(out, 0)                     # no OverflowError
+    assert view["EngineTorque"] == 0.0               # limited to the signal's minimum, 0 %
+    assert link.saturated == {"pt:ECM_Torque.EngTorqueActual": 1}
+    # the real-time codec (the loop's table) sends the same frame for the same values
+    msg = m.message("ECM_Torque")
+    table = CodecTable([(msg.message, msg.protection)])
+    values = {"EngTorqueActual": -40.0 / 280.0 * 100.0}
+    assert table.decode(0, table.encode(0, values))["EngTorqueActual"] == 0.0
+    assert table.saturated(0, values) == ["EngTorqueActual"]
+    assert table.saturated(0, {"EngTorqueActual": 50.0}) == []
+    # above the range too, and into the raw field of a signal without a range
+    out["engine_torque_nm"] = 2000.0
+    link.refresh(out, [("pt", "ECM_Torque")])
+    assert link.view()["EngineTorque"] == pytest.approx(409.5 / 100 * 280, abs=0.3)
+    assert link.saturated == {"pt:ECM_Torque.EngTorqueActual": 2}
+
+
+def test_simulate_through_a_matrix_with_an_unsigned_torque_runs_and_reports_the_saturated_values(tmp_path, capsys):
+    code, out, err = run_cli(capsys, "simulate", "--scenario", "paper-cycle",
+                             "--mapping", VEHICLE, "--dbc", f"pt={_unsigned_torque_dbc(tmp_path)}")
+    assert code == 0, err
+    line = [x for x in out.splitlines() if x.startswith("saturated")]
+    assert len(line) == 1, out
+    assert "pt:ECM_Torque.EngTorqueActual" in line[0], line

@@ -96,6 +96,22 @@ def _print_run(plant, simulated_s, wall_s, rows, args):
     )
 
 
+def _print_saturated(link):
+    """With --mapping: the values the matrix's codec limited to their signal's
+    range or bit field (as the real-time loop limits them), per signal."""
+    counts = getattr(link, "saturated", None)
+    if counts is None:
+        return
+    if not counts:
+        print("saturated         none (every value within its signal's range)")
+        return
+    total = sum(counts.values())
+    worst = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
+    shown = ", ".join(f"{k} {n}" for k, n in worst[:5]) + (", ..." if len(worst) > 5 else "")
+    print(f"saturated         {total} values limited to their signal's range (as the loop sends "
+          f"them): {shown}")
+
+
 def _interrupted(plant, args):
     where = f"; partial CSV in {args.out}" if args.out else ""
     print(f"dct-hil: interrupted at t={plant.time_s:.3f} s{where}", file=sys.stderr)
@@ -167,6 +183,7 @@ def _simulate_maneuver(args):
     print(f"maneuver          {m.name}  ({m.description})")
     print(f"tcu               stub (in-process, through {through}; {_IMPL_TEXT[impl]})")
     _print_run(plant, float(data[-1, 0]), wall, len(data), args)
+    _print_saturated(link)
     rec = {n: data[:, k] for k, n in enumerate(names)}
     figures = report(m, rec)
     clashes = float(rec["gear_clashes"][-1] - rec["gear_clashes"][0])
@@ -225,6 +242,7 @@ def run(args):
         print(f"tcu               stub (in-process, through {through}; {_IMPL_TEXT[impl]}): "
               "clutches and forks")
         _print_run(plant, float(data[-1, 0]), wall, len(data), args)
+        _print_saturated(link)
         if args.plot:
             _plots(args, names, data, scenario.name)
         return 0
