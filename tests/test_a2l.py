@@ -110,9 +110,10 @@ def parser():
 
 def _parse(parser, text):
     """The pya2l tree of ``text``. The IF_DATA blocks are checked apart (pya2l
-    0.4 warns about every /begin inside an IF_DATA without an A2ML, as if it
-    were repeated); everything else must parse with the version check on and
-    without a single warning."""
+    0.4 parses IF_DATA generically, with the file's A2ML or without, and warns
+    about every /begin inside one as if it were repeated; tests/test_a2l_tools.py
+    checks that its tree holds them all); everything else must parse with the
+    version check on and without a single warning."""
     from pya2l.parser import A2lError
 
     lines = text.split("\n")

@@ -26,8 +26,14 @@ What it describes:
   overwritten by the loop every tick and stay measurements). The writable
   CHARACTERISTICs are exactly ``calibration_regions()``: the regions the loop
   accepts writes into (``rt_loop.regions``) and the XCP slave range-checks.
-* MOD_PAR (EPK: ``epk()``), MOD_COMMON (BYTE_ORDER MSB_LAST, natural
-  alignment), IF_DATA XCP: PROTOCOL_LAYER, DAQ (DYNAMIC, MAX_DAQ from
+* the A2ML of its IF_DATA XCP (``rt_loop.measure.xcp.a2ml``), so a tool
+  reads the XCP blocks by their description;
+* MOD_PAR (EPK: ``epk()``; ADDR_EPK: ``protocol.EPK_ADDRESS``, where the
+  slave answers the EPK as memory; the calibration MEMORY_SEGMENT with its
+  XCP SEGMENT and pages, as GET_SEGMENT_INFO and GET_PAGE_INFO answer),
+  MOD_COMMON (BYTE_ORDER MSB_LAST, natural
+  alignment), IF_DATA XCP: PROTOCOL_LAYER, PAG (one segment, as
+  GET_PAG_PROCESSOR_INFO), DAQ (DYNAMIC, MAX_DAQ from
   ``RT_DAQ_MAX_LISTS``, the events ``tick``, ``10ms`` and ``100ms`` with their
   cycle times at the loop's rate) and the Ethernet transport layer
   (XCP_ON_UDP_IP and/or XCP_ON_TCP_IP, ``xcp``'s address and port).
@@ -60,6 +66,8 @@ from plant.describe import online_keys, unit_of
 from plant.describe import range_key as _range_key
 from plant.describe import ranges as _ranges
 from plant.describe import toml_comments as _toml_comments
+from rt_loop.measure.xcp import a2ml
+from rt_loop.measure.xcp.protocol import EPK_ADDRESS
 
 __all__ = [
     "OVERRIDABLE_INPUTS",
@@ -663,7 +671,7 @@ def _xcp_settings(xcp: dict | None, channels: Any, lib: Any) -> dict:
     return cfg
 
 
-def _if_data(cfg: dict, lib: Any) -> list[str]:
+def _if_data(cfg: dict, lib: Any, calibration: bool) -> list[str]:
     step = 1.0 / cfg["rate_hz"]                  # plant time per tick
     period = step / cfg["time_scale"]            # wall-clock time per tick
     max_daq = _const(lib, "RT_DAQ_MAX_LISTS")
@@ -675,6 +683,7 @@ def _if_data(cfg: dict, lib: Any) -> list[str]:
     lines += [f"    OPTIONAL_CMD {c}" for c in cfg["optional_cmds"]]
     lines += [f"    OPTIONAL_LEVEL1_CMD {c}" for c in cfg["optional_level1_cmds"]]
     lines += ["  /end PROTOCOL_LAYER",
+              f"  /begin PAG {1 if calibration else 0} /end PAG",
               "  /begin DAQ",
               f"    DYNAMIC {max_daq} {len(_EVENTS)} 0 OPTIMISATION_TYPE_DEFAULT "
               f"ADDRESS_EXTENSION_FREE {cfg['identification']} "
@@ -722,9 +731,9 @@ def _memory_segment(objs: list[A2lObject]) -> list[str]:
             "  /begin IF_DATA XCP",
             "    /begin SEGMENT 0 2 0 0 0",
             "      /begin PAGE 0 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE "
-            "XCP_WRITE_ACCESS_DONT_CARE /end PAGE",
+            "XCP_WRITE_ACCESS_DONT_CARE INIT_SEGMENT 0 /end PAGE",
             "      /begin PAGE 1 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE "
-            "XCP_WRITE_ACCESS_NOT_ALLOWED /end PAGE",
+            "XCP_WRITE_ACCESS_NOT_ALLOWED INIT_SEGMENT 0 /end PAGE",
             "    /end SEGMENT",
             "  /end IF_DATA",
             "/end MEMORY_SEGMENT"]
@@ -750,8 +759,10 @@ def generate(ffi: Any, lib: Any, *, channels: Any = None, params_doc: Any = None
                       f'VERSION "{__version__}" PROJECT_NO dct_hil /end HEADER',
                       '  /begin MODULE rt_loop "the real-time loop\'s memory: an address is a byte '
                       'offset from the start of the rt_loop struct, address extension 0"',
+                      *a2ml.block(),
                       f'    /begin MOD_PAR "sizeof(rt_loop) = {ffi.sizeof("rt_loop")} bytes"',
-                      f'      VERSION "{__version__}" EPK "{ident}" ECU "dct-hil"']
+                      f'      VERSION "{__version__}" ADDR_EPK 0x{EPK_ADDRESS:X} EPK "{ident}" '
+                      'ECU "dct-hil"']
     out += ["      " + line for line in _memory_segment(objs)]
     out += ["    /end MOD_PAR",
                       '    /begin MOD_COMMON "little endian, natural alignment (x86-64, aarch64)"',
@@ -759,7 +770,7 @@ def generate(ffi: Any, lib: Any, *, channels: Any = None, params_doc: Any = None
                       "      ALIGNMENT_BYTE 1 ALIGNMENT_WORD 2 ALIGNMENT_LONG 4 ALIGNMENT_INT64 8 "
                       "ALIGNMENT_FLOAT32_IEEE 4 ALIGNMENT_FLOAT64_IEEE 8",
                       "    /end MOD_COMMON"]
-    out += ["    " + line for line in _if_data(cfg, lib)]
+    out += ["    " + line for line in _if_data(cfg, lib, any(o.writable for o in objs))]
 
     # record layouts (one per data type of a CHARACTERISTIC)
     layouts = sorted({o.datatype for o in objs if o.kind == "CHARACTERISTIC"})

@@ -44,7 +44,10 @@ GET_ID: type 0 the slave's name, type 1 the A2L file's name (without path
 and extension), type 4 the A2L file itself by UPLOAD (the response gives its
 length and sets the MTA to its start, as XCPlite does; the text comes from
 a callable, asked at each GET_ID 4), type 5 the EPK (the A2L's MOD_PAR EPK,
-when given). Other types: length 0 (not available).
+when given). Other types: length 0 (not available). The EPK is also memory:
+UPLOAD and SHORT_UPLOAD within its bytes at ``EPK_ADDRESS`` (the A2L's
+ADDR_EPK) answer them, as a calibration tool reads it to check the A2L
+against the slave; writes there are refused (ERR_WRITE_PROTECTED).
 
 Seed & key (only with a secret, e.g. from ``--xcp-key FILE``): CAL/PAG and
 DAQ start locked at every CONNECT. GET_SEED gives 16 random bytes; the key
@@ -72,7 +75,7 @@ from typing import NamedTuple
 
 __all__ = [
     "Slave", "Memory", "Daq", "Dto", "DaqEntry", "DaqListConfig", "Event", "Limits",
-    "OK", "MAX_CTO", "DTO_HEADER_BYTES", "TIMESTAMP_BYTES", "TIMESTAMP_UNIT_NS",
+    "OK", "MAX_CTO", "DTO_HEADER_BYTES", "EPK_ADDRESS", "TIMESTAMP_BYTES", "TIMESTAMP_UNIT_NS",
     "DEFAULT_EVENTS", "KEY_BYTES", "SEED_BYTES", "compute_key", "seed_n_key_function",
     "read_secret", "error_name", "merge_ranges",
 ]
@@ -170,6 +173,9 @@ MAX_CTO = 252
 DTO_HEADER_BYTES = 4                 # relative ODT, fill, absolute DAQ list (word, aligned)
 TIMESTAMP_BYTES = 4
 TIMESTAMP_UNIT_NS = 1000             # 1 us
+#: where the slave answers the EPK as memory (the A2L's MOD_PAR ADDR_EPK; address
+#: extension 0): far beyond the rt_loop struct, read only, the EPK's ASCII bytes
+EPK_ADDRESS = 0x80000000
 _TS_UNIT_CODE = 3                    # DAQ_TIMESTAMP_UNIT_1US
 _TS_SIZE_CODE = 4                    # 4 bytes
 _IDF_REL_ODT_ABS_DAQ_WORD_ALIGNED = 0b11
@@ -717,7 +723,21 @@ class Slave:
             return self._saved_working
         return None
 
+    def _epk_span(self, address: int, n: int) -> bytes | None:
+        """The EPK's bytes at ``address``..+n, None outside the EPK's address range
+        (ERR_OUT_OF_RANGE for a read that begins in it and runs past its end)."""
+        if self.epk is None or not EPK_ADDRESS <= address < EPK_ADDRESS + 0x10000:
+            return None
+        text = self.epk.encode("ascii", "replace")
+        at = address - EPK_ADDRESS
+        if at + n > len(text):
+            raise _Refused(ERR_OUT_OF_RANGE)
+        return text[at:at + n]
+
     def _read(self, address: int, n: int) -> bytes:
+        epk = self._epk_span(address, n)
+        if epk is not None:
+            return epk
         data = self.memory.read(address, n)
         if isinstance(data, int):
             raise _Refused(data)
@@ -734,6 +754,8 @@ class Slave:
         return bytes(out)
 
     def _write(self, address: int, data: bytes) -> None:
+        if self.epk is not None and EPK_ADDRESS <= address < EPK_ADDRESS + 0x10000:
+            raise _Refused(ERR_WRITE_PROTECTED)      # the EPK is read only
         if self._xcp_page == 1:
             raise _Refused(ERR_WRITE_PROTECTED)      # the reference page is read only
         if self._ecu_page == 1 and self._saved_working is not None:
