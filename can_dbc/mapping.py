@@ -880,6 +880,24 @@ class _Loader:
         """A used message: every signal inside the frame, no two overlapping
         (signals of different branches of one multiplexer may)."""
         where = f"message {msg.name}"
+        by_name = {s.name: s for s in msg.signals}
+        switched = {}
+        for sig in msg.signals:
+            if sig.multiplexer_signal is not None:
+                switched.setdefault(sig.multiplexer_signal, []).append(sig.name)
+        for name, branch in switched.items():
+            switch = by_name.get(name)
+            if switch is not None and not switch.is_multiplexer:
+                # a real-world defect: "m" for "M" in the switch's SG_ line, while SG_MUL_VAL_
+                # (or m<ID> markers) name it the multiplexer; the codec cannot send it
+                self.fail(where, f"signal {name} switches {', '.join(branch)} but is not marked as a "
+                                 f"multiplexer (its SG_ line has no 'M'; a lower-case 'm' is no multiplexer) "
+                                 f"({kind} on bus {bus.name}): write '{name} M :' in the DBC, or give "
+                                 f"[message.{msg.name}] direction = \"ignore\"", file=dbc)
+            if switch is None:
+                self.fail(where, f"signals {', '.join(branch)} are multiplexed by {name}, which the message "
+                                 f"lacks ({kind} on bus {bus.name}): fix the DBC's SG_MUL_VAL_, or give "
+                                 f"[message.{msg.name}] direction = \"ignore\"", file=dbc)
         size = 8 * msg.length
         occupied = []
         for sig in msg.signals:

@@ -112,3 +112,30 @@ def test_simulate_through_a_matrix_with_an_unsigned_torque_runs_and_reports_the_
     line = [x for x in out.splitlines() if x.startswith("saturated")]
     assert len(line) == 1, out
     assert "pt:ECM_Torque.EngTorqueActual" in line[0], line
+
+
+# ------------------------------------------------------------ (c) a lower-case multiplexer
+
+MUX_TOML = os.path.join(DATA, "mux_lower.toml")
+
+
+@pytest.mark.parametrize("argv", [
+    ["mapping", "check", MUX_TOML],
+    ["mapping", "show", MUX_TOML],
+    ["simulate", "--scenario", "paper-cycle", "--duration", "1", "--mapping", MUX_TOML],
+    ["serve", "--mapping", MUX_TOML, "--interface", "virtual", "--channel", "mux-test", "--duration", "1"],
+    ["demo", "--mapping", MUX_TOML],
+    ["tcu", "--mapping", MUX_TOML, "--interface", "virtual", "--channel", "mux-test"],
+])
+def test_a_lower_case_multiplexer_is_refused_by_every_command_in_the_same_line(argv, capsys):
+    """Info_Mux is written "m" (not "M") in its SG_ line while SG_MUL_VAL_ makes it the
+    switch of Oeltemp and Kuehltemp: the loader judges it once, for every command."""
+    code, out, err = run_cli(capsys, *argv)
+    assert code == 2, (out, err)
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    line = lines[0]
+    assert line.startswith(("dct-hil: error: ", "dct-hil tcu: error: ")), err
+    for words in ("mux_lower.dbc", "bus pt", "message Motor_Info", "Info_Mux", "'M'",
+                  "Oeltemp, Kuehltemp", 'direction = "ignore"'):
+        assert words in line, (words, line)
