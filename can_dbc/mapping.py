@@ -68,8 +68,11 @@ Rules:
   output's: otherwise an error names both. Between quantities no unit
   converts (wheel rpm to km/h, pedal % to bar) an explicit ``factor`` does,
   in the signal's unit per the output's. Outputs and inputs without a unit
-  suffix (states, counts, the gear) and DBC units that are not known ("",
-  "-", "Stufe") are not checked.
+  suffix (states, counts, the gear) and signals without a unit ("", "-") are
+  not checked; a DBC unit the table does not know ("Stufe", "MDI") on a
+  signal mapped without ``unit`` or ``factor`` to a field with a unit is a
+  warning naming both units (``Mapping.warnings``, printed by ``mapping
+  check``): the value goes as it is.
 - Status sources (``STATUS_FIELDS``): the simulator's own state, as the
   project's ``SIM_Status`` carries it: ``sim_time_s``, ``overrun_count``,
   ``turnaround_max_us``, ``sim_state`` (0 starting, 1 running, 2 stopping,
@@ -330,6 +333,8 @@ class Mapping:
     buses: tuple[Bus, ...]
     messages: tuple[MappedMessage, ...]       # bus by bus, in codec order
     ignored: tuple[tuple[str, str], ...] = ()  # (bus, message) given direction = "ignore"
+    #: what the loader let through but a user should look at (one line each: key and cause)
+    warnings: tuple[str, ...] = ()
 
     def bus(self, name):
         for b in self.buses:
@@ -585,6 +590,7 @@ class _Loader:
         self.inputs = inputs
         self.driven = {}          # input -> key that drives it
         self.recorded = {}        # record name -> key
+        self.warnings = []        # Mapping.warnings
 
     def fail(self, key, cause, file=None):
         raise MappingError(f"{file or self.path}: {key}: {cause}")
@@ -613,7 +619,7 @@ class _Loader:
             messages.extend(msgs)
             ignored.extend(ign)
         return Mapping(path=os.path.abspath(self.path), rate_hz=self.rate_hz, buses=tuple(buses),
-                       messages=tuple(messages), ignored=tuple(ignored))
+                       messages=tuple(messages), ignored=tuple(ignored), warnings=tuple(self.warnings))
 
     # -------------------------------------------------------------- buses
     def buses(self, raw):
@@ -1048,6 +1054,12 @@ class _Loader:
             if ref is not None:
                 self.fail(f"{key}.reference", "reference needs unit = \"%\"")
             known = _known_unit(dbc_unit) if not _no_unit(dbc_unit) else None
+            if field_unit is not None and not _no_unit(dbc_unit) and known is None and "factor" not in raw:
+                # a unit the table does not know: nothing to convert by, nothing to refuse by
+                self.warnings.append(
+                    f"{key}: the DBC's unit of the signal is {dbc_unit!r}, which the unit table does not "
+                    f"know; {what} {name} is in {field_unit!r} and goes as it is: give unit (and "
+                    f"reference for a share) or factor if {dbc_unit!r} is not {field_unit!r}")
             if field_unit is not None and known is not None and not _same_unit(field_unit, known):
                 q_dbc, q_field = _UNIT_INDEX[known][0], _UNIT_INDEX[_known_unit(field_unit)][0]
                 cause = (f"the DBC's unit of the signal is {dbc_unit!r}, {what} {name} is in "
@@ -1332,6 +1344,7 @@ def check_report(mapping):
                 verb = "looks" if len(names) == 1 else "look"
                 warnings.append(f"note: message {m.name} (bus {b.name}): {', '.join(names)} {verb} like "
                                 f"{what}, but the message has no protection")
+    warnings.extend(f"warning: {w}" for w in mapping.warnings)
     return "\n".join(lines + warnings) + "\n"
 
 

@@ -139,3 +139,23 @@ def test_a_lower_case_multiplexer_is_refused_by_every_command_in_the_same_line(a
     for words in ("mux_lower.dbc", "bus pt", "message Motor_Info", "Info_Mux", "'M'",
                   "Oeltemp, Kuehltemp", 'direction = "ignore"'):
         assert words in line, (words, line)
+
+
+# ------------------------------------------------------------ (d) a unit the unit table does not know
+
+def test_an_unknown_dbc_unit_without_a_mapping_unit_is_a_warning_naming_both(prod, capsys):
+    """Moment_MDI's DBC unit "MDI" is no unit the table knows; mapped to the
+    engine torque (Nm) without ``unit``, the value goes as it is: a warning in
+    ``mapping check`` naming both units; none with a factor or without the entry."""
+    path = prod("prod_pt.toml", 'Motormoment = { output = "engine_torque_nm" }',
+                'Motormoment = { output = "engine_torque_nm" }\n'
+                'Moment_MDI = { output = "engine_torque_nm" }')
+    m = M.load(path)
+    assert len(m.warnings) == 1 and "'MDI'" in m.warnings[0] and "'Nm'" in m.warnings[0]
+    assert "Moment_MDI" in m.warnings[0] and "\n" not in m.warnings[0]
+    code, out, err = run_cli(capsys, "mapping", "check", path)
+    assert code == 0 and "warning:" in out and "'MDI'" in out and "'Nm'" in out, out
+    with_factor = prod("prod_pt.toml", 'Moment_MDI = { output = "engine_torque_nm" }',
+                       'Moment_MDI = { output = "engine_torque_nm", factor = 0.35 }')
+    assert M.load(with_factor).warnings == ()
+    assert M.load(PT_TOML).warnings == ()
