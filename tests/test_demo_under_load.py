@@ -77,8 +77,9 @@ def _assert_held(summary, stats):
         assert not summary["verdict"]["valid"] and any("skipped tick" in f for f in summary["verdict"]["findings"]), \
             summary["verdict"]
     assert max(abs(d) for d in deltas) <= SHIFT_TOLERANCE_S + lost_s, (deltas, skipped)
-    assert not any("stale" in f or "timeout" in f or "shift" in f for f in summary["verdict"]["findings"]), \
-        summary["verdict"]
+    if not skipped:   # with ticks lost the verdict also names what followed from them (gaps, shift times)
+        assert not any("stale" in f or "timeout" in f or "shift" in f for f in summary["verdict"]["findings"]), \
+            summary["verdict"]
 
 
 @pytest.mark.slow
