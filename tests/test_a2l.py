@@ -98,16 +98,6 @@ def _channels(name, ffi, lib):
     return LoopChannels(can_mapping.load(can_mapping.find_mapping(name)), ffi, lib)
 
 
-@pytest.fixture(scope="module")
-def parser():
-    try:
-        from pya2l.parser import A2lParser
-    except ImportError as e:  # pragma: no cover
-        pytest.fail(f"pya2l is not installed ({e}): scripts/setup installs the test extra")
-    with A2lParser() as p:
-        yield p
-
-
 def _parse(parser, text):
     """The pya2l tree of ``text``. The IF_DATA blocks are checked apart (pya2l
     0.4 parses IF_DATA generically, with the file's A2ML or without, and warns

@@ -116,16 +116,6 @@ def test_a2ltool_reads_the_xcp_transport(written):
 # pya2l
 # ---------------------------------------------------------------------------
 
-@pytest.fixture(scope="module")
-def parser():
-    try:
-        from pya2l.parser import A2lParser
-    except ImportError as e:  # pragma: no cover
-        pytest.fail(f"pya2l is not installed ({e}): scripts/setup installs the test extra")
-    with A2lParser() as p:
-        yield p
-
-
 def _blocks(blob) -> list[tuple[str, list]]:
     """pya2l's generic IF_DATA element as (name, values) of it and every block
     in it, depth first (a value: a number, a string, or a block's name)."""
