@@ -14,6 +14,10 @@ adds what a DBC cannot say, the same algorithm as the protection kind
 A receiver (:class:`E2eReceiver`) rejects a frame whose length is not the
 DBC's, whose CRC is wrong, or whose counter repeats or jumps by more than 2;
 the counter state moves on only with an accepted frame.
+
+AUTOSAR E2E Profile 5 in Python (``p5_protect``, ``p5_check``, ``p5_crc``,
+``crc16_ccitt_false``) computes what the table codec's protection kind ``p5``
+writes, for offline tools and tests.
 """
 
 import functools
@@ -180,6 +184,64 @@ def crc8_j1850(data):
     for b in bytes(data):
         crc = _CRC8_TABLE[crc ^ b]
     return crc ^ 0xFF
+
+
+def _crc16_table():
+    table = []
+    for byte in range(256):
+        crc = byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) & 0xFFFF if crc & 0x8000 else (crc << 1) & 0xFFFF
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC16_TABLE = _crc16_table()
+
+
+def crc16_ccitt_false(data, crc=0xFFFF):
+    """CRC-16/CCITT-FALSE of ``data``: poly 0x1021, init 0xFFFF (or ``crc``, to
+    go on from a previous part), not reflected, no final XOR; b"123456789"
+    gives 0x29B1. The CRC of AUTOSAR E2E Profile 5."""
+    for b in bytes(data):
+        crc = ((crc << 8) & 0xFFFF) ^ _CRC16_TABLE[(crc >> 8) ^ b]
+    return crc
+
+
+def p5_crc(data, data_id, offset_bits=0):
+    """The E2E Profile 5 CRC of a frame whose 3-byte header (CRC low, CRC high,
+    counter) starts at bit ``offset_bits``: over the bytes before the header,
+    the bytes after the CRC (the counter first), then the Data ID's low and
+    high byte (the protection kind ``p5`` of can_dbc/protection.py)."""
+    data = bytes(data)
+    h = int(offset_bits) // 8
+    crc = crc16_ccitt_false(data[:h])
+    crc = crc16_ccitt_false(data[h + 2:], crc)
+    return crc16_ccitt_false(bytes((data_id & 0xFF, (data_id >> 8) & 0xFF)), crc)
+
+
+def p5_protect(data, data_id, counter, offset_bits=0):
+    """``data`` with E2E Profile 5's counter (``counter`` mod 256) and CRC
+    written into its header at bit ``offset_bits``."""
+    buf = bytearray(data)
+    h = int(offset_bits) // 8
+    if offset_bits % 8 or h + 3 > len(buf):
+        raise ValueError(f"E2E Profile 5 header at bit {offset_bits} does not fit {len(buf)} data bytes")
+    buf[h + 2] = int(counter) & 0xFF
+    crc = p5_crc(buf, data_id, offset_bits)
+    buf[h], buf[h + 1] = crc & 0xFF, crc >> 8
+    return bytes(buf)
+
+
+def p5_check(data, data_id, offset_bits=0):
+    """(CRC right, counter) of a received E2E Profile 5 frame; the counter
+    check against the last one is the receiver's (``max_delta_counter``)."""
+    data = bytes(data)
+    h = int(offset_bits) // 8
+    if offset_bits % 8 or h + 3 > len(data):
+        return False, None
+    crc = p5_crc(data, data_id, offset_bits)
+    return (data[h] == crc & 0xFF and data[h + 1] == crc >> 8), data[h + 2]
 
 
 def e2e_crc(frame_id, data):

@@ -31,6 +31,16 @@ Kinds:
 ``xor``
     a checksum that is the XOR of every payload byte except its own
     (older VW/Audi powertrain messages); optionally a counter.
+``p5``
+    AUTOSAR E2E Profile 5: a 3-byte header at bit ``offset_bits`` (its
+    Offset, a multiple of 8; default 0): the CRC in that byte and the next
+    (low byte first), the 8-bit counter (0..255) in the byte after them. The CRC is CRC-16/CCITT-FALSE
+    (poly 0x1021, init 0xFFFF, no reflection, no final XOR) over the payload
+    bytes before the header, the bytes after the CRC (the counter first),
+    then the Data ID's (``data_id``, 16 bits) low and high byte. ``crc`` (a
+    16-bit signal on the CRC's bytes) and ``counter`` (an 8-bit signal on
+    the counter's byte) name the message's signals there when it has them;
+    the codec writes the header either way. ``max_delta_counter`` 1..255.
 
 A receiver rejects a frame whose checksum is wrong or whose counter repeats
 or advances by more than ``max_delta_counter``.
@@ -43,7 +53,7 @@ from typing import Any
 
 __all__ = ["KINDS", "P1_DATA_ID_MODES", "Protection", "ProtectionError", "parse_protection"]
 
-KINDS = ("none", "counter", "dct", "p1", "p2", "xor")
+KINDS = ("none", "counter", "dct", "p1", "p2", "xor", "p5")
 P1_DATA_ID_MODES = ("both", "alt", "low", "nibble")
 #: which fields each kind needs
 _NEEDS = {
@@ -53,9 +63,12 @@ _NEEDS = {
     "p1": ("crc_signal", "counter_signal", "data_id"),
     "p2": ("crc_signal", "counter_signal", "data_id_list"),
     "xor": ("crc_signal",),
+    "p5": ("data_id",),
 }
+#: the largest max_delta_counter per kind (the counter's range less one; 14 for the 4-bit ones)
+_MAX_DELTA = {"p5": 255}
 _KEYS = ("kind", "crc", "counter", "data_id", "data_id_mode", "data_id_nibble", "data_id_list",
-         "max_delta_counter")
+         "max_delta_counter", "offset_bits")
 
 
 class ProtectionError(ValueError):
@@ -72,6 +85,7 @@ class Protection:
     data_id_nibble_signal: str | None = None  # p1 "nibble": where the high nibble goes
     data_id_list: tuple[int, ...] | None = None  # p2: 16 Data IDs (8 bits), one per counter value
     max_delta_counter: int = 2              # a counter may advance by 1..this
+    offset_bits: int = 0                    # p5: where its header (CRC, counter) starts, a multiple of 8
     extra: dict = field(default_factory=dict, compare=False, repr=False)
 
     def signals(self) -> tuple[str, ...]:
@@ -121,11 +135,18 @@ def parse_protection(spec: Any, where: str) -> Protection:
                                   "per counter value)")
         ids = tuple(ids)
     delta = spec.get("max_delta_counter", 2)
-    if isinstance(delta, bool) or not isinstance(delta, int) or not 1 <= delta <= 14:
-        raise ProtectionError(f"{where}.max_delta_counter: must be 1..14, got {delta!r}")
+    most = _MAX_DELTA.get(kind, 14)
+    if isinstance(delta, bool) or not isinstance(delta, int) or not 1 <= delta <= most:
+        raise ProtectionError(f"{where}.max_delta_counter: must be 1..{most}, got {delta!r}")
+    offset = spec.get("offset_bits", 0)
+    if "offset_bits" in spec and kind != "p5":
+        raise ProtectionError(f"{where}.offset_bits: only protection \"p5\" has an offset (its header's bit)")
+    if isinstance(offset, bool) or not isinstance(offset, int) or not 0 <= offset <= 488 or offset % 8:
+        raise ProtectionError(f"{where}.offset_bits: must be the header's first bit, a multiple of 8 "
+                              f"from 0 to 488, got {offset!r}")
     p = Protection(kind=kind, crc_signal=crc, counter_signal=counter, data_id=data_id,
                    data_id_mode=mode, data_id_nibble_signal=nibble, data_id_list=ids,
-                   max_delta_counter=delta)
+                   max_delta_counter=delta, offset_bits=offset)
     for need in _NEEDS[kind]:
         if getattr(p, need) is None:
             key = {"crc_signal": "crc", "counter_signal": "counter"}.get(need, need)

@@ -434,6 +434,9 @@ def _check_protection(msg, prot):
         raise TableError(f"{msg.name}: protection kind {prot.kind!r}: choose one of {', '.join(KINDS)}")
     if prot.kind == "none":
         return
+    if prot.kind == "p5":
+        _check_p5(msg, prot)
+        return
     sigs = {s.name: s for s in msg.signals}
     kind = prot.kind
     needs_crc = kind in ("dct", "p1", "p2", "xor")
@@ -477,6 +480,44 @@ def _check_protection(msg, prot):
         raise TableError(f"{msg.name}: max_delta_counter {prot.max_delta_counter}, must be 1..14")
 
 
+def p5_header(prot):
+    """The bytes of a Profile 5 header: (CRC low, CRC high, counter)."""
+    h = prot.offset_bits // 8
+    return h, h + 1, h + 2
+
+
+def _check_p5(msg, prot):
+    """Profile 5: the Data ID, the header inside the frame, the named CRC and
+    counter signals on the header's bytes, no other signal on them (the codec
+    writes them)."""
+    if prot.data_id is None or not 0 <= prot.data_id <= 0xFFFF:
+        raise TableError(f"{msg.name}: protection 'p5' needs data_id (16 bits)")
+    if prot.offset_bits % 8 or prot.offset_bits // 8 + 3 > msg.length:
+        raise TableError(f"{msg.name}: the E2E Profile 5 header (3 bytes at bit {prot.offset_bits}) "
+                         f"does not fit the message's {msg.length} bytes")
+    if not 1 <= prot.max_delta_counter <= 255:
+        raise TableError(f"{msg.name}: max_delta_counter {prot.max_delta_counter}, must be 1..255")
+    lo, _, ctr = p5_header(prot)
+    sigs = {s.name: s for s in msg.signals}
+    header_bits = set(range(8 * lo, 8 * lo + 24))
+    for role, name, first, length in (("CRC", prot.crc_signal, lo, 16), ("counter", prot.counter_signal, ctr, 8)):
+        if name is None:
+            continue
+        if name not in sigs:
+            raise TableError(f"{msg.name}: {role} signal {name} is not a signal of the message")
+        s = sigs[name]
+        want = set(range(8 * first, 8 * first + length))
+        if set(signal_bits(s)) != want or (length == 16 and s.byte_order != "little_endian") or s.is_float:
+            raise TableError(f"{msg.name}.{name}: the E2E Profile 5 {role} takes {length} bits at byte "
+                             f"{first}{' (low byte first)' if length == 16 else ''}, not start bit "
+                             f"{s.start}, {s.length} bits ({s.byte_order.replace('_', ' ')})")
+    mine = {prot.crc_signal, prot.counter_signal}
+    for s in msg.signals:
+        if s.name not in mine and header_bits & set(signal_bits(s)):
+            raise TableError(f"{msg.name}.{s.name}: lies on the E2E Profile 5 header (bytes {lo}..{ctr}), "
+                             "which the protection writes")
+
+
 def _fill_protection(cm, msg, prot, index):
     kind = prot.kind
     cm.protection = KINDS.index(kind)
@@ -486,6 +527,15 @@ def _fill_protection(cm, msg, prot, index):
     cm.data_id_mode = 0
     cm.max_delta_counter = prot.max_delta_counter
     if kind == "none":
+        return
+    if kind == "p5":
+        cm.crc_byte = prot.offset_bits // 8
+        cm.counter_modulus = 256
+        cm.data_id = prot.data_id
+        if prot.crc_signal:
+            cm.crc_signal = index[prot.crc_signal]
+        if prot.counter_signal:
+            cm.counter_signal = index[prot.counter_signal]
         return
     if kind != "counter" and prot.crc_signal:
         cm.crc_signal = index[prot.crc_signal]

@@ -55,6 +55,7 @@
 #define CT_PROT_P1 3
 #define CT_PROT_P2 4
 #define CT_PROT_XOR 5
+#define CT_PROT_P5 6
 
 /* AUTOSAR E2E Profile 1 Data ID modes, in the order of P1_DATA_ID_MODES */
 #define CT_P1_BOTH 0
@@ -111,10 +112,12 @@ typedef struct {
     int32_t crc_signal;       /* indices within the message, -1: none */
     int32_t counter_signal;
     int32_t nibble_signal;    /* P1 nibble mode: carries the Data ID's high nibble */
-    int32_t crc_byte;         /* the byte the checksum fills (crc_signal's), -1: none */
+    int32_t crc_byte;         /* the byte the checksum fills (crc_signal's), -1: none;
+                                 P5: the first byte of its header (CRC low, CRC high,
+                                 counter) */
     uint32_t counter_modulus; /* counter values 0 .. modulus-1 (P1 15, dct and P2 16,
-                                 counter and xor 2^length), 0: no counter */
-    uint16_t data_id;         /* P1 */
+                                 counter and xor 2^length, P5 256), 0: no counter */
+    uint16_t data_id;         /* P1, P5 */
     uint8_t data_id_mode;     /* P1: CT_P1_* */
     uint8_t max_delta_counter;/* a received counter may advance by 1 .. this */
     uint8_t data_id_list[16]; /* P2: the Data ID of each counter value */
@@ -136,6 +139,10 @@ typedef struct {
 uint8_t ct_crc8_j1850(const uint8_t *bytes, size_t n);
 /* CRC-8H2F of AUTOSAR (poly 0x2F, init 0xFF, xorout 0xFF; "123456789" -> 0xDF) */
 uint8_t ct_crc8_h2f(const uint8_t *bytes, size_t n);
+
+/* CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, xorout 0;
+ * "123456789" -> 0x29B1), the CRC of AUTOSAR E2E Profile 5 */
+uint16_t ct_crc16_ccitt_false(const uint8_t *bytes, size_t n);
 
 /* index of the message with this identifier, -1 if none */
 int ct_find(const ct_table *t, uint32_t id, int extended);
@@ -160,11 +167,13 @@ int ct_decode(const ct_table *t, int msg, const uint8_t *data, int len, double *
               uint8_t *written);
 
 /* Writes the counter (counter modulo counter_modulus), for P1 nibble mode
- * the Data ID nibble, then the checksum, as the message's protection says.
+ * the Data ID nibble, then the checksum, as the message's protection says
+ * (P5: counter byte, then the CRC's two bytes, whatever signals lie there).
  * Returns the counter value written (0 without a counter), -1 for a bad msg. */
 int ct_protect(const ct_table *t, int msg, uint8_t *data, uint32_t counter);
 
-/* Checks a received frame of message msg: CT_RX_BAD_LENGTH when len is not
+/* Checks a received frame of message msg (P5: the counter is its header's
+ * byte, 0..255): CT_RX_BAD_LENGTH when len is not
  * the message's length, CT_RX_BAD_CRC when the checksum (or P1's Data ID
  * nibble) is wrong, CT_RX_BAD_COUNTER when the counter is out of its range
  * (P1: 15), repeats, or advances by more than max_delta_counter; else
