@@ -1,6 +1,7 @@
 """Mapping files: what the plant sends and receives on a vehicle's CAN matrix.
 
-A mapping file (TOML) names one DBC per CAN bus the plant serves and says
+A mapping file (TOML) names one CAN matrix per bus the plant serves (a DBC,
+an AUTOSAR system description (ARXML), KCD or SYM file) and says
 which DBC nodes the plant plays (all their messages are sent: restbus) and
 which belong to the device under test (their messages are received), then,
 per message, what drives each signal: a plant output (a ``dct_outputs``
@@ -14,7 +15,8 @@ The format, with every key::
 
     [[bus]]                          # one per CAN channel the plant serves
     name = "pt"                      # its name in statistics and on the command line
-    dbc = "vehicle_pt.dbc"           # relative to the mapping file
+    dbc = "vehicle_pt.dbc"           # relative to the mapping file; .arxml, .kcd, .sym too
+    cluster = "PT_CAN"               # an ARXML's CAN cluster; needed when it has several
     bitrate = 500000                 # bit/s; default: the DBC's Baudrate
     data_bitrate = 2000000           # CAN FD data phase (bit rate switch); default: none
     fd = false                       # CAN FD; default: what the DBC says
@@ -30,6 +32,7 @@ The format, with every key::
                                      # leave it out (a status it may not have): never receiving it is
                                      # no failure of the run; its values stay safe (default false)
     protection = { kind = "p1", crc = "Motor_1_CRC", counter = "Motor_1_BZ", data_id = 0x123 }
+                                     # default: the E2E protection an ARXML gives the message, else none
 
     [message.Motor_1.signals]        # sent: where each signal's value comes from
     Motordrehzahl = { output = "engine_speed_rpm" }
@@ -82,26 +85,31 @@ Rules:
   Signals of a received message without an entry drive nothing.
 - DBCs are read leniently; only what the mapping uses is checked strictly
   (overlapping signals, lengths, cycle times, identifiers): see ``load``.
+- A bus's matrix may be an ARXML, KCD or SYM file (by its suffix;
+  ``can_dbc.matrix``). A message an ARXML protects end to end (an E2E
+  transformer or protection set: profile 1, 2 or 5, its Data IDs, where its
+  CRC and counter are) has that protection unless its entry gives
+  ``protection`` (``"none"`` too); a profile the codec lacks (4, 7 on CAN
+  FD, ...) is an error naming it for a used message without one.
 """
 
 from __future__ import annotations
 
 import difflib
-import logging
 import math
 import os
 import re
 import tomllib
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 from plant.describe import SUFFIX_UNITS
 
+from . import channels as _channels
 from . import codec
 from .codec import dbc_encoding
+from .matrix import file_protections, read_matrix, select_cluster
 from .protection import Protection, ProtectionError, parse_protection
-from .python_can import python_can
 
 __all__ = [
     "DEFAULT_MAPPING", "DEFAULT_RATE_HZ", "DEFAULT_TIMEOUT_CYCLES", "LOAD_WARNING", "MAPPINGS_DIR",
@@ -123,7 +131,7 @@ PLACEHOLDER_NODE = "Vector__XXX"  # a DBC's "no node"
 STATUS_FIELDS = ("sim_time_s", "overrun_count", "turnaround_max_us", "sim_state")
 
 DIRECTIONS = ("send", "receive", "ignore")
-_BUS_KEYS = ("name", "dbc", "bitrate", "data_bitrate", "fd", "plant_nodes", "tcu_nodes")
+_BUS_KEYS = ("name", "dbc", "bitrate", "data_bitrate", "fd", "plant_nodes", "tcu_nodes", "cluster")
 _MESSAGE_KEYS = ("bus", "direction", "cycle_ms", "timeout_cycles", "optional", "protection", "signals")
 _SEND_KINDS = ("output", "status", "constant", "toggle", "counter")
 _SEND_KEYS = _SEND_KINDS + ("factor", "offset", "unit", "reference", "table", "abs")
@@ -242,6 +250,8 @@ class Bus:
     plant_nodes: tuple[str, ...]
     tcu_nodes: tuple[str, ...]
     database: Any = field(compare=False, repr=False)   # the cantools database (read leniently)
+    #: an ARXML's E2E protection per message name: a Protection, or why it cannot be used (str)
+    file_protections: Any = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -318,6 +328,7 @@ class MappedMessage:
     mapped: bool                              # named in the mapping file (else restbus / nodes only)
     message: Any = field(default=None, compare=False, repr=False)  # the cantools Message
     optional: bool = False                    # received: the device under test may not send it
+    protection_from_file: bool = False        # the protection is the matrix file's (ARXML E2E)
 
     def signal(self, name):
         for s in self.signals:
@@ -354,11 +365,13 @@ class Mapping:
         The first bus is on ``first`` unless ``named`` (bus name -> channel,
         from ``--bus NAME=CHANNEL``) names it; every other bus on the channel
         ``named`` gives it, else (``derive``: in-process and virtual buses)
-        ``f"{first}-{bus}"`` or, when ``first`` is an IP address (a
-        udp_multicast group), the address ``first`` + i for the i-th bus
-        (239.74.163.2, 239.74.163.3, ...), else it is an error. A name in
-        ``named`` that is not a bus of the mapping, or one channel for two
-        buses, is a MappingError (one line)."""
+        ``f"{first}-{bus}"`` or, when ``first`` is a udp_multicast group, the
+        group + i on the port + i for the i-th bus (239.74.163.2:43113,
+        239.74.163.3:43114, ...; ``can_dbc.channels``), else it is an error.
+        A udp_multicast channel without a port, on a bus after the first,
+        gets one (43113 + the bus's index). A name in ``named`` that is not a bus of the mapping, one
+        channel for two buses, or one udp_multicast port for two, is a
+        MappingError (one line)."""
         named = dict(named or {})
         known = [b.name for b in self.buses]
         for name in named:
@@ -376,6 +389,12 @@ class Mapping:
             else:
                 raise MappingError(f"{self.path}: bus {b.name!r} has no CAN channel: give "
                                    f"--bus {b.name}=CHANNEL")
+        try:
+            out = {name: _channels.with_port(ch, i) if i and _channels.is_udp_group(ch) else ch
+                   for i, (name, ch) in enumerate(out.items())}
+            _channels.check_ports(out, self.path)
+        except _channels.ChannelError as e:
+            raise MappingError(str(e)) from None
         seen = {}
         for name, ch in out.items():
             if ch in seen:
@@ -393,13 +412,9 @@ class Mapping:
 
 def _derived_channel(first, bus, index):
     """The channel of the index-th bus when only the first's is given."""
-    import ipaddress
-
-    try:
-        address = ipaddress.ip_address(first)
-    except ValueError:
-        return f"{first}-{bus}"
-    return str(address + index)
+    if _channels.is_udp_group(first):
+        return _channels.derive(first, index)
+    return f"{first}-{bus}"
 
 
 def _codec_key(m):
@@ -496,32 +511,12 @@ def load_options(mapping=None, dbc=(), rate_hz=DEFAULT_RATE_HZ):
     return load(path, rate_hz=rate_hz, dbc=overrides)
 
 
-@contextmanager
-def _quiet_cantools():
-    log = logging.getLogger("cantools")
-    before = log.disabled
-    log.disabled = True
-    try:
-        yield
-    finally:
-        log.disabled = before
-
-
 def read_dbc(path):
-    """The cantools database of a DBC read leniently, its text decoded as UTF-8 when
-    it is valid UTF-8, else as cp1252 (:func:`dbc_encoding`); ValueError with one line."""
-    python_can()  # cantools imports can: without asammdf (can_dbc.python_can)
-    import cantools
-
-    try:
-        with _quiet_cantools():
-            return cantools.database.load_file(path, database_format="dbc", encoding=dbc_encoding(path),
-                                               strict=False)
-    except OSError as e:
-        raise ValueError(f"cannot read {path}: {e.strerror}") from None
-    except Exception as e:  # cantools' own parse errors
-        text = " ".join(str(e).split()) or type(e).__name__
-        raise ValueError(f"cantools cannot parse {path}: {text}") from None
+    """The cantools database of a bus's CAN matrix (DBC, ARXML, KCD or SYM by its
+    suffix) read leniently, its text decoded as UTF-8 when it is valid UTF-8,
+    else as cp1252 (:func:`dbc_encoding`); ValueError with one line
+    (``can_dbc.matrix.read_matrix``)."""
+    return read_matrix(path)
 
 
 def _number(x):
@@ -564,6 +559,8 @@ def _dbc_attr(db, name):
         attr = db.dbc.attributes.get(name) if db.dbc is not None else None
     except AttributeError:
         return None
+    if attr is None and name == "Baudrate" and len(db.buses) == 1:
+        return db.buses[0].baudrate               # an ARXML's cluster, a KCD's bus
     return None if attr is None else attr.value
 
 
@@ -578,7 +575,8 @@ def _dbc_nodes(db):
 
 def _dbc_is_fd(db):
     bus_type = _dbc_attr(db, "BusType")
-    return (isinstance(bus_type, str) and "FD" in bus_type.upper()) or any(m.is_fd for m in db.messages)
+    return ((isinstance(bus_type, str) and "FD" in bus_type.upper()) or any(m.is_fd for m in db.messages)
+            or any(b.fd_baudrate for b in db.buses))
 
 
 class _Loader:
@@ -650,8 +648,12 @@ class _Loader:
             if name in self.dbc_overrides:
                 dbc = str(self.dbc_overrides[name])
                 dbc_path = os.path.abspath(dbc)
+            cluster = b.get("cluster")
+            if cluster is not None and (not isinstance(cluster, str) or not cluster):
+                self.fail(f"{key}.cluster", f"must be the name of a CAN cluster of the ARXML, got {cluster!r}")
             try:
-                db = read_dbc(dbc_path)
+                db = select_cluster(read_dbc(dbc_path), dbc_path, cluster)
+                protections = file_protections(db, dbc_path)
             except ValueError as e:
                 self.fail(f"{key}.dbc", str(e))
             bitrate = b.get("bitrate", _dbc_attr(db, "Baudrate"))
@@ -678,7 +680,8 @@ class _Loader:
             if both:
                 self.fail(f"{key}.tcu_nodes", f"node {both[0]} is also a plant node")
             buses.append(Bus(name=name, dbc=dbc_path, bitrate=int(bitrate), data_bitrate=data_bitrate,
-                             fd=fd, plant_nodes=plant, tcu_nodes=tcu, database=db))
+                             fd=fd, plant_nodes=plant, tcu_nodes=tcu, database=db,
+                             file_protections=protections))
         if not buses:
             self.fail("bus", "no [[bus]]: name at least one bus with its DBC")
         return buses
@@ -837,9 +840,14 @@ class _Loader:
             self.fail(f"{key}.optional", f"must be true or false, got {optional!r}")
         if optional and direction != "receive":
             self.fail(f"{key}.optional", f"only received messages are optional; {msg.name} is {kind}")
-        # protection
+        # protection: the mapping's, else the matrix file's (an ARXML's E2E), else none
+        from_file = (bus.file_protections or {}).get(msg.name) if "protection" not in entry else None
+        if isinstance(from_file, str):
+            self.fail(key, f"message {msg.name} ({kind} on bus {bus.name}): {from_file} (or "
+                           f"direction = \"ignore\")", file=dbc)
         try:
-            prot = parse_protection(entry.get("protection", "none"), f"{self.path}: {key}.protection")
+            prot = from_file or parse_protection(entry.get("protection", "none"),
+                                                 f"{self.path}: {key}.protection")
         except ProtectionError as e:
             raise MappingError(str(e)) from None
         fields = {}
@@ -880,7 +888,8 @@ class _Loader:
         return MappedMessage(bus=bus.name, name=msg.name, frame_id=msg.frame_id,
                              is_extended=bool(msg.is_extended_frame), is_fd=is_fd, length=msg.length,
                              direction=direction, cycle_ms=cycle, timeout_cycles=timeout, protection=prot,
-                             signals=tuple(signals), mapped=mapped, message=msg, optional=optional)
+                             signals=tuple(signals), mapped=mapped, message=msg, optional=optional,
+                             protection_from_file=from_file is not None)
 
     def check_layout(self, bus, msg, kind, dbc):
         """A used message: every signal inside the frame, no two overlapping
@@ -1422,8 +1431,10 @@ def _describe_protection(p):
         return "no protection"
     parts = [f"crc {p.crc_signal}" if p.crc_signal else None,
              f"counter {p.counter_signal}" if p.counter_signal else None,
-             f"data id 0x{p.data_id:04X} ({p.data_id_mode})" if p.data_id is not None else None,
-             "data id list" if p.data_id_list else None]
+             (f"data id 0x{p.data_id:04X} ({p.data_id_mode})" if p.kind == "p1" else
+              f"data id 0x{p.data_id:04X}") if p.data_id is not None else None,
+             "data id list" if p.data_id_list else None,
+             f"header at byte {p.offset_bits // 8}" if p.kind == "p5" else None]
     return f"protection {p.kind} (" + ", ".join(x for x in parts if x) + ")"
 
 
@@ -1441,8 +1452,9 @@ def show(mapping):
                     timing += ", optional"
             fd = ", FD" if m.is_fd else ""
             tag = "" if m.mapped else ", restbus" if m.direction == "send" else ", by its node"
+            source = f" from {os.path.basename(b.dbc)}" if m.protection_from_file else ""
             out.append(f"  {m.direction:<7} {_ident(m)} {m.name} ({m.length} B{fd}{tag}) {timing}; "
-                       f"{_describe_protection(m.protection)}")
+                       f"{_describe_protection(m.protection)}{source}")
             width = max((len(s.name) for s in m.signals), default=0)
             for s in m.signals:
                 unit = (s.signal.unit or "").strip() if s.signal is not None else ""

@@ -31,6 +31,7 @@ import threading
 import time
 
 from . import codec
+from .channels import open_bus
 from .node import ReceivingNode, RxStats
 from .own_frames import OwnFrames, is_echoing_bus
 from .python_can import python_can
@@ -96,16 +97,10 @@ class CanPeer(ReceivingNode):
     def open(cls, side="tcu", interface="socketcan", channel="vcan0", bitrate=None, values=None, start=True,
              send_thread=True, **bus_kwargs):
         """A peer on a new python-can Bus (closed again by ``close()``)."""
-        can = python_can()
-
         kwargs = dict(bus_kwargs)
         if bitrate:
             kwargs["bitrate"] = bitrate
-        try:
-            bus = can.Bus(interface=interface, channel=channel, **kwargs)
-        except Exception as e:  # python-can raises many kinds (CanError, OSError, ImportError, ...)
-            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise ConnectionError(f"cannot open {interface} bus on {channel}: {msg}") from None
+        bus = open_bus(interface, channel, **kwargs)
         try:
             peer = cls(bus, side=side, values=values, start=start, send_thread=send_thread)
         except Exception:

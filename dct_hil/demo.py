@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from can_dbc.channels import ChannelError, default_channel
 from plant.maneuvers import LOOP_MANEUVERS
 
 DEFAULT_CHANNEL = "vcan0"
@@ -78,7 +79,11 @@ def choose_transport(channel: str | None, interface: str | None) -> tuple[str, s
         if interface == "virtual":
             return ("virtual", channel or EMBEDDED_CHANNEL,
                     "--interface virtual: the in-process bus, the TCU stub in a thread", False)
-        return (interface, channel or DEFAULT_CHANNEL,
+        try:
+            channel = channel or default_channel(interface)
+        except ChannelError as e:
+            raise DemoError(str(e)) from None
+        return (interface, channel,
                 f"--interface {interface}: the TCU stub as a second process", True)
     name = channel or DEFAULT_CHANNEL
     if can_netdev_up(name):

@@ -43,6 +43,7 @@ import threading
 import time
 from typing import Any
 
+from can_dbc.channels import open_bus
 from can_dbc.own_frames import ECHOING_INTERFACES, OwnFrames
 from can_dbc.python_can import python_can
 
@@ -755,11 +756,9 @@ class BridgeTransport(Transport):
 
         self._can = can
         try:
-            self.bus = can.Bus(interface=interface, channel=channel,
-                               receive_own_messages=False, **bus_kwargs)
-        except (can.CanError, ImportError, OSError, ValueError, TypeError) as e:
-            raise TransportError(f"python-can {interface} channel {channel}: cannot open "
-                                 f"the bus: {_one_line(e)}") from None
+            self.bus = open_bus(interface, channel, receive_own_messages=False, **bus_kwargs)
+        except ConnectionError as e:
+            raise TransportError(str(e)) from None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()

@@ -46,6 +46,7 @@ import threading
 import time
 
 from can_dbc import codec
+from can_dbc.channels import open_bus
 from tcu_stub.can_tcu import (
     CLOCKS,
     DERIVE_INTERFACES,
@@ -482,9 +483,7 @@ class CTcuNode:
                     if interface == "socketcan":
                         opened[name] = _can_socket(ch, fds[name])
                     else:
-                        import can
-
-                        opened[name] = can.Bus(interface=interface, channel=ch, **extras[name])
+                        opened[name] = open_bus(interface, ch, **extras[name])
                 except Exception as e:  # python-can and the socket layer raise many kinds
                     raise ConnectionError(f"cannot open {where}: {_one_line(e) or type(e).__name__}") from None
             kwargs = {"sockets": opened} if interface == "socketcan" else {

@@ -153,6 +153,7 @@ import threading
 import time
 
 from can_dbc import codec
+from can_dbc.channels import ChannelError, default_channel, open_bus
 from can_dbc.node import ReceivingNode, RxStats
 from can_dbc.options import add_matrix_options
 from can_dbc.own_frames import OwnFrames, is_echoing_bus
@@ -633,8 +634,6 @@ class CanTcu:
         signal: ``MissingSignalError``), the channels too (``MappingError``),
         before any bus is opened; a bus that cannot be opened closes the ones
         opened before it."""
-        import can
-
         time_scale = check_time_scale(time_scale)
         if clock not in CLOCKS:
             raise ValueError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
@@ -652,13 +651,10 @@ class CanTcu:
                         extra["fd"] = True
                         if b.data_bitrate:
                             extra["data_bitrate"] = b.data_bitrate
-                    ch = channels[b.name]
                     try:
-                        buses[b.name] = can.Bus(interface=interface, channel=ch, **extra)
-                    except Exception as e:  # python-can raises many kinds
-                        msg = _one_line(e) or type(e).__name__
-                        raise ConnectionError(f"cannot open {interface} bus on channel {ch} (mapping bus "
-                                              f"{b.name}): {msg}") from None
+                        buses[b.name] = open_bus(interface, channels[b.name], **extra)
+                    except ConnectionError as e:
+                        raise ConnectionError(f"{e} (mapping bus {b.name})") from None
                 tcu = cls(buses, time_scale=time_scale, logic=logic, start=False, rcvbuf_bytes=rcvbuf_bytes,
                           clock=clock, mapping=setup)
             except BaseException:
@@ -672,11 +668,7 @@ class CanTcu:
             return tcu
         if bitrate:
             kwargs["bitrate"] = bitrate
-        try:
-            bus = can.Bus(interface=interface, channel=channel, **kwargs)
-        except Exception as e:  # python-can raises many kinds (CanError, OSError, ImportError, ...)
-            msg = _one_line(e) or type(e).__name__
-            raise ConnectionError(f"cannot open {interface} bus on channel {channel}: {msg}") from None
+        bus = open_bus(interface, channel, **kwargs)
         try:
             tcu = cls(bus, time_scale=time_scale, logic=logic, start=False, rcvbuf_bytes=rcvbuf_bytes,
                       clock=clock)
@@ -1077,9 +1069,11 @@ def _time_scale_arg(text):
 def add_arguments(parser, impl=True):
     """The options of ``dct-hil tcu`` on an argparse parser (or subparser);
     ``impl``: with ``--impl`` and ``--priority`` (the C node's, ``tcu_stub.command``)."""
-    parser.add_argument("--channel", default="vcan0", metavar="NAME",
+    parser.add_argument("--channel", metavar="NAME",
                         help="CAN channel: a network interface for socketcan (vcan0, can0), the "
-                             "python-can channel otherwise (default vcan0)")
+                             "python-can channel otherwise, for udp_multicast GROUP or GROUP:PORT "
+                             "(default: vcan0 on socketcan and virtual, 239.74.163.2 on "
+                             "udp_multicast, else the one python-can finds for the interface)")
     parser.add_argument("--interface", default="socketcan", metavar="NAME",
                         help="python-can interface: socketcan, virtual, udp_multicast, pcan, ... "
                              "(default socketcan)")
@@ -1224,6 +1218,11 @@ def run(args, out=None, err=None, prog="dct-hil tcu", open_node=None):
     if duration is not None and not (isinstance(duration, (int, float)) and math.isfinite(duration)
                                      and duration > 0):
         return fail(2, f"--duration: must be a number of seconds above 0, got {duration}")
+    if args.channel is None:
+        try:
+            args.channel = default_channel(args.interface)
+        except ChannelError as e:
+            return fail(2, f"--channel: {e}")
     if args.report:
         problem = _check_report_path(args.report)
         if problem:

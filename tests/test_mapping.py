@@ -845,9 +845,10 @@ def test_each_bus_gets_a_channel_of_its_own():
     m = M.load(M.find_mapping("vehicle"))
     # the first bus on the channel given, the others derived on virtual buses ...
     assert m.channels("demo") == {"pt": "demo", "io": "demo-io"}
-    # ... the next addresses for a udp_multicast group (IPv4 and IPv6) ...
-    assert m.channels("239.74.163.2") == {"pt": "239.74.163.2", "io": "239.74.163.3"}
-    assert m.channels("ff15::7") == {"pt": "ff15::7", "io": "ff15::8"}
+    # ... the next address and port for a udp_multicast group (IPv4 and IPv6) ...
+    assert m.channels("239.74.163.2") == {"pt": "239.74.163.2", "io": "239.74.163.3:43114"}
+    assert m.channels("ff15::7") == {"pt": "ff15::7", "io": "[ff15::8]:43114"}
+    assert m.channels("239.1.1.1:5000") == {"pt": "239.1.1.1:5000", "io": "239.1.1.2:5001"}
     # ... and named ones as given, the first bus too
     assert m.channels("can0", {"io": "can1"}, derive=False) == {"pt": "can0", "io": "can1"}
     assert m.channels("x", {"pt": "can3", "io": "can1"}) == {"pt": "can3", "io": "can1"}

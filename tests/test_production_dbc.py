@@ -4,6 +4,7 @@ powertrain matrix with a UTF-8 degree sign, an unsigned torque signal, a unit th
 unit table does not know)."""
 
 import os
+import re
 import shutil
 
 import pytest
@@ -159,3 +160,99 @@ def test_an_unknown_dbc_unit_without_a_mapping_unit_is_a_warning_naming_both(pro
                        'Moment_MDI = { output = "engine_torque_nm", factor = 0.35 }')
     assert M.load(with_factor).warnings == ()
     assert M.load(PT_TOML).warnings == ()
+
+
+# ------------------------------------------------------------ (f) one port per udp_multicast bus
+
+def test_each_udp_multicast_bus_gets_a_port_of_its_own():
+    from can_dbc import channels as C
+
+    m = M.load(M.find_mapping("vehicle"))
+    # derived: the next group on the next port (the first bus keeps python-can's port, or the
+    # one given in the channel or as the bus option)
+    assert m.channels("239.74.163.2") == {"pt": "239.74.163.2", "io": "239.74.163.3:43114"}
+    assert m.channels("239.9.9.9:40000") == {"pt": "239.9.9.9:40000", "io": "239.9.9.10:40001"}
+    # named without a port: python-can's port + the bus's index; with one: as given
+    assert m.channels("239.9.9.9", {"io": "239.1.1.1"}) == {"pt": "239.9.9.9", "io": "239.1.1.1:43114"}
+    assert m.channels("239.9.9.9", {"io": "[ff15::1]:7"})["io"] == "[ff15::1]:7"
+    # two buses on one port would hear each other's frames: refused in one line
+    with pytest.raises(M.MappingError, match=r"buses 'pt' and 'io' are both on udp_multicast port 43114"
+                                             r".*--bus io=239.2.2.2:43115"):
+        m.channels("239.9.9.9:43114", {"io": "239.2.2.2"})
+    # what python-can gets: the group as channel, the port as its option
+    assert C.bus_arguments("udp_multicast", "239.9.9.9:40000") == ("239.9.9.9", {"port": 40000})
+    assert C.bus_arguments("udp_multicast", "[ff15::1]:7", fd=True) == ("ff15::1", {"port": 7, "fd": True})
+    assert C.bus_arguments("udp_multicast", "239.9.9.9", port=5) == ("239.9.9.9", {"port": 5})
+    assert C.bus_arguments("virtual", "239.9.9.9:1") == ("239.9.9.9:1", {})
+    for bad, words in (("10.0.0.1", "not a multicast group"), ("239.1.1.1:0", "port '0' is not 1..65535"),
+                       ("239.1.1.1:x", "port 'x'"), ("[ff15::1", "[IPv6 GROUP]:PORT")):
+        with pytest.raises(C.ChannelError, match=re.escape(words)):
+            C.split_udp(bad)
+
+
+def test_two_udp_multicast_buses_do_not_hear_each_other(udp_group):
+    """The vehicle matrix's pt and io buses on udp_multicast (io derived): the
+    plant and the TCU get only their own bus's frames, none of the other's as an
+    unknown identifier (on one shared port every frame of one bus reached the other)."""
+    from rt_loop.server import Server
+    from tcu_stub.can_tcu import CanTcu
+    from waiting import wait_until
+
+    group, port = udp_group
+    channel = f"{group}:{port}"
+    m = M.load(M.find_mapping("vehicle"))
+    srv = Server(channel, interface="udp_multicast", priority=0, mapping=m)
+    try:
+        srv.start()
+        assert srv.bus_channels["io"].endswith(f":{port + 1}")
+        with CanTcu.open("udp_multicast", channel, mapping=m) as tcu:
+            assert wait_until(lambda: srv.snapshot()["counts"]["rx"]["accepted"] >= 1000, timeout=20)
+            rep = tcu.report()
+        rx = srv.report(histograms=False)["counts"]["rx"]
+    finally:
+        srv.stop()
+    assert rx["unknown_id"] == 0 and rx["rejected"] == 0, rx
+    assert rep["unknown_frames"] == 0, rep["buses"]
+    assert {b: x["unknown_frames"] for b, x in rep["buses"].items()} == {"pt": 0, "io": 0}
+    assert rep["buses"]["io"]["channel"] == srv.bus_channels["io"]
+
+
+# ------------------------------------------------------------ (g) a missing --channel
+
+def test_a_missing_channel_is_the_interfaces_default_or_one_line_saying_what_to_give(monkeypatch):
+    from can_dbc import channels as C
+    from can_dbc.python_can import python_can
+
+    assert C.default_channel(None) == "vcan0" and C.default_channel("socketcan") == "vcan0"
+    assert C.default_channel("virtual") == "vcan0"
+    assert C.default_channel("udp_multicast") == "239.74.163.2"
+    can = python_can()
+    found = {"pcan": [], "kvaser": [{"interface": "kvaser", "channel": 0}],
+             "ixxat": [{"channel": 0}, {"channel": 1}]}
+    monkeypatch.setattr(can, "detect_available_configs", lambda interfaces: found[interfaces[0]])
+    assert C.default_channel("kvaser") == "0"
+    with pytest.raises(C.ChannelError, match=r"^interface ixxat: give --channel, one of 0, 1"):
+        C.default_channel("ixxat")
+    with pytest.raises(C.ChannelError, match=r"^interface pcan: give --channel .*found none"):
+        C.default_channel("pcan")
+
+
+@pytest.mark.parametrize("command", ["serve", "tcu"])
+def test_serve_and_tcu_without_channel_on_udp_multicast_use_its_group(command, capsys):
+    """Neither tries vcan0 as a multicast group: the bus opens on python-can's group."""
+    argv = [command, "--interface", "udp_multicast", "--duration", "0.3", "--priority", "0"]
+    if command == "serve":
+        argv += ["--stats", os.devnull, "--quiet"]
+    else:
+        argv += ["--quiet"]
+    code, out, err = run_cli(capsys, *argv)
+    assert "Name or service not known" not in err and "vcan0" not in err
+    assert code == 0, err
+
+
+def test_a_channel_that_is_no_multicast_group_is_one_line(capsys):
+    code, out, err = run_cli(capsys, "serve", "--interface", "udp_multicast", "--channel", "10.1.2.3",
+                             "--duration", "0.2", "--priority", "0", "--stats", os.devnull)
+    assert code == 2, err
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert len(lines) == 1 and "10.1.2.3" in lines[0] and "not a multicast group" in lines[0], err

@@ -24,9 +24,11 @@ def add_parser(sub):
                     "findings: overruns, TCU timeouts, lost frames, no TCU). Exit status: 0 done, "
                     "1 the loop, transport or traffic log failed, 2 bad options, 3 timing "
                     "INVALID with --strict, 130 Ctrl-C.")
-    serve.add_argument("--channel", default="vcan0", metavar="NAME",
+    serve.add_argument("--channel", metavar="NAME",
                        help="CAN channel: a network interface for socketcan (can0, vcan0), "
-                            "the python-can channel otherwise (default vcan0)")
+                            "the python-can channel otherwise, for udp_multicast GROUP or "
+                            "GROUP:PORT (default: vcan0 on socketcan and virtual, 239.74.163.2 "
+                            "on udp_multicast, else the one python-can finds for the interface)")
     serve.add_argument("--interface", metavar="NAME",
                        help="socketcan (hard real time) or any python-can interface, e.g. "
                             "virtual, udp_multicast, pcan, kvaser (bridged, soft real time); "
@@ -99,6 +101,7 @@ def add_parser(sub):
 
 
 def run(args):
+    from can_dbc.channels import ChannelError, default_channel
     from rt_loop.console import run_console
     from rt_loop.server import Server, ServerError
     from rt_loop.transport import TransportError, check_interface
@@ -110,6 +113,7 @@ def run(args):
     try:
         if args.interface is not None:
             check_interface(args.interface)
+        channel = args.channel if args.channel is not None else default_channel(args.interface)
         check_writable(args.stats, "--stats")
         if args.log:
             check_writable(args.log, "--log")
@@ -122,7 +126,7 @@ def run(args):
             m = get_maneuver(args.maneuver)
             driver, end, fixed = m.driver, m.duration_s, m.inputs
         server = Server(
-            args.channel, interface=args.interface, rate_hz=args.rate, priority=args.priority,
+            channel, interface=args.interface, rate_hz=args.rate, priority=args.priority,
             cpu=args.cpu, duration_s=args.duration, params_path=args.params, log_path=args.log,
             overrun_policy=args.overrun,
             bus_kwargs={"bitrate": args.bitrate} if args.bitrate else None,
@@ -141,5 +145,5 @@ def run(args):
                   + (" (asks for the token)" if view.token else "")
                   + f"; recordings from the page in {recordings}", flush=True)
         return run_console(server, args.stats, quiet=args.quiet, strict=args.strict)
-    except (ServerError, TransportError) as e:
+    except (ServerError, TransportError, ChannelError) as e:
         raise UserError(str(e)) from None

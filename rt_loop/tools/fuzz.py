@@ -77,6 +77,7 @@ import sys
 import time
 from typing import Any
 
+from can_dbc.channels import open_bus
 from can_dbc.python_can import python_can
 from plant import argtypes
 from plant.machine import write_figures
@@ -247,7 +248,7 @@ class Generator:
 
 class Sender:
     def __init__(self, transport: str, channel: str, fd: bool) -> None:
-        self.can = can = python_can()
+        self.can = python_can()
         kwargs: dict[str, Any] = {}
         if transport == "embedded":
             iface = "virtual"
@@ -258,11 +259,9 @@ class Sender:
             iface = "socketcan"
             kwargs["fd"] = fd
         try:
-            self.bus = can.Bus(interface=iface, channel=channel, receive_own_messages=False,
-                               **kwargs)
-        except Exception as e:  # python-can raises many kinds
-            raise FuzzError(f"cannot open the sender's {iface} bus on {channel}: "
-                            f"{' '.join(str(e).split())}") from None
+            self.bus = open_bus(iface, channel, receive_own_messages=False, **kwargs)
+        except ConnectionError as e:
+            raise FuzzError(f"the fuzzer's sender: {e}") from None
         self.send_errors = 0
         self.last_error: str | None = None
         #: the in-process bus: straight into the other nodes' queues (python-can's
