@@ -296,7 +296,7 @@ def test_before_connect_only_connect_is_answered_and_the_rest_is_counted(fakes):
 
 def test_unknown_commands_wrong_lengths_and_synch_answer_errors_counted_by_name(fakes):
     slave = connected_slave(fakes)
-    assert cmd(slave, 0xEC, 0, 0, 0, 0, 0) == err(xp.ERR_CMD_UNKNOWN)      # MODIFY_BITS
+    assert cmd(slave, 0xD1, 0, 0, 0, 0, 0) == err(xp.ERR_CMD_UNKNOWN)      # PROGRAM_CLEAR
     assert cmd(slave, 0xD0, 1, 2) == err(xp.ERR_CMD_UNKNOWN)               # PROGRAM
     assert cmd(slave, xp.LEVEL_1, 0x7F) == err(xp.ERR_CMD_UNKNOWN)
     assert cmd(slave, xp.LEVEL_1) == err(xp.ERR_CMD_SYNTAX)
@@ -824,7 +824,7 @@ def test_malformed_udp_datagrams_are_dropped_and_counted(fakes):
         raw.send_raw(struct.pack("<HH", 20, 0) + b"\xff\x00")              # cut short
         raw.send(bytes([xp.GET_STATUS]))                                    # before CONNECT
         assert raw.command(xp.CONNECT, 0)[0] == xp.PID_RES                  # the first answer
-        assert raw.command(0xEC, 1, 2, 3, 4, 5) == err(xp.ERR_CMD_UNKNOWN)
+        assert raw.command(0xD1, 1, 2, 3, 4, 5) == err(xp.ERR_CMD_UNKNOWN)   # PROGRAM_CLEAR
         assert raw.command(xp.SET_MTA, 0) == err(xp.ERR_CMD_SYNTAX)
         raw.send_raw(frame(9, bytes([xp.GET_STATUS])) + frame(10, bytes([xp.SYNCH])))
         assert raw.recv()[0] == xp.PID_RES and raw.recv() == err(xp.ERR_CMD_SYNCH)

@@ -3,7 +3,9 @@ calibration of the real-time loop from any XCP master (CANape, INCA,
 pyxcp, ...), in threads of its own beside the loop.
 
 * ``rt_loop.measure.xcp.protocol``: the XCP 1.4 protocol layer (``Slave``) over a
-  ``Memory`` and a ``Daq`` backend; seed & key (``compute_key``);
+  ``Memory`` and a ``Daq`` backend: measurement (DAQ), calibration (with
+  master block mode, MODIFY_BITS, BUILD_CHECKSUM), STIM, the clock (time
+  correlation); seed & key (``compute_key``);
 * ``rt_loop.measure.xcp.transport``: XCP on Ethernet framing, the UDP and TCP
   servers (a receiver thread for commands, a sender thread for DTOs);
 * ``rt_loop.measure.xcp.loop_backend``: ``LoopBackend``, the loop's memory and DAQ
@@ -76,7 +78,10 @@ class XcpServer:
     the event channels (default: the loop's tick, 10 ms and 100 ms, in
     wall-clock time); ``readable``: the (offset, size) ranges a master may
     read and measure (default: the whole rt_loop); ``ranges``: the writable
-    values' limits (``rt_loop.measure.xcp.a2l.calibration_regions``)."""
+    values' limits (``rt_loop.measure.xcp.a2l.calibration_regions``);
+    ``stim_events``: the event channels that take STIM lists (default the
+    first, the loop's tick: STIM values are written at the next tick
+    boundary; ``()``: no STIM)."""
 
     def __init__(
         self,
@@ -98,6 +103,7 @@ class XcpServer:
         readable: Sequence[tuple[int, int]] | None = None,
         ranges: Sequence[tuple] | None = None,
         epk: str | None = None,
+        stim_events: Sequence[int] = (0,),
     ) -> None:
         self.backend = None
         if memory is None or daq is None:
@@ -114,7 +120,8 @@ class XcpServer:
         self.slave = Slave(
             memory, daq,
             name=name, a2l_name=a2l_name, a2l_text=a2l_text, epk=epk,
-            events=events or DEFAULT_EVENTS, secret=secret, limits=limits or Limits())
+            events=events or DEFAULT_EVENTS, secret=secret, limits=limits or Limits(),
+            stim_events=stim_events)
         self.server = make_server(protocol, self.slave, daq, host, port)
         self.protocol = self.server.protocol
         self._started = False

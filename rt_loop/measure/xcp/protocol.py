@@ -16,8 +16,11 @@ through two pluggable backends:
 
 What the slave declares (CONNECT and the GET_*_INFO commands):
 
-* resources CAL/PAG and DAQ; Intel byte order; address granularity BYTE;
-  no block modes, no interleaved mode; MAX_CTO 252 (a multiple of 4, one
+* resources CAL/PAG and DAQ, and STIM when an event channel takes STIM
+  lists (``stim_events``; STIM is not locked apart by seed & key: a STIM
+  list needs DAQ and CAL/PAG unlocked); Intel byte order; address granularity BYTE;
+  master block mode (DOWNLOAD + DOWNLOAD_NEXT, MAX_BS 2, MIN_ST 0), no slave
+  block mode, no interleaved mode; MAX_CTO 252 (a multiple of 4, one
   command fits any UDP datagram);
 * MAX_DTO 252 = the 4-byte identification field + ``Limits.odt_bytes``
   (248, RT_DAQ_ODT_BYTES): a master filling an ODT up to MAX_DTO never
@@ -29,11 +32,50 @@ What the slave declares (CONNECT and the GET_*_INFO commands):
   after the identification field;
 * the DAQ clock is CLOCK_MONOTONIC (``time.monotonic_ns``) in 1 us
   (GET_DAQ_CLOCK, GET_DAQ_RESOLUTION_INFO, the DTOs' timestamps: the low
-  32 bits of the tick deadline in us);
+  32 bits of the tick deadline in us). TIME_CORRELATION_PROPERTIES (XCP
+  1.3): the clock is the XCP slave's own, free running, readable at any
+  time, never synchronised (no grandmaster, no ECU clock, no time sync
+  bridge); a master asking for the extended response format gets
+  GET_DAQ_CLOCK as trigger info, payload format and the clock's full 64 bits
+  (DLONG) with the sync state, until the next CONNECT (legacy: the low 32
+  bits). Its clock information (GET_CLK_INFO, then UPLOAD of 24 bytes at the
+  MTA): an EUI-64 of the host's boot (``clock_uuid``: CLOCK_MONOTONIC is one
+  clock per boot), 1 tick of 1 us, stratum unknown (255), native size 8
+  bytes, no wrap-around before 2**64 - 1; CLOCK_MONOTONIC counts from an
+  arbitrary origin (the boot), which the slave clock's information has no
+  field for (the standard gives an epoch to a grandmaster's clock only). A
+  cluster id is kept and answered; GET_DAQ_CLOCK_MULTICAST is not served;
 * dynamic DAQ (FREE_DAQ, ALLOC_DAQ, ALLOC_ODT, ALLOC_ODT_ENTRY) within the
   loop's limits (``Limits``: RT_DAQ_MAX_LISTS / ODTS / ENTRIES, ODT bytes);
   more is refused with ERR_MEMORY_OVERFLOW; prescaler supported; overload
   indicated by the event EV_DAQ_OVERLOAD;
+* STIM (with ``stim_events``): SET_DAQ_LIST_MODE's DIRECTION bit makes a
+  list a STIM list, on an event channel that takes STIM (GET_DAQ_EVENT_INFO,
+  GET_DAQ_LIST_INFO say which), without timestamp or prescaler; starting one
+  checks that every entry lies in a calibration region (else
+  ERR_WRITE_PROTECTED) and that its ODT numbers stay below 0xC0. A STIM DTO
+  from the master (a packet whose first byte, the relative ODT number, is
+  below 0xC0, with the DAQ list number as the DTOs' identification field
+  has it, no timestamp) is decoded by its list's ODT and written like a
+  DOWNLOAD (page rules, the backend's region and range checks; adjacent
+  entries of an ODT in one write, applied whole at one tick boundary by the
+  loop); it gets no answer. A STIM DTO for no running STIM list, an unknown
+  ODT, a wrong length, or a value refused, is dropped and counted by reason
+  (``counters()["stim"]``);
+* BUILD_CHECKSUM: XCP_CRC_32 (the CRC-32 of IEEE 802.3, zlib's) over the
+  MTA's next ``block size`` bytes as UPLOAD reads them; the MTA advances past
+  them; at most ``MAX_CHECKSUM_BLOCK`` bytes (more: ERR_OUT_OF_RANGE with
+  that maximum, as the standard has it);
+* MODIFY_BITS: the 32-bit value at the MTA (Intel order) becomes
+  ``(value & ~(~MA << S)) ^ (MX << S)``, written like a DOWNLOAD (only the
+  bytes the masks touch; the MTA stays);
+* DOWNLOAD of more than MAX_CTO - 2 bytes (at most 255) starts a master
+  block: the rest follows in DOWNLOAD_NEXT packets, each with the count still
+  to come; only the last is answered, and the whole block is one write.
+  A DOWNLOAD_NEXT with a wrong count (or without a block) answers
+  ERR_SEQUENCE with the count expected, and the block is dropped; any other
+  command drops it too (a DOWNLOAD answers ERR_SEQUENCE: it would write at
+  the block's start);
 * one calibration segment (0) spanning the calibration regions, two pages:
   0 the working page (the loop's memory), 1 the reference page (read only:
   the regions' values when the slave was made). ECU page 1 puts the
@@ -69,6 +111,7 @@ import os
 import struct
 import threading
 import time
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -76,7 +119,8 @@ from typing import NamedTuple
 __all__ = [
     "Slave", "Memory", "Daq", "Dto", "DaqEntry", "DaqListConfig", "Event", "Limits",
     "OK", "MAX_CTO", "DTO_HEADER_BYTES", "EPK_ADDRESS", "TIMESTAMP_BYTES", "TIMESTAMP_UNIT_NS",
-    "DEFAULT_EVENTS", "KEY_BYTES", "SEED_BYTES", "compute_key", "seed_n_key_function",
+    "DEFAULT_EVENTS", "CHECKSUM_TYPE", "MAX_CHECKSUM_BLOCK", "MAX_BS", "MIN_ST", "checksum",
+    "default_clock_uuid", "KEY_BYTES", "SEED_BYTES", "compute_key", "seed_n_key_function",
     "read_secret", "error_name", "merge_ranges",
 ]
 
@@ -101,8 +145,11 @@ UNLOCK = 0xF7
 SET_MTA = 0xF6
 UPLOAD = 0xF5
 SHORT_UPLOAD = 0xF4
+BUILD_CHECKSUM = 0xF3
 DOWNLOAD = 0xF0
+DOWNLOAD_NEXT = 0xEF
 SHORT_DOWNLOAD = 0xED
+MODIFY_BITS = 0xEC
 SET_CAL_PAGE = 0xEB
 GET_CAL_PAGE = 0xEA
 GET_PAG_PROCESSOR_INFO = 0xE9
@@ -127,7 +174,10 @@ ALLOC_DAQ = 0xD5
 ALLOC_ODT = 0xD4
 ALLOC_ODT_ENTRY = 0xD3
 WRITE_DAQ_MULTIPLE = 0xC7
+TIME_CORRELATION_PROPERTIES = 0xC6
 LEVEL_1 = 0xC0                       # two-byte commands: 0xC0 then the sub-command
+#: packets from the master below this are STIM DTOs (their first byte the ODT number)
+FIRST_CMD_PID = 0xC0
 GET_VERSION_SUB = 0x00
 
 # ---- errors -----------------------------------------------------------------
@@ -186,6 +236,25 @@ _DRIVER_VERSION = 0x14               # 1.4
 SEED_BYTES = 16
 KEY_BYTES = 16
 _MAX_ODTS_PER_LIST = 0xFC            # relative ODT numbers 0..0xFB (0xFC.. are the CTO PIDs)
+_MAX_STIM_ODTS = FIRST_CMD_PID       # a STIM DTO's ODT number is below the commands' codes
+#: BUILD_CHECKSUM: XCP_CRC_32 (the standard's code 0x09: CRC-32 as zlib.crc32)
+CHECKSUM_TYPE = 0x09
+MAX_CHECKSUM_BLOCK = 0x100000        # bytes of one BUILD_CHECKSUM at most
+#: master block mode: the most packets of one block (a block holds at most 255
+#: bytes, MAX_CTO - 2 in each packet) and the least time between them (100 us units)
+MAX_BS = -(-255 // (MAX_CTO - 2))
+MIN_ST = 0
+_MASTER_BLOCK_MODE = 0x01            # COMM_MODE_OPTIONAL
+_MODE_STIM = 0x02                    # SET_DAQ_LIST_MODE: DIRECTION
+_MODE_TIMESTAMP = 0x10
+# TIME_CORRELATION_PROPERTIES and GET_DAQ_CLOCK (XCP 1.3)
+_TRIGGER_INFO = 0x00                 # sampled during the command's processing
+_PAYLOAD_SLAVE_DWORD = 0x01          # PAYLOAD_FMT: the slave clock's timestamp, 4 bytes
+_PAYLOAD_SLAVE_DLONG = 0x02          # ... 8 bytes
+_SYNC_STATE = 0x07                   # SLV_CLK_SYNC_STATE: synchronisation not supported
+_OBSERVABLE_CLOCKS = 0x00            # slave clock free running and readable; no GM, no ECU
+_CLOCK_INFO_SLAVE = 0x01             # the slave clock's information can be uploaded
+_STRATUM_UNKNOWN = 255
 
 
 @dataclass(frozen=True)
@@ -295,12 +364,37 @@ def read_secret(path: str | os.PathLike) -> bytes:
     return secret
 
 
+# ---- BUILD_CHECKSUM and the clock ---------------------------------------------
+
+def checksum(data: bytes) -> int:
+    """BUILD_CHECKSUM's value over ``data`` (CHECKSUM_TYPE: XCP_CRC_32)."""
+    return zlib.crc32(data) & 0xFFFFFFFF
+
+
+def default_clock_uuid() -> bytes:
+    """An EUI-64 naming CLOCK_MONOTONIC of this boot of this host (the kernel's
+    boot id hashed; locally administered, unicast): slaves on the same host
+    share it, as they share the clock. Without a boot id, a random one."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id", "rb") as f:
+            boot = f.read().strip()
+    except OSError:
+        boot = b""
+    digest = hashlib.sha256(b"CLOCK_MONOTONIC " + (boot or os.urandom(16))).digest()
+    return bytes([(digest[0] | 0x02) & 0xFE]) + digest[1:8]
+
+
 # ---- the slave --------------------------------------------------------------
 
 class _Refused(Exception):
-    def __init__(self, code: int) -> None:
+    """A negative response: the error code and what follows it (some errors
+    carry a value: ERR_SEQUENCE the count expected, ERR_OUT_OF_RANGE of
+    BUILD_CHECKSUM the largest block)."""
+
+    def __init__(self, code: int, extra: bytes = b"") -> None:
         super().__init__(code)
         self.code = code
+        self.extra = extra
 
 
 def _check(code: int | None) -> None:
@@ -310,6 +404,7 @@ def _check(code: int | None) -> None:
 
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
 
 
 def _u16(p: bytes, at: int) -> int:
@@ -353,8 +448,18 @@ class _List:
     prescaler: int = 1
     priority: int = 0
     timestamp: bool = False
+    stim: bool = False               # DIRECTION: the master writes (STIM), else DAQ
     running: bool = False
     selected: bool = False
+
+
+@dataclass
+class _Block:
+    """A master block (DOWNLOAD + DOWNLOAD_NEXT) being received."""
+
+    address: int
+    total: int
+    data: bytearray
 
 
 class _DtoView(NamedTuple):
@@ -367,9 +472,13 @@ class _DtoView(NamedTuple):
 class Slave:
     """The XCP slave's protocol state for one master at a time.
 
-    ``handle`` is called by one thread (the transport's receiver);
-    ``dto_packet`` and ``overload_events`` by the sender; ``reset`` by
-    either. Thread-safe."""
+    ``handle`` is called by one thread (the transport's receiver: commands
+    and STIM DTOs); ``dto_packet`` and ``overload_events`` by the sender;
+    ``reset`` by either. Thread-safe.
+
+    ``stim_events``: the event channels STIM lists may use (none: the slave
+    declares no STIM); ``clock_uuid``: the DAQ clock's EUI-64 (8 bytes; default
+    ``default_clock_uuid()``)."""
 
     def __init__(
         self,
@@ -384,6 +493,8 @@ class Slave:
         secret: bytes | None = None,
         limits: Limits = Limits(),
         clock_ns: Callable[[], int] = time.monotonic_ns,
+        stim_events: Sequence[int] = (),
+        clock_uuid: bytes | None = None,
     ) -> None:
         self.memory = memory
         self.daq = daq
@@ -397,6 +508,16 @@ class Slave:
         self.secret = secret
         self.limits = limits
         self.clock_ns = clock_ns
+        self.stim_events = frozenset(stim_events)
+        if any(not 0 <= n < len(self.events) for n in self.stim_events):
+            raise ValueError(f"STIM event channels {sorted(self.stim_events)}: the slave has "
+                             f"{len(self.events)} event channels")
+        uuid = default_clock_uuid() if clock_uuid is None else bytes(clock_uuid)
+        if len(uuid) != 8:
+            raise ValueError(f"the clock's UUID is an EUI-64 (8 bytes), got {len(uuid)}")
+        # the slave clock's information (TIME_CORRELATION_PROPERTIES GET_CLK_INFO)
+        self._clock_info = uuid + _U16.pack(1) + bytes([_TS_UNIT_CODE, _STRATUM_UNKNOWN, 8]) + \
+            bytes(3) + _U64.pack(0xFFFF_FFFF_FFFF_FFFF)
         self.max_cto = MAX_CTO
         self.max_dto = DTO_HEADER_BYTES + limits.odt_bytes
         self._lock = threading.RLock()
@@ -406,6 +527,8 @@ class Slave:
         self._ignored: dict[str, int] = {}
         self._session_ends: dict[str, int] = {}
         self._dto_dropped = {"not_running": 0, "stale": 0}
+        self._stim: dict[str, int] = {"dtos": 0, "written": 0}
+        self._stim_dropped: dict[str, int] = {}
         self._overloads_seen = 0
         self._overload_events = 0
         # calibration pages: the reference page is the regions' values now
@@ -421,7 +544,12 @@ class Slave:
     # ---- session --------------------------------------------------------
     def _new_session(self) -> None:
         self.connected = False
+        self._resources = RES_CALPAG | RES_DAQ | (RES_STIM if self.stim_events else 0)
+        # STIM is not locked apart: a STIM list needs DAQ and CAL/PAG unlocked
         self._protection = (RES_CALPAG | RES_DAQ) if self.secret else 0
+        self._block: _Block | None = None
+        self._clock_format = 0        # TIME_CORRELATION_PROPERTIES' RESPONSE_FMT: 0 legacy
+        self._cluster_id = 0
         self._seed: tuple[int, bytes] | None = None
         self._key_total = 0
         self._key = bytearray()
@@ -458,13 +586,15 @@ class Slave:
     def counters(self) -> dict:
         """Commands, positive responses, errors by name, packets ignored by
         reason, sessions ended by reason, DTOs sent and dropped by reason,
-        overloads. Never waits (the copies are taken under the GIL)."""
+        STIM DTOs received, written and dropped by reason, overloads. Never
+        waits (the copies are taken under the GIL)."""
         return {
             **self._counts,
             "errors": dict(self._errors),
             "ignored": dict(self._ignored),
             "session_ends": dict(self._session_ends),
             "dto_dropped": dict(self._dto_dropped),
+            "stim": {**self._stim, "dropped": dict(self._stim_dropped)},
             "overload_events": self._overload_events,
             "connected": self.connected,
             "daq_running": self.daq_running,
@@ -472,14 +602,18 @@ class Slave:
 
     # ---- the command processor -------------------------------------------
     def handle(self, cto: bytes) -> list[bytes]:
-        """The packets answering one command packet (none when ignored)."""
+        """The packets answering one packet from the master: a command (CTO),
+        or a STIM DTO (no answer). None when ignored."""
         cto = bytes(cto)
         with self._lock:
             if not cto:
                 self._bump(self._ignored, "empty")
                 return []
-            self._counts["commands"] += 1
             cmd = cto[0]
+            if cmd < FIRST_CMD_PID:
+                self._stim_dto(cto)
+                return []
+            self._counts["commands"] += 1
             if not self.connected and cmd != CONNECT:
                 self._bump(self._ignored, "not_connected")
                 return []
@@ -489,6 +623,11 @@ class Slave:
                 key: int = (LEVEL_1 << 8) | cto[1]
             else:
                 key = cmd
+            if self._block is not None and key != DOWNLOAD_NEXT:
+                self._block = None             # a block interrupted: never written
+                self._bump(self._ignored, "download_block_dropped")
+                if key == DOWNLOAD:
+                    return [self._error(ERR_SEQUENCE)]
             entry = self._dispatch.get(key)
             if entry is None:
                 return [self._error(ERR_CMD_UNKNOWN)]
@@ -500,18 +639,19 @@ class Slave:
             try:
                 payload = method(cto)
             except _Refused as e:
-                return [self._error(e.code)]
+                return [self._error(e.code, e.extra)]
             except Exception:  # a backend's bug must not stop the slave
+                self._block = None
                 self._bump(self._ignored, "internal_error")
                 return [self._error(ERR_GENERIC)]
             if payload is None:
-                return []
+                return []                      # inside a master block: no answer yet
             self._counts["positive"] += 1
             return [bytes([PID_RES]) + payload]
 
-    def _error(self, code: int) -> bytes:
+    def _error(self, code: int, extra: bytes = b"") -> bytes:
         self._bump(self._errors, error_name(code))
-        return bytes([PID_ERR, code])
+        return bytes([PID_ERR, code]) + extra
 
     def _commands(self) -> dict[int, tuple[Callable[[bytes], bytes | None], int, int]]:
         c, d = RES_CALPAG, RES_DAQ
@@ -527,8 +667,11 @@ class Slave:
             SET_MTA: (self._set_mta, 8, 0),
             UPLOAD: (self._upload, 2, 0),
             SHORT_UPLOAD: (self._short_upload, 8, 0),
+            BUILD_CHECKSUM: (self._build_checksum, 8, 0),
             DOWNLOAD: (self._download, 2, c),
+            DOWNLOAD_NEXT: (self._download_next, 2, c),
             SHORT_DOWNLOAD: (self._short_download, 8, c),
+            MODIFY_BITS: (self._modify_bits, 6, c),
             SET_CAL_PAGE: (self._set_cal_page, 4, c),
             GET_CAL_PAGE: (self._get_cal_page, 3, 0),
             GET_PAG_PROCESSOR_INFO: (self._get_pag_processor_info, 1, 0),
@@ -544,6 +687,7 @@ class Slave:
             START_STOP_DAQ_LIST: (self._start_stop_daq_list, 4, d),
             START_STOP_SYNCH: (self._start_stop_synch, 2, d),
             GET_DAQ_CLOCK: (self._get_daq_clock, 1, 0),
+            TIME_CORRELATION_PROPERTIES: (self._time_correlation_properties, 6, 0),
             READ_DAQ: (self._read_daq, 1, d),
             GET_DAQ_PROCESSOR_INFO: (self._get_daq_processor_info, 1, 0),
             GET_DAQ_RESOLUTION_INFO: (self._get_daq_resolution_info, 1, 0),
@@ -564,9 +708,9 @@ class Slave:
             self._new_session()
             self.connected = True
             self._counts["sessions"] += 1
-        resource = RES_CALPAG | RES_DAQ
         comm_mode_basic = 0x80                 # OPTIONAL (GET_COMM_MODE_INFO); Intel, BYTE
-        return bytes([resource, comm_mode_basic, self.max_cto]) + _U16.pack(self.max_dto) + \
+        return bytes([self._resources, comm_mode_basic, self.max_cto]) + \
+            _U16.pack(self.max_dto) + \
             bytes([_PROTOCOL_LAYER_VERSION, _TRANSPORT_LAYER_VERSION])
 
     def _disconnect(self, p: bytes) -> bytes:
@@ -581,7 +725,8 @@ class Slave:
         raise _Refused(ERR_CMD_SYNCH)
 
     def _get_comm_mode_info(self, p: bytes) -> bytes:
-        return bytes([0, 0, 0, 0, 0, 0, _DRIVER_VERSION])
+        # COMM_MODE_OPTIONAL: master block mode; MAX_BS, MIN_ST; no interleaved mode (queue 0)
+        return bytes([0, _MASTER_BLOCK_MODE, 0, MAX_BS, MIN_ST, 0, _DRIVER_VERSION])
 
     def _get_version(self, p: bytes) -> bytes:
         return bytes([0, 1, 4, 1, 0])
@@ -679,18 +824,74 @@ class Slave:
             raise _Refused(ERR_OUT_OF_RANGE)
         return self._upload_from(None, _u32(p, 4), p[1])
 
-    def _download(self, p: bytes) -> bytes:
-        n = p[1]
-        if not 1 <= n <= self.max_cto - 2:
+    def _download(self, p: bytes) -> bytes | None:
+        n = p[1]                               # the block's bytes (master block mode: all)
+        if n < 1:
             raise _Refused(ERR_OUT_OF_RANGE)
-        if len(p) < 2 + n:
+        first = min(n, self.max_cto - 2)
+        if len(p) < 2 + first:
             raise _Refused(ERR_CMD_SYNTAX)
         space, address = self._mta
         if space is not None:
             raise _Refused(ERR_WRITE_PROTECTED)
+        if n > first:                          # a master block: the rest in DOWNLOAD_NEXT
+            self._block = _Block(address, n, bytearray(p[2:2 + first]))
+            return None
         self._write(address, p[2:2 + n])
         self._mta = (None, address + n)
         return b""
+
+    def _download_next(self, p: bytes) -> bytes | None:
+        n, block = p[1], self._block
+        expected = block.total - len(block.data) if block is not None else 0
+        if block is None or n != expected:
+            self._block = None
+            raise _Refused(ERR_SEQUENCE, bytes([expected]))
+        chunk = min(n, self.max_cto - 2)
+        if len(p) < 2 + chunk:
+            self._block = None
+            raise _Refused(ERR_CMD_SYNTAX)
+        block.data += p[2:2 + chunk]
+        if len(block.data) < block.total:
+            return None
+        self._block = None
+        self._write(block.address, bytes(block.data))       # the whole block: one write
+        self._mta = (None, block.address + block.total)
+        return b""
+
+    def _modify_bits(self, p: bytes) -> bytes:
+        shift, and_mask, xor_mask = p[1], _u16(p, 2), _u16(p, 4)
+        if shift > 31:
+            raise _Refused(ERR_OUT_OF_RANGE)
+        space, address = self._mta
+        if space is not None:
+            raise _Refused(ERR_WRITE_PROTECTED)
+        clear = ((~and_mask & 0xFFFF) << shift) & 0xFFFFFFFF
+        flip = (xor_mask << shift) & 0xFFFFFFFF
+        touched = clear | flip
+        if not touched:
+            return b""                         # the value stays as it is
+        lo = ((touched & -touched).bit_length() - 1) // 8      # the bytes the masks touch
+        hi = (touched.bit_length() - 1) // 8
+        old = self._read(address + lo, hi - lo + 1)
+        value = int.from_bytes(bytes(lo) + old + bytes(3 - hi), "little")
+        new = ((value & ~clear) ^ flip) & 0xFFFFFFFF
+        self._write(address + lo, new.to_bytes(4, "little")[lo:hi + 1])
+        return b""
+
+    def _build_checksum(self, p: bytes) -> bytes:
+        size = _u32(p, 4)
+        if not 1 <= size <= MAX_CHECKSUM_BLOCK:
+            raise _Refused(ERR_OUT_OF_RANGE, bytes(2) + _U32.pack(MAX_CHECKSUM_BLOCK))
+        space, address = self._mta
+        if space is not None:
+            if address + size > len(space):
+                raise _Refused(ERR_OUT_OF_RANGE)
+            data = space[address:address + size]
+        else:
+            data = self._read(address, size)
+        self._mta = (space, address + size)
+        return bytes([CHECKSUM_TYPE, 0, 0]) + _U32.pack(checksum(data))
 
     def _short_download(self, p: bytes) -> bytes:
         n = p[1]
@@ -979,26 +1180,43 @@ class Slave:
         mode = p[1]
         d = self._list(_u16(p, 2))
         event, prescaler, priority = _u16(p, 4), p[6], p[7]
-        if mode & ~0x10 & 0xFF:           # only TIMESTAMP: no STIM, PID_OFF, alternating
+        if mode & ~(_MODE_TIMESTAMP | _MODE_STIM) & 0xFF:   # no PID_OFF, no alternating
             raise _Refused(ERR_OUT_OF_RANGE)
         if event >= len(self.events) or prescaler < 1:
             raise _Refused(ERR_OUT_OF_RANGE)
+        stim = bool(mode & _MODE_STIM)
+        if stim:
+            if RES_CALPAG & self._protection:  # its values are calibration writes
+                raise _Refused(ERR_ACCESS_LOCKED)
+            # STIM only on an event channel that takes it; STIM DTOs carry no timestamp
+            if event not in self.stim_events or mode & _MODE_TIMESTAMP:
+                raise _Refused(ERR_OUT_OF_RANGE)
         if d.running:
             raise _Refused(ERR_DAQ_ACTIVE)
-        d.timestamp = bool(mode & 0x10)
+        d.timestamp = bool(mode & _MODE_TIMESTAMP)
+        d.stim = stim
         d.event, d.prescaler, d.priority = event, prescaler, priority
         return b""
 
     def _get_daq_list_mode(self, p: bytes) -> bytes:
         d = self._list(_u16(p, 2))
-        mode = (0x01 if d.selected else 0) | (0x10 if d.timestamp else 0) | \
-            (0x40 if d.running else 0)
+        mode = (0x01 if d.selected else 0) | (_MODE_STIM if d.stim else 0) | \
+            (_MODE_TIMESTAMP if d.timestamp else 0) | (0x40 if d.running else 0)
         return bytes([mode, 0, 0]) + _U16.pack(d.event) + bytes([d.prescaler, d.priority])
 
     # ---- DAQ: start and stop -----------------------------------------------------
     def _startable(self, d: _List) -> None:
         if not d.odts or any(not entries or None in entries for entries in d.odts):
             raise _Refused(ERR_DAQ_CONFIG)    # an ODT without entries, or one not written
+        if d.stim:
+            if len(d.odts) > _MAX_STIM_ODTS:
+                raise _Refused(ERR_DAQ_CONFIG)   # its DTOs' first byte would be a command's
+            for entries in d.odts:
+                for e in entries:
+                    if not any(a <= e.address and e.address + e.size <= a + n
+                               for a, n in self._regions):
+                        raise _Refused(ERR_WRITE_PROTECTED)   # STIM writes calibration only
+            return
         first = sum(e.size for e in d.odts[0] if e is not None)
         if d.timestamp and first + TIMESTAMP_BYTES > self.max_dto - DTO_HEADER_BYTES:
             raise _Refused(ERR_DAQ_CONFIG)    # the timestamp does not fit the first ODT
@@ -1047,24 +1265,45 @@ class Slave:
     def _apply(self) -> None:
         """Hands the whole configuration to the producer; refreshes the
         sender's view of it."""
+        # a STIM list is not measured: the producer has it as not running
         lists = tuple(
             DaqListConfig(
                 odts=tuple(tuple(e for e in entries if e is not None) for entries in d.odts),
-                event=d.event, prescaler=d.prescaler, running=d.running)
+                event=d.event, prescaler=d.prescaler, running=d.running and not d.stim)
             for d in self._lists)
         _check(self.daq.apply(lists))
         self._dto_views = tuple(
             _DtoView(
-                running=d.running,
+                running=d.running and not d.stim,
                 timestamp=d.timestamp,
                 sizes=tuple(sum(e.size for e in entries if e is not None) for entries in d.odts),
                 headers=tuple(bytes([odt, 0]) + _U16.pack(k) for odt in range(len(d.odts))))
             for k, d in enumerate(self._lists))
 
-    # ---- DAQ: information ---------------------------------------------------------
+    # ---- the clock ---------------------------------------------------------------
     def _get_daq_clock(self, p: bytes) -> bytes:
-        now = (self.clock_ns() // TIMESTAMP_UNIT_NS) & 0xFFFFFFFF
-        return bytes([0, 0, 1]) + _U32.pack(now)     # trigger 0; payload: slave clock, DWORD
+        now = self.clock_ns() // TIMESTAMP_UNIT_NS
+        if not self._clock_format:             # legacy: the low 32 bits
+            return bytes([0, _TRIGGER_INFO, _PAYLOAD_SLAVE_DWORD]) + _U32.pack(now & 0xFFFFFFFF)
+        return bytes([0, _TRIGGER_INFO, _PAYLOAD_SLAVE_DLONG]) + \
+            _U64.pack(now & 0xFFFF_FFFF_FFFF_FFFF) + bytes([_SYNC_STATE])
+
+    def _time_correlation_properties(self, p: bytes) -> bytes:
+        setting, request, cluster = p[1], p[2], _u16(p, 4)
+        response_fmt, bridge = setting & 0x03, (setting >> 2) & 0x03
+        if response_fmt == 3 or bridge:        # reserved; no time sync bridge to switch
+            raise _Refused(ERR_OUT_OF_RANGE)
+        if response_fmt:
+            self._clock_format = response_fmt
+        if setting & 0x10:                     # SET_CLUSTER_ID
+            self._cluster_id = cluster
+        if request & 0x01:                     # GET_CLK_INFO: the slave clock's, by UPLOAD
+            self._mta = (self._clock_info, 0)
+        # SLAVE_CONFIG: the response format, DAQ timestamps of the slave clock, no bridge
+        return bytes([self._clock_format, _OBSERVABLE_CLOCKS, _SYNC_STATE, _CLOCK_INFO_SLAVE,
+                      0]) + _U16.pack(self._cluster_id)
+
+    # ---- DAQ: information ---------------------------------------------------------
 
     def _get_daq_processor_info(self, p: bytes) -> bytes:
         # OVERLOAD_EVENT, TIMESTAMP_SUPPORTED, PRESCALER_SUPPORTED, DYNAMIC
@@ -1075,12 +1314,14 @@ class Slave:
 
     def _get_daq_resolution_info(self, p: bytes) -> bytes:
         ts_mode = (_TS_UNIT_CODE << 4) | _TS_SIZE_CODE    # not fixed: selectable per list
-        return bytes([1, min(self.limits.odt_bytes, 255), 1, 0, ts_mode]) + _U16.pack(1)
+        entry = min(self.limits.odt_bytes, 255)
+        return bytes([1, entry, 1, entry if self.stim_events else 0, ts_mode]) + _U16.pack(1)
 
     def _get_daq_list_info(self, p: bytes) -> bytes:
         d = self._list(_u16(p, 2))
-        return bytes([0x04, len(d.odts), max((len(e) for e in d.odts), default=0)]) + \
-            _U16.pack(0)                        # DAQ only, no fixed event
+        kind = 0x0C if self.stim_events else 0x04   # DAQ, and STIM when some event takes it
+        return bytes([kind, len(d.odts), max((len(e) for e in d.odts), default=0)]) + \
+            _U16.pack(0)                        # no fixed event
 
     def _get_daq_event_info(self, p: bytes) -> bytes:
         n = _u16(p, 2)
@@ -1090,8 +1331,49 @@ class Slave:
         name = event.name.encode("ascii", "replace")[:255]
         cycle, unit = event_cycle(event.cycle_s)
         self._mta = (name, 0)
-        # DAQ, consistency per event channel; any number of lists; priority 0
-        return bytes([0x84, 0xFF, len(name), cycle, unit, 0])
+        # DAQ (and STIM), consistency per event channel; any number of lists; priority 0
+        properties = 0x84 | (0x08 if n in self.stim_events else 0)
+        return bytes([properties, 0xFF, len(name), cycle, unit, 0])
+
+    # ---- STIM: DTOs from the master -------------------------------------------------
+    def _stim_drop(self, reason: str) -> None:
+        self._bump(self._stim_dropped, reason)
+
+    def _stim_dto(self, p: bytes) -> None:
+        """Writes one STIM DTO's values (``[odt, fill, list lo, list hi, data]``)."""
+        self._stim["dtos"] += 1
+        if not self.connected:
+            return self._stim_drop("not_connected")
+        if len(p) < DTO_HEADER_BYTES:
+            return self._stim_drop("bad_length")
+        odt, n = p[0], _u16(p, 2)
+        if n >= len(self._lists):
+            return self._stim_drop("unknown_list")
+        d = self._lists[n]
+        if not d.stim or not d.running:
+            return self._stim_drop("not_running")
+        if odt >= len(d.odts):
+            return self._stim_drop("unknown_odt")
+        entries = d.odts[odt]
+        if len(p) != DTO_HEADER_BYTES + sum(e.size for e in entries):
+            return self._stim_drop("bad_length")
+        spans: list[list] = []                 # adjacent entries: one write
+        at = DTO_HEADER_BYTES
+        for e in entries:
+            value = p[at:at + e.size]
+            at += e.size
+            if spans and spans[-1][0] + len(spans[-1][1]) == e.address:
+                spans[-1][1] += value
+            else:
+                spans.append([e.address, bytearray(value)])
+        try:
+            for address, data in spans:
+                self._write(address, bytes(data))
+        except _Refused as e:
+            return self._stim_drop(error_name(e.code))
+        except Exception:  # a backend's bug must not stop the slave
+            return self._stim_drop("internal_error")
+        self._stim["written"] += 1
 
     # ---- the sender's side ----------------------------------------------------------
     def dto_packet(self, dto: Dto) -> bytes | None:
