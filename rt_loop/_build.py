@@ -6,9 +6,9 @@ table-driven CAN codec and the plant core compiled in, so the whole tick
 runs in C without crossing into Python. The codec's types come from
 ``can_dbc._can_table`` (``ffi.include``): a ``can_dbc.table.CodecTable`` is
 passed to the loop as it is. The cdef is the loop's public headers
-(dct_plant.h, rt_loop.h, rt_floor.h), read the same way as plant/_build.py
-reads dct_plant.h: every preprocessor line dropped except ``#define NAME
-<integer>``. The sources are every ``csrc/*.c`` (the loop one component a
+(dct_plant.h, rt_loop.h, rt_floor.h, and rt_xcp_send.h: the XCP sender
+thread), read the same way as plant/_build.py reads dct_plant.h: every
+preprocessor line dropped except ``#define NAME <integer>``. The sources are every ``csrc/*.c`` (the loop one component a
 file, listed in ``csrc/rt_internal.h``); the private headers (rt_internal.h,
 rt_faults.h, rt_scope.h) are never read by the cdef.
 """
@@ -30,6 +30,7 @@ _HEADERS = (
     os.path.join(_PLANT_CSRC, "dct_plant.h"),
     os.path.join(_RT_CSRC, "rt_loop.h"),
     os.path.join(_RT_CSRC, "rt_floor.h"),
+    os.path.join(_RT_CSRC, "rt_xcp_send.h"),
 )
 
 # loaded by path: setuptools runs build files by path, not as package modules
@@ -49,7 +50,7 @@ def make_builder():
     ffi.cdef("\n".join(_can.cdef_text(h) for h in _HEADERS))
     ffi.set_source(
         "rt_loop._rt_loop",
-        '#include "rt_loop.h"\n#include "rt_floor.h"\n#include "can_table.h"',
+        '#include "rt_loop.h"\n#include "rt_floor.h"\n#include "rt_xcp_send.h"\n#include "can_table.h"',
         sources=_sources(),
         include_dirs=[_can.rel(d) for d in (_RT_CSRC, _CAN_CSRC, _PLANT_CSRC)],
         extra_compile_args=_can.COMPILE_ARGS,

@@ -22,6 +22,8 @@
  *                  its start and stop commands
  *   rt_faults.c, rt_scope.c, rt_floor.c: failure simulation, the scope, the
  *                  machine's wake-up floor (their own headers)
+ *   rt_xcp_send.c  not the tick's: the XCP slave's sender thread, the DAQ
+ *                  ring's consumer (rt_xcp_send.h, read by cffi too)
  *
  * The tick calls each stage once (the functions at the end, hidden in the
  * extension: direct calls, no PLT); what a stage calls per frame or per

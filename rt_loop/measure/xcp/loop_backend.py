@@ -31,8 +31,10 @@ An XCP address is a byte offset from the start of the ``rt_loop`` struct
   ``ack_wait_s``, else ERR_RESOURCE_TEMPORARY_NOT_ACCESSIBLE: the master
   repeats). A configuration the loop refused (``daq_refused``) answers
   ERR_DAQ_CONFIG. Lists that do not run are published without ODTs. The
-  measured ODTs come out of ``daq_ring`` (``rt_daq_pop_many``); the ring's
-  ``dropped`` is the overload indication.
+  measured ODTs come out of ``daq_ring``: read by the transport's C sender
+  (``dto_ring``, ``rt_loop/csrc/rt_xcp_send.h``: packed and sent with no
+  Python on the way), or by ``pop`` (``rt_daq_pop_many``) where no sender
+  runs; the ring's ``dropped`` is the overload indication.
 
 ``daq_gen`` is published and ``daq_ack`` read through ``rt_daq_publish`` /
 ``rt_daq_acked`` (release / acquire in C); the write ring is filled by
@@ -360,6 +362,12 @@ class LoopBackend(Memory, Daq):
 
     def dropped(self) -> int:
         return int(self.loop.daq_ring.dropped)
+
+    def dto_ring(self) -> Any:
+        """The loop's DAQ ring (``rt_daq_ring *``): the C sender of the
+        transport (``rt_xcp_send.h``) reads it itself, so ``pop`` is for
+        readers without a sender only (one consumer at a time)."""
+        return self._ring
 
     def counters(self) -> dict:
         loop = self.loop

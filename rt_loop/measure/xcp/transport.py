@@ -2,18 +2,30 @@
 
 Every XCP packet travels with a 4-byte header: LEN (the packet's bytes,
 u16 little endian) and CTR (u16 little endian: the master counts its
-commands, the slave every packet it sends: responses, events and DTOs, so
-the master sees what was lost). A UDP datagram may hold several packets;
-over TCP they follow each other in the stream.
+commands, the slave every packet it sends: responses, events and DTOs, in
+one sequence, so the master sees what was lost). A UDP datagram may hold
+several packets; over TCP they follow each other in the stream.
 
-Two threads per server: the receiver (commands in, responses out) and the
-sender (DTOs out: ``Daq.pop`` -> ``Slave.dto_packet`` -> the socket; also
-the overload event). Neither ever blocks on the master: the sockets are
-non-blocking; a DTO or response the socket cannot take now is dropped and
-counted (UDP), or queued up to ``TCP_QUEUE_BYTES`` and then dropped and
-counted (TCP: a frame is never cut). A frame that is empty, longer than
-MAX_CTO, or cut short is dropped and counted; a TCP stream announcing a
-frame larger than ``TCP_GARBAGE_LEN`` cannot be trusted any more and is
+Python keeps the command channel: a receiver thread per server (commands
+in, the ``Slave``, responses out). Everything the slave sends goes through
+the C sender (``rt_loop/csrc/rt_xcp_send.h``), an ordinary thread of its
+own that reads the DAQ ring, packs each DTO, frames it with the slave's CTR
+and sends it on the socket opened here, with no Python between the tick
+and the socket; the responses and events Python makes are framed and sent
+by the same code (``rt_xcp_send_packets``), so the CTR is one sequence,
+owned by the C side. The sender's DTO layout (the lists that run, their
+timestamps, numbers and ODT sizes) is the Slave's: handed over whenever a
+command or a session's end changed it. With the loop's ``LoopBackend`` the
+sender reads the loop's ``daq_ring`` itself; any other ``Daq`` (a producer
+in Python, the protocol tests' fake) is fed into a ring of the sender's
+own by a feeder thread.
+
+Nothing ever blocks on the master: the sockets are non-blocking; a packet
+the UDP socket cannot take now is dropped and counted; over TCP frames
+wait in the sender's queue (``TCP_QUEUE_BYTES``), beyond it they are
+dropped and counted (a frame is never cut). A frame that is empty, longer
+than MAX_CTO, or cut short is dropped and counted; a TCP stream announcing
+a frame larger than ``TCP_GARBAGE_LEN`` cannot be trusted any more and is
 closed.
 
 One master at a time: over UDP the address that sent the last CONNECT (a
@@ -27,25 +39,28 @@ are dropped and counted.
 from __future__ import annotations
 
 import errno
+import os
 import selectors
 import socket
 import struct
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
+from rt_loop._rt_loop import ffi, lib
 from rt_loop.measure.xcp.protocol import CONNECT, Daq, Slave
 
 __all__ = ["HEADER", "frame", "deframe_datagram", "StreamDeframer", "UdpServer", "TcpServer",
-           "make_server", "TCP_QUEUE_BYTES", "TCP_GARBAGE_LEN"]
+           "make_server", "TCP_QUEUE_BYTES", "TCP_GARBAGE_LEN", "UDP_PAYLOAD", "CSender",
+           "sender_layout", "delay_percentiles_us"]
 
 HEADER = struct.Struct("<HH")
-TCP_QUEUE_BYTES = 1 << 20            # bytes waiting for a slow TCP master at most
+TCP_QUEUE_BYTES = int(lib.RT_XCP_TCP_QUEUE_BYTES)   # bytes waiting for a slow TCP master at most
 TCP_GARBAGE_LEN = 4096               # a LEN above this: the stream is out of step
-_DTO_BATCH = 512
 #: the most bytes of XCP frames in one UDP datagram: an Ethernet frame's payload
 #: (1500) less the IPv4 and UDP headers, so a datagram is never fragmented
-UDP_PAYLOAD = 1472
-_POLL_RUNNING_S = 0.001              # the sender's pause when the producer ran dry
+UDP_PAYLOAD = int(lib.RT_XCP_UDP_PAYLOAD)
+_FEED_BATCH = 512
+_POLL_RUNNING_S = 0.001              # the feeder's pause when the producer ran dry
 _POLL_IDLE_S = 0.02                  # ... and when no DAQ list runs
 _SELECT_S = 0.1
 
@@ -135,31 +150,177 @@ def _family(host: str, kind: int) -> tuple[int, tuple]:
     return family, sockaddr
 
 
+def sender_layout(views: Sequence) -> tuple[object, bool]:
+    """The C sender's DTO layout (``rt_xcp_layout``) of the Slave's DTO views
+    (one per DAQ list: running, timestamp, the ODTs' sizes and their 4-byte
+    identification fields), and whether it fits the sender's bounds (else
+    the layout is empty: no list runs)."""
+    layout = ffi.new("rt_xcp_layout *")
+    n_sizes = sum(len(v.sizes) for v in views)
+    if len(views) > lib.RT_DAQ_MAX_LISTS or n_sizes > lib.RT_DAQ_MAX_ODTS:
+        return layout, False
+    k = 0
+    for i, v in enumerate(views):
+        x = layout.lists[i]
+        x.running = bool(v.running)
+        x.timestamp = bool(v.timestamp)
+        head = v.headers[0] if v.headers else bytes([0, 0]) + struct.pack("<H", i)
+        x.first_pid = head[0]
+        x.daq = struct.unpack_from("<H", head, 2)[0]
+        x.n_odts = len(v.sizes)
+        x.first_size = k
+        for size in v.sizes:
+            if not 0 <= size <= lib.RT_DAQ_ODT_BYTES:
+                return ffi.new("rt_xcp_layout *"), False
+            layout.sizes[k] = size
+            k += 1
+    layout.n_lists = len(views)
+    return layout, True
+
+
+def delay_percentiles_us(hist: Sequence[int], qs: Sequence[float] = (50, 99, 99.9)) -> dict:
+    """Percentiles (upper bin edges, us) of a 1 us delay histogram."""
+    total = sum(hist)
+    out: dict = {}
+    for q in qs:
+        if not total:
+            out[f"p{q:g}"] = None
+            continue
+        want = total * q / 100.0
+        seen = 0
+        for k, n in enumerate(hist):
+            seen += n
+            if seen >= want:
+                out[f"p{q:g}"] = k + 1
+                break
+    return out
+
+
+class CSender:
+    """The C sender of one server (``rt_xcp_send.h``): its thread, the master,
+    the layout, Python's packets, the counts. ``ring``: the loop's
+    ``rt_daq_ring *``, or ``ffi.NULL`` for a ring of its own (``feed``)."""
+
+    def __init__(self, ring, protocol: str, fd: int = -1) -> None:
+        self.kind = lib.RT_XCP_UDP if protocol == "udp" else lib.RT_XCP_TCP
+        self._s = lib.rt_xcp_sender_new(ring, self.kind, fd)
+        if self._s == ffi.NULL:
+            raise OSError(errno.ENOMEM, "XCP sender: no memory for its queue or ring")
+        self._final: dict | None = None
+        self._final_hist: list[int] | None = None
+
+    def start(self, poll_us: int = 0) -> None:
+        rc = lib.rt_xcp_sender_start(self._s, poll_us)
+        if rc:
+            raise OSError(-rc, f"XCP sender thread: {os.strerror(-rc)}")
+
+    def close(self) -> None:
+        """Stops the thread and frees the sender; its counts stay readable."""
+        if self._s is None:
+            return
+        lib.rt_xcp_sender_stop(self._s)
+        self._final = self.stats()
+        self._final_hist = self.delays()
+        lib.rt_xcp_sender_free(self._s)
+        self._s = None
+
+    def set_peer(self, addr: tuple | None) -> None:
+        if addr is None:
+            lib.rt_xcp_sender_clear_peer(self._s)
+            return
+        host = str(addr[0]).partition("%")[0]
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        scope = int(addr[3]) if len(addr) > 3 else 0
+        lib.rt_xcp_sender_set_peer(self._s, family, host.encode("ascii"), int(addr[1]), scope)
+
+    def set_tcp(self, fd: int) -> None:
+        lib.rt_xcp_sender_set_tcp(self._s, fd)
+
+    def set_layout(self, views: Sequence) -> bool:
+        layout, ok = sender_layout(views)
+        return lib.rt_xcp_sender_set_layout(self._s, layout) == 0 and ok
+
+    def send(self, packets: Sequence[bytes]) -> int:
+        if not packets or self._s is None:
+            return 0
+        data = b"".join(packets)
+        lens = ffi.new("uint16_t[]", [min(len(p), 0xFFFF) for p in packets])
+        return lib.rt_xcp_send_packets(self._s, ffi.from_buffer("uint8_t[]", data), lens,
+                                       len(packets))
+
+    def feed(self, dtos, n: int, dropped: int) -> int:
+        return lib.rt_xcp_sender_feed(self._s, dtos, n, dropped)
+
+    def stats(self) -> dict:
+        """The sender's counts (``rt_xcp_send_stats``) as a dict; send errors by
+        errno name."""
+        if self._s is None:
+            return dict(self._final or {})
+        st = ffi.new("rt_xcp_send_stats *")
+        lib.rt_xcp_sender_read(self._s, st)
+        out = {name: int(getattr(st, name)) for name, _ in ffi.typeof("rt_xcp_send_stats").fields
+               if name not in ("send_errors", "reserved")}
+        errors: dict[str, int] = {}
+        for e in range(lib.RT_XCP_ERRNO_SLOTS):
+            n = int(st.send_errors[e])
+            if n:
+                name = errno.errorcode.get(e, "send_error") if e else "send_error"
+                errors[name] = errors.get(name, 0) + n
+        out["send_errors"] = errors
+        return out
+
+    def delays(self) -> list[int]:
+        """The DTO delay histogram: DTOs per 1 us bin from the tick's deadline
+        to the send (the last bin: everything above)."""
+        if self._s is None:
+            return list(self._final_hist or [])
+        n = int(lib.RT_XCP_DELAY_BINS)
+        hist = ffi.new("uint64_t[]", n)
+        k = lib.rt_xcp_sender_delays(self._s, hist, n)
+        return list(hist)[:k]
+
+
 class _Server:
-    """What both transports share: the threads, the sending, the counts."""
+    """What both transports share: the threads, the C sender, the counts."""
 
     protocol = ""
 
-    def __init__(self, slave: Slave, daq: Daq, host: str = "127.0.0.1", port: int = 5555) -> None:
+    def __init__(self, slave: Slave, daq: Daq, host: str = "127.0.0.1", port: int = 5555,
+                 poll_us: int = 0) -> None:
         self.slave = slave
         self.daq = daq
         self.host = host
         self.port = port
+        self.poll_us = poll_us
         self._stop = threading.Event()
         self._send_lock = threading.Lock()
         self._threads: list[threading.Thread] = []
-        self._ctr = 0
+        self.sender: CSender | None = None
+        self._views: object = None
         self.address: tuple | None = None            # bound (host, port, ...)
-        self._counts = {"frames_in": 0, "packets_out": 0, "dtos_out": 0, "masters": 0,
-                        "takeovers": 0}
+        self._counts = {"frames_in": 0, "masters": 0, "takeovers": 0}
         self._bad_frames: dict[str, int] = {}
         self._dropped: dict[str, int] = {}
+        self._fed_refused = 0
         self.error: str | None = None
 
     # ---- life -------------------------------------------------------------------
     def start(self) -> None:
         self._open()
-        for target, name in ((self._receiver, "xcp-rx"), (self._sender, "xcp-tx")):
+        try:
+            ring = self.daq.dto_ring() if hasattr(self.daq, "dto_ring") else ffi.NULL
+            self.sender = CSender(ring, self.protocol, self._sender_fd())
+            self._sync_layout()
+            self.sender.start(self.poll_us)
+        except OSError:
+            if self.sender is not None:
+                self.sender.close()
+            self._close()
+            raise
+        targets = [(self._receiver, "xcp-rx")]
+        if ring == ffi.NULL:
+            targets.append((self._feeder, "xcp-feed"))
+        for target, name in targets:
             t = threading.Thread(target=self._guard(target), name=name, daemon=True)
             self._threads.append(t)
             t.start()
@@ -178,43 +339,96 @@ class _Server:
             t.join()
         self._threads = []
         self.slave.reset("server stop")
+        if self.sender is not None:
+            self.sender.close()
         self._close()
 
     def counters(self) -> dict:
+        """frames_in, packets_out, dtos_out, masters, takeovers, bad frames
+        and dropped packets by reason, the error that ended a thread. Also
+        hands the sender's DTO counts to the Slave's (``dtos``,
+        ``dto_dropped``, ``overload_events``: the sender packs for it)."""
+        st = self.sender.stats() if self.sender is not None else {}
+        self._count_into_slave(st)
         with self._send_lock:
-            return {"protocol": self.protocol, **self._counts,
-                    "bad_frames": dict(self._bad_frames), "dropped": dict(self._dropped),
+            dropped = dict(self._dropped)
+            for key in ("no_master", "would_block", "queue_full"):
+                if st.get(key):
+                    dropped[key] = dropped.get(key, 0) + st[key]
+            for key, n in st.get("send_errors", {}).items():
+                dropped[key] = dropped.get(key, 0) + n
+            return {"protocol": self.protocol, "frames_in": self._counts["frames_in"],
+                    "packets_out": st.get("packets_out", 0), "dtos_out": st.get("dtos_out", 0),
+                    "masters": self._counts["masters"], "takeovers": self._counts["takeovers"],
+                    "bad_frames": dict(self._bad_frames), "dropped": dropped,
                     "error": self.error}
 
-    # ---- the sender thread ----------------------------------------------------
-    def _sender(self) -> None:
-        slave, daq = self.slave, self.daq
+    def _count_into_slave(self, st: dict) -> None:
+        if not st:
+            return
+        slave = self.slave
+        slave._counts["dtos"] = st["dtos_packed"]
+        slave._dto_dropped = {"not_running": st["not_running"],
+                              "stale": st["stale"] + self._fed_refused}
+        slave._overload_events = st["overload_events"]
+
+    def sender_stats(self) -> dict:
+        """The C sender's own counts (``rt_xcp_send_stats``) and its DTO delay
+        percentiles (us from the tick's deadline to the send)."""
+        if self.sender is None:
+            return {}
+        return {**self.sender.stats(), "delay_us": delay_percentiles_us(self.sender.delays())}
+
+    # ---- the Slave's answers and the sender's layout ----------------------------------
+    def _sync_layout(self) -> None:
+        """Hands the Slave's DTO layout to the sender when it changed."""
+        views = self.slave._dto_views
+        if views is self._views or self.sender is None:
+            return
+        self._views = views
+        if not self.sender.set_layout(views):
+            with self._send_lock:
+                _bump(self._dropped, "layout_refused")
+
+    def _handle(self, packet: bytes) -> None:
+        answer = self.slave.handle(packet)
+        self._sync_layout()                  # before the answer: the DTOs may follow it
+        self._send(answer)
+
+    def _reset(self, why: str) -> None:
+        self.slave.reset(why)
+        self._sync_layout()
+
+    def _send(self, packets: list[bytes]) -> None:
+        if packets and self.sender is not None:
+            self.sender.send(packets)
+
+    # ---- a DAQ producer in Python: into the sender's own ring -----------------------
+    def _feeder(self) -> None:
+        daq, slave = self.daq, self.slave
+        buf = ffi.new("rt_dto[]", _FEED_BATCH)
+        odt_bytes = int(lib.RT_DAQ_ODT_BYTES)
+        pending: list = []                   # popped, not in the ring yet (it was full)
         while not self._stop.is_set():
-            dtos = daq.pop(_DTO_BATCH)
-            packets = [pk for pk in map(slave.dto_packet, dtos) if pk is not None]
-            packets += slave.overload_events(daq.dropped())
-            if packets:
-                self._send(packets, dtos=True)
-            self._flush()
-            if len(dtos) < _DTO_BATCH:
+            full = False
+            if not pending:
+                popped = daq.pop(_FEED_BATCH)
+                full = len(popped) >= _FEED_BATCH
+                for d in popped:
+                    if len(d.data) <= odt_bytes and 0 <= d.list <= 0xFFFF and 0 <= d.odt <= 0xFFFF:
+                        pending.append(d)
+                    else:
+                        self._fed_refused += 1       # no loop DTO is like it: stale
+            for k, d in enumerate(pending):
+                x = buf[k]
+                x.time_ns, x.tick, x.list, x.odt, x.len = d.time_ns, 0, d.list, d.odt, len(d.data)
+                ffi.memmove(x.data, d.data, len(d.data))
+            took = self.sender.feed(buf, len(pending), daq.dropped())
+            pending = pending[took:]
+            if pending:
+                self._stop.wait(_POLL_RUNNING_S)
+            elif not full:
                 self._stop.wait(_POLL_RUNNING_S if slave.daq_running else _POLL_IDLE_S)
-
-    def _send(self, packets: list[bytes], dtos: bool = False) -> None:
-        with self._send_lock:
-            if not self._connected_locked():
-                _bump(self._dropped, "no_master", len(packets))
-                return
-            frames = []
-            for pk in packets:
-                frames.append(frame(self._ctr, pk))
-                self._ctr = (self._ctr + 1) & 0xFFFF
-            sent = self._transmit_locked(frames)
-            self._counts["packets_out"] += sent
-            if dtos:
-                self._counts["dtos_out"] += sent
-
-    def _flush(self) -> None:
-        pass
 
     # ---- per transport --------------------------------------------------------------
     def _open(self) -> None:
@@ -223,13 +437,10 @@ class _Server:
     def _close(self) -> None:
         raise NotImplementedError
 
+    def _sender_fd(self) -> int:
+        raise NotImplementedError
+
     def _receiver(self) -> None:
-        raise NotImplementedError
-
-    def _connected_locked(self) -> bool:
-        raise NotImplementedError
-
-    def _transmit_locked(self, frames: list[bytes]) -> int:
         raise NotImplementedError
 
 
@@ -256,34 +467,13 @@ class UdpServer(_Server):
         self._sock = sock
         self.address = sock.getsockname()
 
+    def _sender_fd(self) -> int:
+        return self._sock.fileno()
+
     def _close(self) -> None:
         if self._sock is not None:
             self._sock.close()
             self._sock = None
-
-    def _connected_locked(self) -> bool:
-        return self._peer is not None and self._sock is not None
-
-    def _transmit_locked(self, frames: list[bytes]) -> int:
-        """Frames packed into datagrams of at most UDP_PAYLOAD bytes (XCP on UDP
-        lets a datagram carry several packets): a few system calls and interrupts
-        per tick instead of one per DTO. Returns the frames sent."""
-        sent = 0
-        i = 0
-        while i < len(frames):
-            j, size = i, 0
-            while j < len(frames) and (j == i or size + len(frames[j]) <= UDP_PAYLOAD):
-                size += len(frames[j])
-                j += 1
-            try:
-                self._sock.sendto(b"".join(frames[i:j]), self._peer)
-                sent += j - i
-            except BlockingIOError:
-                _bump(self._dropped, "would_block", j - i)
-            except OSError as e:
-                _bump(self._dropped, errno.errorcode.get(e.errno, "send_error"), j - i)
-            i = j
-        return sent
 
     def _receiver(self) -> None:
         sock = self._sock
@@ -320,13 +510,13 @@ class UdpServer(_Server):
                 return
             takeover = self._peer is not None and self.slave.connected
             if takeover:
-                self.slave.reset("takeover")
+                self._reset("takeover")
             with self._send_lock:
                 self._counts["takeovers"] += takeover
                 self._peer = addr
-                self._ctr = 0
+                self.sender.set_peer(addr)     # the CTR starts again at 0
                 self._counts["masters"] += 1
-        self._send(self.slave.handle(packet))
+        self._handle(packet)
 
 
 class TcpServer(_Server):
@@ -338,7 +528,6 @@ class TcpServer(_Server):
         super().__init__(*args, **kws)
         self._listener: socket.socket | None = None
         self._client: socket.socket | None = None
-        self._out = bytearray()
 
     def _open(self) -> None:
         family, sockaddr = _family(self.host, socket.SOCK_STREAM)
@@ -354,6 +543,9 @@ class TcpServer(_Server):
         self._listener = sock
         self.address = sock.getsockname()
 
+    def _sender_fd(self) -> int:
+        return -1                               # the connection, once accepted
+
     def _close(self) -> None:
         with self._send_lock:
             self._drop_client_locked()
@@ -361,51 +553,15 @@ class TcpServer(_Server):
             self._listener.close()
             self._listener = None
 
-    def _connected_locked(self) -> bool:
-        return self._client is not None
-
     def _drop_client_locked(self) -> None:
         if self._client is not None:
+            if self.sender is not None:
+                self.sender.set_tcp(-1)         # the sender lets go of it before it closes
             try:
                 self._client.close()
             except OSError:
                 pass
         self._client = None
-        self._out = bytearray()
-
-    def _transmit_locked(self, frames: list[bytes]) -> int:
-        queued = 0
-        for f in frames:
-            if len(self._out) + len(f) > TCP_QUEUE_BYTES:
-                _bump(self._dropped, "queue_full")
-                continue
-            self._out += f
-            queued += 1
-        self._flush_locked()
-        return queued
-
-    def _flush(self) -> None:
-        if self._out:
-            with self._send_lock:
-                self._flush_locked()
-
-    def _flush_locked(self) -> None:
-        client = self._client
-        while self._out and client is not None:
-            try:
-                n = client.send(self._out)
-            except BlockingIOError:
-                return
-            except OSError as e:
-                # the master is gone: the receiver sees the end of its stream
-                _bump(self._dropped, errno.errorcode.get(e.errno, "send_error"))
-                self._out = bytearray()
-                try:
-                    client.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
-                return
-            del self._out[:n]
 
     def _receiver(self) -> None:
         sel = selectors.DefaultSelector()
@@ -432,7 +588,7 @@ class TcpServer(_Server):
                         packets = deframer.feed(data) if data else []
                         self._counts["frames_in"] += len(packets)
                     for packet in packets:
-                        self._send(self.slave.handle(packet))
+                        self._handle(packet)
                     if not data or deframer.broken:
                         self._end_client(sel, conn, "master gone" if not data else "garbage")
                         deframer = None
@@ -455,22 +611,22 @@ class TcpServer(_Server):
         if old is not None:
             sel.unregister(old)
             if _closed(old):                   # it left before: not taken over
-                self.slave.reset("master gone")
+                self._reset("master gone")
             else:
                 takeover = self.slave.connected
-                self.slave.reset("takeover")
+                self._reset("takeover")
         with self._send_lock:
             self._counts["takeovers"] += takeover
             self._drop_client_locked()
             self._client = conn
-            self._ctr = 0
+            self.sender.set_tcp(conn.fileno())   # the CTR starts again at 0
             self._counts["masters"] += 1
         sel.register(conn, selectors.EVENT_READ)
         return conn
 
     def _end_client(self, sel: selectors.BaseSelector, conn: socket.socket, why: str) -> None:
         sel.unregister(conn)
-        self.slave.reset(why)
+        self._reset(why)
         with self._send_lock:
             if self._client is conn:
                 self._drop_client_locked()
