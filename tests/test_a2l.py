@@ -620,14 +620,14 @@ def test_if_data_xcp(c):
     assert "PRESCALER_SUPPORTED" in block
     assert "/begin XCP_ON_UDP_IP 0x0104 5566 ADDRESS \"192.168.1.20\" /end XCP_ON_UDP_IP" in block
     assert "XCP_ON_TCP_IP" not in block
-    events = re.findall(r'/begin EVENT "(\w+)" "\w+" (\d+) DAQ 0xFF (\d+) (\d+) 0', block)
+    events = re.findall(r'/begin EVENT "(\w+)" "\w+" (\d+) DAQ(?:_STIM)? 0xFF (\d+) (\d+) 0', block)
     # 2 kHz: 5 x 100 us, 1 x 10 ms, 1 x 100 ms
     assert events == [("tick", str(lib.RT_EVENT_TICK), "5", "5"),
                       ("10ms", str(lib.RT_EVENT_10MS), "1", "7"),
                       ("100ms", str(lib.RT_EVENT_100MS), "1", "8")]
     slow = _if_data(a2l.generate(ffi, lib, xcp={"rate_hz": 1000, "transport": "both",
                                                   "time_scale": 0.5, "address": "::1"}))
-    events = re.findall(r'/begin EVENT "(\w+)" "\w+" \d+ DAQ 0xFF (\d+) (\d+) 0', slow)
+    events = re.findall(r'/begin EVENT "(\w+)" "\w+" \d+ DAQ(?:_STIM)? 0xFF (\d+) (\d+) 0', slow)
     # 1 kHz at half speed: a tick every 2 ms of wall time, 10 ms of plant time in 20 ms
     assert events == [("tick", "2", "6"), ("10ms", "2", "7"), ("100ms", "2", "8")]
     assert 'XCP_ON_UDP_IP 0x0104 5555 IPV6 "::1"' in slow and "XCP_ON_TCP_IP" in slow
@@ -647,7 +647,7 @@ def test_if_data_matches_the_slave():
     for event in getattr(protocol, "DEFAULT_EVENTS", ()):
         cycle, unit = cycle_of(event.cycle_s)
         assert f'"{event.name}" "{event.name[:8]}"' in block
-        assert re.search(rf'"{event.name}" "\w+" \d+ DAQ 0xFF {cycle} {unit} ', block)
+        assert re.search(rf'"{event.name}" "\w+" \d+ DAQ(?:_STIM)? 0xFF {cycle} {unit} ', block)
 
 
 @pytest.mark.parametrize("xcp, message", [

@@ -318,3 +318,40 @@ def time_us():
     import time
 
     return time.monotonic_ns() // 1000
+
+
+# ---- the A2L declares what the slave does ---------------------------------------------------
+
+def test_the_a2l_declares_the_commands_block_mode_checksum_and_stim_as_the_slave_answers():
+    import re
+
+    from rt_loop._rt_loop import ffi, lib
+    from rt_loop.measure.xcp import STIM_EVENTS, a2l, a2ml
+
+    text = a2l.generate(ffi, lib)
+    declared = re.findall(r"^\s*OPTIONAL_CMD (\w+)$", text, re.M)
+    assert {"BUILD_CHECKSUM", "DOWNLOAD_NEXT", "SHORT_DOWNLOAD", "MODIFY_BITS",
+            "TIME_CORRELATION_PROPERTIES"} <= set(declared)
+    # every command declared is one the slave knows (no ERR_CMD_UNKNOWN)
+    slave = connected_slave((xp.Memory(), xp.Daq()), stim_events=STIM_EVENTS)
+    for name in declared:
+        answer = cmd(slave, a2ml.OPTIONAL_CMD_CODES[name], *bytes(7))
+        assert answer is None or answer[:2] != err(xp.ERR_CMD_UNKNOWN), name
+        cmd(slave, xp.SYNCH)                        # ends a block a DOWNLOAD may have begun
+    # master block mode as GET_COMM_MODE_INFO says
+    max_bs, min_st = map(int, re.search(r"COMMUNICATION_MODE_SUPPORTED BLOCK MASTER (\d+) (\d+)",
+                                        text).groups())
+    answer = cmd(slave, xp.GET_COMM_MODE_INFO)
+    assert answer[2] & 0x01 and (answer[4], answer[5]) == (max_bs, min_st)
+    # the checksum as BUILD_CHECKSUM answers
+    kind, block = re.search(r"/begin CHECKSUM (\w+) MAX_BLOCK_SIZE (0x[0-9A-F]+) /end CHECKSUM",
+                            text).groups()
+    assert (kind, int(block, 16)) == ("XCP_CRC_32", xp.MAX_CHECKSUM_BLOCK)
+    assert cmd(slave, xp.BUILD_CHECKSUM, 0, 0, 0, *u32(int(block, 16) + 1))[4:] == u32(int(block, 16))
+    # STIM: the STIM block, and the events that take it as GET_DAQ_EVENT_INFO says
+    assert re.search(r"/begin STIM GRANULARITY_ODT_ENTRY_SIZE_STIM_BYTE 248 /end STIM", text)
+    for channel, direction in re.findall(r'/begin EVENT "\w+" "\w+" (\d+) (DAQ_STIM|DAQ|STIM) ',
+                                         text):
+        stim = bool(cmd(slave, xp.GET_DAQ_EVENT_INFO, 0, *struct.pack("<H", int(channel)))[1] & 0x08)
+        assert stim == (direction == "DAQ_STIM"), channel
+    assert STIM_EVENTS == (lib.RT_EVENT_TICK,)

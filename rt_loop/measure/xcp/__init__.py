@@ -35,10 +35,13 @@ from rt_loop.measure.xcp.protocol import (
 )
 from rt_loop.measure.xcp.transport import make_server
 
-__all__ = ["XcpServer", "parse_address", "DEFAULT_PORT", "DEFAULT_HOST"]
+__all__ = ["XcpServer", "parse_address", "DEFAULT_PORT", "DEFAULT_HOST", "STIM_EVENTS"]
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 5555
+#: the event channels that take STIM lists: the loop's tick (RT_EVENT_TICK; the
+#: A2L declares it DAQ_STIM)
+STIM_EVENTS = (0,)
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -103,7 +106,7 @@ class XcpServer:
         readable: Sequence[tuple[int, int]] | None = None,
         ranges: Sequence[tuple] | None = None,
         epk: str | None = None,
-        stim_events: Sequence[int] = (0,),
+        stim_events: Sequence[int] = STIM_EVENTS,
     ) -> None:
         self.backend = None
         if memory is None or daq is None:

@@ -30,13 +30,16 @@ What it describes:
   reads the XCP blocks by their description;
 * MOD_PAR (EPK: ``epk()``; ADDR_EPK: ``protocol.EPK_ADDRESS``, where the
   slave answers the EPK as memory; the calibration MEMORY_SEGMENT with its
-  XCP SEGMENT and pages, as GET_SEGMENT_INFO and GET_PAGE_INFO answer),
+  XCP SEGMENT, its BUILD_CHECKSUM type and largest block, and its pages, as
+  GET_SEGMENT_INFO and GET_PAGE_INFO answer),
   MOD_COMMON (BYTE_ORDER MSB_LAST, natural
-  alignment), IF_DATA XCP: PROTOCOL_LAYER, PAG (one segment, as
+  alignment), IF_DATA XCP: PROTOCOL_LAYER (the optional commands, master
+  block mode with the slave's MAX_BS and MIN_ST), PAG (one segment, as
   GET_PAG_PROCESSOR_INFO), DAQ (DYNAMIC, MAX_DAQ from
-  ``RT_DAQ_MAX_LISTS``, the events ``tick``, ``10ms`` and ``100ms`` with their
-  cycle times at the loop's rate) and the Ethernet transport layer
-  (XCP_ON_UDP_IP and/or XCP_ON_TCP_IP, ``xcp``'s address and port).
+  ``RT_DAQ_MAX_LISTS``, STIM, the events ``tick`` (DAQ and STIM: the slave's
+  STIM event), ``10ms`` and ``100ms`` with their cycle times at the loop's
+  rate) and the Ethernet transport layer (XCP_ON_UDP_IP and/or
+  XCP_ON_TCP_IP, ``xcp``'s address and port).
 
 Units come from the field names' suffixes (``plant.describe.SUFFIX_UNITS``,
 plus compound SI suffixes such as ``_nm_per_rad`` or ``_rad_s``) and, for
@@ -127,12 +130,14 @@ XCP_DEFAULTS: dict[str, Any] = {
     "timestamp_unit": "UNIT_1US",
     "optional_cmds": (
         "GET_COMM_MODE_INFO", "GET_ID", "GET_SEED", "UNLOCK", "SET_MTA", "UPLOAD",
-        "SHORT_UPLOAD", "DOWNLOAD", "SHORT_DOWNLOAD", "SET_CAL_PAGE", "GET_CAL_PAGE",
+        "SHORT_UPLOAD", "BUILD_CHECKSUM", "DOWNLOAD", "DOWNLOAD_NEXT", "SHORT_DOWNLOAD",
+        "MODIFY_BITS", "SET_CAL_PAGE", "GET_CAL_PAGE",
         "GET_PAG_PROCESSOR_INFO", "GET_SEGMENT_INFO", "COPY_CAL_PAGE", "CLEAR_DAQ_LIST",
         "SET_DAQ_PTR", "WRITE_DAQ", "WRITE_DAQ_MULTIPLE", "SET_DAQ_LIST_MODE",
         "GET_DAQ_LIST_MODE", "START_STOP_DAQ_LIST", "START_STOP_SYNCH", "GET_DAQ_CLOCK",
         "READ_DAQ", "GET_DAQ_PROCESSOR_INFO", "GET_DAQ_RESOLUTION_INFO", "GET_DAQ_LIST_INFO",
         "GET_DAQ_EVENT_INFO", "FREE_DAQ", "ALLOC_DAQ", "ALLOC_ODT", "ALLOC_ODT_ENTRY",
+        "TIME_CORRELATION_PROPERTIES",
     ),
     "optional_level1_cmds": ("GET_VERSION",),
 }
@@ -672,6 +677,8 @@ def _xcp_settings(xcp: dict | None, channels: Any, lib: Any) -> dict:
 
 
 def _if_data(cfg: dict, lib: Any, calibration: bool) -> list[str]:
+    from rt_loop.measure.xcp import STIM_EVENTS, protocol
+
     step = 1.0 / cfg["rate_hz"]                  # plant time per tick
     period = step / cfg["time_scale"]            # wall-clock time per tick
     max_daq = _const(lib, "RT_DAQ_MAX_LISTS")
@@ -682,13 +689,15 @@ def _if_data(cfg: dict, lib: Any, calibration: bool) -> list[str]:
              f"{cfg['max_dto']} BYTE_ORDER_MSB_LAST ADDRESS_GRANULARITY_BYTE"]
     lines += [f"    OPTIONAL_CMD {c}" for c in cfg["optional_cmds"]]
     lines += [f"    OPTIONAL_LEVEL1_CMD {c}" for c in cfg["optional_level1_cmds"]]
-    lines += ["  /end PROTOCOL_LAYER",
+    lines += [f"    COMMUNICATION_MODE_SUPPORTED BLOCK MASTER {protocol.MAX_BS} {protocol.MIN_ST}",
+              "  /end PROTOCOL_LAYER",
               f"  /begin PAG {1 if calibration else 0} /end PAG",
               "  /begin DAQ",
               f"    DYNAMIC {max_daq} {len(_EVENTS)} 0 OPTIMISATION_TYPE_DEFAULT "
               f"ADDRESS_EXTENSION_FREE {cfg['identification']} "
               f"GRANULARITY_ODT_ENTRY_SIZE_DAQ_BYTE {odt_entry} {cfg['overload']} "
               "PRESCALER_SUPPORTED",
+              f"    /begin STIM GRANULARITY_ODT_ENTRY_SIZE_STIM_BYTE {odt_entry} /end STIM",
               f"    /begin TIMESTAMP_SUPPORTED 0x1 {cfg['timestamp_size']} "
               f"{cfg['timestamp_unit']} /end TIMESTAMP_SUPPORTED"]
     for name, const, every_s in _EVENTS:
@@ -699,8 +708,9 @@ def _if_data(cfg: dict, lib: Any, calibration: bool) -> list[str]:
             ticks = every_s / step               # as rt_loop.c: whole ticks, at least 1
             cycle_s = (1 if ticks < 1.5 else round(ticks)) * period
         tc, tu = _time_code(cycle_s)
+        direction = "DAQ_STIM" if channel in STIM_EVENTS else "DAQ"
         # any number of lists per event (0xFF), priority 0, consistency per event
-        lines.append(f'    /begin EVENT "{name}" "{name[:8]}" {channel} DAQ 0xFF {tc} {tu} 0 '
+        lines.append(f'    /begin EVENT "{name}" "{name[:8]}" {channel} {direction} 0xFF {tc} {tu} 0 '
                      "CONSISTENCY EVENT /end EVENT")
     lines.append("  /end DAQ")
     address = cfg["address"]
@@ -722,14 +732,19 @@ def _memory_segment(objs: list[A2lObject]) -> list[str]:
     GET_PAGE_INFO): segment 0 from the first writable region to the end of
     the last, two pages: 0 the working page (the loop's memory), 1 the
     reference page (read only)."""
+    from rt_loop.measure.xcp import protocol
+
     spans = [(o.address, o.address + o.size) for o in objs if o.writable]
     if not spans:
         return []
+    checksum_type = {0x09: "XCP_CRC_32"}[protocol.CHECKSUM_TYPE]
+    max_block = protocol.MAX_CHECKSUM_BLOCK
     start, end = min(a for a, _ in spans), max(b for _, b in spans)
     return [f'/begin MEMORY_SEGMENT calibration "the writable regions\' span (XCP segment 0)" '
             f"DATA RAM INTERN 0x{start:X} 0x{end - start:X} -1 -1 -1 -1 -1",
             "  /begin IF_DATA XCP",
             "    /begin SEGMENT 0 2 0 0 0",
+            f"      /begin CHECKSUM {checksum_type} MAX_BLOCK_SIZE 0x{max_block:X} /end CHECKSUM",
             "      /begin PAGE 0 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE "
             "XCP_WRITE_ACCESS_DONT_CARE INIT_SEGMENT 0 /end PAGE",
             "      /begin PAGE 1 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE "

@@ -5,10 +5,12 @@ its Ethernet transport layers), declaring what ``rt_loop.measure.xcp.a2l``
 emits and no more than a tool needs to read it:
 
 * the common parameters: PROTOCOL_LAYER (timeouts, MAX_CTO/MAX_DTO, byte
-  order, address granularity, OPTIONAL_CMD and OPTIONAL_LEVEL1_CMD), SEGMENT
-  (in a MEMORY_SEGMENT: its pages, their access and init segment), PAG and
-  DAQ (dynamic DAQ, the identification field, TIMESTAMP_SUPPORTED, the
-  EVENTs with their cycle and consistency);
+  order, address granularity, OPTIONAL_CMD and OPTIONAL_LEVEL1_CMD, the block
+  modes of COMMUNICATION_MODE_SUPPORTED), SEGMENT (in a MEMORY_SEGMENT: its
+  CHECKSUM type and largest block, its pages, their access and init segment),
+  PAG and DAQ (dynamic DAQ, the identification field, STIM,
+  TIMESTAMP_SUPPORTED, the EVENTs with their direction, cycle and
+  consistency);
 * the transport layers XCP_ON_UDP_IP and XCP_ON_TCP_IP (version, port and
   HOST_NAME, ADDRESS or IPV6).
 
@@ -16,7 +18,7 @@ Every enum has the values the standard gives its keywords; the command enums
 list the standard's codes of every command, not only those the slave
 implements, so a new command needs no change here (the codes are checked
 against ``protocol.py``'s in tests/test_a2l_tools.py). Optional parts of the
-standard the file does not use (DAQ_LIST, STIM, PGM, checksums, CAN and the
+standard the file does not use (DAQ_LIST, PGM, TIME_CORRELATION, CAN and the
 other transports, ...) are left out: the A2ML may describe less than the
 standard, never differently.
 
@@ -87,6 +89,16 @@ _TEXT = f"""\
     taggedstruct {{
       ("OPTIONAL_CMD" {_enum(OPTIONAL_CMD_CODES, "      ")})*;
       ("OPTIONAL_LEVEL1_CMD" {_enum(OPTIONAL_LEVEL1_CMD_CODES, "      ")})*;
+      "COMMUNICATION_MODE_SUPPORTED" taggedunion {{
+        "BLOCK" taggedstruct {{
+          "SLAVE";
+          "MASTER" struct {{
+            uchar;                 /* MAX_BS */
+            uchar;                 /* MIN_ST [100 us] */
+          }};
+        }};
+        "INTERLEAVED" uchar;       /* QUEUE_SIZE */
+      }};
     }};
   }};
 
@@ -97,6 +109,24 @@ _TEXT = f"""\
     uchar;                         /* COMPRESSION_METHOD */
     uchar;                         /* ENCRYPTION_METHOD */
     taggedstruct {{
+      block "CHECKSUM" struct {{
+        enum {{
+          "XCP_ADD_11" = 1,
+          "XCP_ADD_12" = 2,
+          "XCP_ADD_14" = 3,
+          "XCP_ADD_22" = 4,
+          "XCP_ADD_24" = 5,
+          "XCP_ADD_44" = 6,
+          "XCP_CRC_16" = 7,
+          "XCP_CRC_16_CITT" = 8,
+          "XCP_CRC_32" = 9,
+          "XCP_USER_DEFINED" = 255
+        }};
+        taggedstruct {{
+          "MAX_BLOCK_SIZE" ulong;  /* the largest block of one BUILD_CHECKSUM */
+          "EXTERNAL_FUNCTION" char[256];
+        }};
+      }};
       (block "PAGE" struct {{
         uchar;                     /* PAGE_NUMBER */
         enum {{
@@ -175,6 +205,19 @@ _TEXT = f"""\
       "PRESCALER_SUPPORTED";
       "RESUME_SUPPORTED";
       "STORE_DAQ_SUPPORTED";
+      block "STIM" struct {{
+        enum {{
+          "GRANULARITY_ODT_ENTRY_SIZE_STIM_BYTE" = 1,
+          "GRANULARITY_ODT_ENTRY_SIZE_STIM_WORD" = 2,
+          "GRANULARITY_ODT_ENTRY_SIZE_STIM_DWORD" = 4,
+          "GRANULARITY_ODT_ENTRY_SIZE_STIM_DLONG" = 8
+        }};
+        uchar;                     /* MAX_ODT_ENTRY_SIZE_STIM */
+        taggedstruct {{
+          "BIT_STIM_SUPPORTED";
+          "MIN_ST_STIM" uchar;     /* [100 us] */
+        }};
+      }};
       block "TIMESTAMP_SUPPORTED" struct {{
         uint;                      /* TIMESTAMP_TICKS */
         enum {{
