@@ -152,3 +152,117 @@ def test_stim_list_mode_rules(fakes):
     key = compute_key(SECRET, seed[2:2 + seed[1]])
     assert cmd(locked, xp.UNLOCK, len(key), *key)[0] == xp.PID_RES
     assert configure(locked, entries) == POSITIVE + bytes([0])
+
+
+# ---- pyxcp and the running loop -------------------------------------------------------
+
+class _StimPid(int):
+    """A STIM DTO's first byte (its ODT number) as pyxcp's transport sends a packet."""
+
+    name = "STIM"
+
+
+def send_stim(x, odt, daq, data):
+    """A STIM DTO through pyxcp's transport (sent, no answer awaited)."""
+    x.transport.block_request(_StimPid(odt), 0, *u16(daq), *data)
+
+
+def test_pyxcp_stim_writes_a_parameter_of_the_running_loop_at_a_tick_boundary():
+    from test_xcp_loop import TAU_RISE, TICKS, Loop
+    from test_xcp_protocol import error_of, pyxcp_master
+    from waiting import wait_until
+
+    from rt_loop._rt_loop import ffi, lib
+    from rt_loop.measure.xcp import XcpServer
+
+    loop = Loop()
+    srv = XcpServer(ffi, lib, loop.c, port=0, protocol="udp")
+    loop.start()
+    try:
+        tau = loop.double(TAU_RISE)
+        with srv, pyxcp_master(srv) as x:
+            x.connect()
+            assert x.slaveProperties.supportsStim
+            assert x.getDaqEventInfo(0).daqEventProperties.stim               # the tick
+            assert not x.getDaqEventInfo(1).daqEventProperties.stim
+            x.freeDaq()
+            x.allocDaq(2)
+            for n in (0, 1):
+                x.allocOdt(n, 1)
+            for n in (0, 1):
+                x.allocOdtEntry(n, 0, 1)
+            x.setDaqPtr(0, 0, 0)
+            x.writeDaq(0xFF, 8, 0, TAU_RISE)
+            x.setDaqPtr(1, 0, 0)
+            x.writeDaq(0xFF, 8, 0, TICKS)                                     # not writable
+            x.setDaqListMode(mode=0x02, daq_list_number=0, event_channel_number=0,
+                             prescaler=1, priority=0)
+            x.setDaqListMode(mode=0x02, daq_list_number=1, event_channel_number=0,
+                             prescaler=1, priority=0)
+            assert x.getDaqListMode(0).currentMode.direction
+            with pytest.raises(Exception) as e:
+                x.startStopDaqList(1, 1)
+            assert "ERR_WRITE_PROTECTED" in error_of(e)
+            x.startStopDaqList(1, 0)
+            applied = int(loop.c.cal.applied)
+            send_stim(x, 0, 0, struct.pack("<d", tau * 1.5))
+            assert wait_until(lambda: loop.double(TAU_RISE) == tau * 1.5)
+            assert int(loop.c.cal.applied) > applied          # through the cal ring, at a tick
+            # dropped and counted: a value the plant refuses, a wrong length, no such list
+            send_stim(x, 0, 0, struct.pack("<d", -1.0))
+            send_stim(x, 0, 0, struct.pack("<d", 0.1)[:7])
+            send_stim(x, 0, 9, struct.pack("<d", 0.1))
+            assert wait_until(lambda: srv.slave.counters()["stim"]["dtos"] == 4)
+            stim = srv.slave.counters()["stim"]
+            assert stim["written"] == 1
+            assert stim["dropped"] == {"ERR_OUT_OF_RANGE": 1, "bad_length": 1, "unknown_list": 1}
+            assert loop.double(TAU_RISE) == tau * 1.5
+            x.startStopDaqList(0, 0)
+            x.disconnect()
+    finally:
+        loop.stop()
+
+
+def test_pyxcp_modify_bits_checksum_and_a_block_on_the_running_loop():
+    import zlib
+
+    from pyxcp.types import XcpResponseError
+    from test_xcp_loop import DRIVER_T, ENGINE, ENGINE_SIZE, TAU_RISE, Loop
+    from test_xcp_protocol import error_of, pyxcp_master
+
+    from rt_loop._rt_loop import ffi, lib
+    from rt_loop.measure.xcp import XcpServer
+
+    loop = Loop()
+    srv = XcpServer(ffi, lib, loop.c, port=0, protocol="udp")
+    loop.start()
+    try:
+        tau = loop.double(TAU_RISE)
+        with srv, pyxcp_master(srv) as x:
+            x.connect()
+            # MODIFY_BITS on the upper half of a double: its lowest mantissa bit there
+            x.setMta(TAU_RISE + 4)
+            x.modifyBits(0, 0xFFFF, 0x0001)
+            raw = bytearray(struct.pack("<d", tau))
+            raw[4] ^= 0x01
+            assert loop.double(TAU_RISE) == struct.unpack("<d", raw)[0] != tau
+            with pytest.raises(XcpResponseError) as e:
+                x.modifyBits(16, 0xFFFF, 0x8000)                  # the sign: the plant refuses
+            assert "ERR_OUT_OF_RANGE" in error_of(e)
+            assert loop.double(TAU_RISE) == struct.unpack("<d", raw)[0]
+            # BUILD_CHECKSUM over the engine's parameters
+            x.setMta(ENGINE)
+            cs = x.buildChecksum(ENGINE_SIZE)
+            assert cs.checksum == zlib.crc32(srv.backend.read(ENGINE, ENGINE_SIZE))
+            # a master block into the driver table: one write of four pieces, applied whole
+            pieces = srv.backend.counters()["write_pieces"]
+            block = struct.pack("<31d", *(0.5 * k for k in range(31))) + b"\x00" * 7
+            x.setMta(DRIVER_T)
+            x.download(block[:250], block_mode_length=255)
+            x.downloadNext(block[250:], remaining_block_length=5, last=True)
+            assert srv.backend.read(DRIVER_T, 255) == block
+            c = srv.backend.counters()
+            assert c["write_pieces"] - pieces == -(-255 // lib.RT_WRITE_BYTES)
+            x.disconnect()
+    finally:
+        loop.stop()
