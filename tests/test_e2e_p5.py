@@ -202,3 +202,15 @@ def test_a_p5_layout_the_codec_cannot_take_is_a_one_line_error(length, offset_bi
     assert "\n" not in text and "P5_Msg" in text
     for w in words:
         assert w in text, text
+
+
+def test_the_codec_benchmark_takes_a_p5_message_as_it_takes_the_others():
+    """ct_bench_tick replays 16 prepared frames: with an 8-bit counter it
+    starts the receive state again at each run, so every frame is accepted
+    (it checked the 16th against the 1st and refused it)."""
+    from can_dbc import table as table_mod
+
+    t = p5_table(8, 0, 0x0101)
+    call = table_mod._bench_calls(t, [0], [0])[0]
+    table_mod._bench_call(t, call, 1000)          # raises when a frame is rejected
+    assert call["accepted"][0] == 1000

@@ -187,8 +187,9 @@ int ct_check(const ct_table *t, int msg, const uint8_t *data, int len, ct_rx_sta
  * protect each of the n_tx messages tx[] from tx_values (their signals'
  * values one message after the other), then check and decode each of the
  * n_rx messages rx[] (at most 8) from frames prepared beforehand from
- * rx_values (encoded and protected with successive counters), into rx_out
- * (as long as rx_values). *accepted receives the number of frames the
+ * rx_values (encoded and protected with successive counters: at most 16,
+ * the receive state starting again at each run of them when the counter's
+ * range is longer), into rx_out (as long as rx_values). *accepted receives the number of frames the
  * checks accepted. Returns nanoseconds per tick, -1 on bad arguments. */
 #define CT_BENCH_MAX_RX 8
 double ct_bench_tick(const ct_table *t, const int32_t *tx, int32_t n_tx, const double *tx_values,
