@@ -185,13 +185,18 @@ def test_a_wrong_download_next_is_a_sequence_error_with_the_count_expected(fakes
     # the block was dropped: its rest is out of sequence too, nothing was written
     assert cmd(slave, xp.DOWNLOAD_NEXT, 5, *block[250:]) == err(xp.ERR_SEQUENCE) + bytes([0])
     assert bytes(memory.b) == before
-    # another command inside a block drops it; a DOWNLOAD there is out of sequence
+    # another command inside a block drops it; a DOWNLOAD there is out of sequence...
     assert slave.handle(bytes([xp.DOWNLOAD, 255]) + block[:250]) == []
     assert cmd(slave, xp.GET_STATUS)[0] == xp.PID_RES
     assert cmd(slave, xp.DOWNLOAD_NEXT, 5, *block[250:]) == err(xp.ERR_SEQUENCE) + bytes([0])
     assert slave.handle(bytes([xp.DOWNLOAD, 255]) + block[:250]) == []
-    assert cmd(slave, xp.DOWNLOAD, 5, *block[250:]) == err(xp.ERR_SEQUENCE)
+    assert cmd(slave, xp.DOWNLOAD, 4, *block[250:254]) == err(xp.ERR_SEQUENCE)
     assert bytes(memory.b) == before
+    # ... unless it carries exactly the count still to come: the block's end
+    assert slave.handle(bytes([xp.DOWNLOAD, 255]) + block[:250]) == []
+    assert cmd(slave, xp.DOWNLOAD, 5, *block[250:]) == POSITIVE
+    assert bytes(memory.b[CAL[0]:CAL[0] + 255]) == block
+    memory.b[:] = before
     # a block into read-only memory is refused when it is complete, as one write
     set_mta(slave, 0)
     assert slave.handle(bytes([xp.DOWNLOAD, 255]) + block[:250]) == []
@@ -286,6 +291,10 @@ def test_pyxcp_checksum_modify_bits_and_downloads(server, fakes):
             x.downloadNext(block[250:254], remaining_block_length=4, last=True)
         assert "ERR_SEQUENCE" in error_of(e)
         assert bytes(memory.b[CAL[0]:CAL[0] + 255]) == block
+        # pyxcp's push in master block mode (a block's last packet comes as DOWNLOAD)
+        table = bytes((7 * k + 2) & 0xFF for k in range(CAL[1]))
+        x.push(CAL[0], 0, table)
+        assert bytes(memory.b[CAL[0]:CAL[0] + CAL[1]]) == table
         x.disconnect()
 
 

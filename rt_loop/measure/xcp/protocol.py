@@ -75,7 +75,9 @@ What the slave declares (CONNECT and the GET_*_INFO commands):
   A DOWNLOAD_NEXT with a wrong count (or without a block) answers
   ERR_SEQUENCE with the count expected, and the block is dropped; any other
   command drops it too (a DOWNLOAD answers ERR_SEQUENCE: it would write at
-  the block's start);
+  the block's start), except a DOWNLOAD carrying exactly the count still to
+  come, taken as the block's last packet (pyxcp 0.29's ``push`` sends a
+  two-packet block's end so);
 * one calibration segment (0) spanning the calibration regions, two pages:
   0 the working page (the loop's memory), 1 the reference page (read only:
   the regions' values when the slave was made). ECU page 1 puts the
@@ -624,10 +626,14 @@ class Slave:
             else:
                 key = cmd
             if self._block is not None and key != DOWNLOAD_NEXT:
-                self._block = None             # a block interrupted: never written
-                self._bump(self._ignored, "download_block_dropped")
-                if key == DOWNLOAD:
-                    return [self._error(ERR_SEQUENCE)]
+                remaining = self._block.total - len(self._block.data)
+                if key == DOWNLOAD and len(cto) >= 2 and cto[1] == remaining:
+                    key = DOWNLOAD_NEXT        # the block's last packet sent as DOWNLOAD
+                else:
+                    self._block = None         # a block interrupted: never written
+                    self._bump(self._ignored, "download_block_dropped")
+                    if key == DOWNLOAD:
+                        return [self._error(ERR_SEQUENCE)]
             entry = self._dispatch.get(key)
             if entry is None:
                 return [self._error(ERR_CMD_UNKNOWN)]
