@@ -15,9 +15,10 @@ A receiver (:class:`E2eReceiver`) rejects a frame whose length is not the
 DBC's, whose CRC is wrong, or whose counter repeats or jumps by more than 2;
 the counter state moves on only with an accepted frame.
 
-AUTOSAR E2E Profile 5 in Python (``p5_protect``, ``p5_check``, ``p5_crc``,
-``crc16_ccitt_false``) computes what the table codec's protection kind ``p5``
-writes, for offline tools and tests.
+AUTOSAR E2E Profiles 5 and 4 in Python (``p5_protect``, ``p5_check``,
+``p4_protect``, ``p4_check``, ``crc16_ccitt_false``, ``crc32_p4``) compute what
+the table codec's protection kinds ``p5`` and ``p4`` write, for offline tools
+and tests.
 """
 
 import functools
@@ -242,6 +243,53 @@ def p5_check(data, data_id, offset_bits=0):
         return False, None
     crc = p5_crc(data, data_id, offset_bits)
     return (data[h] == crc & 0xFF and data[h + 1] == crc >> 8), data[h + 2]
+
+
+def _crc32_p4_table():
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xC8DF352F if crc & 1 else crc >> 1
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC32_P4_TABLE = _crc32_p4_table()
+
+
+def crc32_p4(data, crc=0xFFFFFFFF):
+    """CRC-32P4 register over ``data`` (poly 0xF4ACFB13 reflected, init
+    0xFFFFFFFF or ``crc`` to go on); the CRC is the result XOR 0xFFFFFFFF:
+    b"123456789" gives 0x1697D06A. The CRC of AUTOSAR E2E Profile 4."""
+    for b in bytes(data):
+        crc = (crc >> 8) ^ _CRC32_P4_TABLE[(crc ^ b) & 0xFF]
+    return crc
+
+
+def p4_protect(data, data_id, counter, offset_bits=0):
+    """``data`` with E2E Profile 4's header written at bit ``offset_bits``: the
+    length, the counter (``counter`` mod 65536), the 32-bit Data ID and the
+    CRC-32P4 over every byte but the CRC's, each big endian."""
+    buf = bytearray(data)
+    h = int(offset_bits) // 8
+    if offset_bits % 8 or h + 12 > len(buf):
+        raise ValueError(f"E2E Profile 4 header at bit {offset_bits} does not fit {len(buf)} data bytes")
+    buf[h:h + 8] = (len(buf).to_bytes(2, "big") + (int(counter) & 0xFFFF).to_bytes(2, "big")
+                    + int(data_id).to_bytes(4, "big"))
+    crc = crc32_p4(buf[h + 12:], crc32_p4(buf[:h + 8])) ^ 0xFFFFFFFF
+    buf[h + 8:h + 12] = crc.to_bytes(4, "big")
+    return bytes(buf)
+
+
+def p4_check(data, data_id, offset_bits=0):
+    """(length, Data ID and CRC right, counter) of a received E2E Profile 4 frame."""
+    data = bytes(data)
+    h = int(offset_bits) // 8
+    if offset_bits % 8 or h + 12 > len(data):
+        return False, None
+    return data == p4_protect(data, data_id, int.from_bytes(data[h + 2:h + 4], "big"), offset_bits), \
+        int.from_bytes(data[h + 2:h + 4], "big")
 
 
 def e2e_crc(frame_id, data):

@@ -87,10 +87,10 @@ Rules:
   (overlapping signals, lengths, cycle times, identifiers): see ``load``.
 - A bus's matrix may be an ARXML, KCD or SYM file (by its suffix;
   ``can_dbc.matrix``). A message an ARXML protects end to end (an E2E
-  transformer or protection set: profile 1, 2 or 5, its Data IDs, where its
-  CRC and counter are) has that protection unless its entry gives
-  ``protection`` (``"none"`` too); a profile the codec lacks (4, 7 on CAN
-  FD, ...) is an error naming it for a used message without one.
+  transformer or protection set: profile 1, 2, 4 or 5, its Data IDs, where
+  its CRC and counter are) has that protection unless its entry gives
+  ``protection`` (``"none"`` too); a profile the codec lacks (7 on CAN FD,
+  ...) is an error naming it for a used message without one.
 """
 
 from __future__ import annotations

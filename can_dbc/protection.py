@@ -41,6 +41,16 @@ Kinds:
     16-bit signal on the CRC's bytes) and ``counter`` (an 8-bit signal on
     the counter's byte) name the message's signals there when it has them;
     the codec writes the header either way. ``max_delta_counter`` 1..255.
+``p4``
+    AUTOSAR E2E Profile 4 (CAN FD frames: its header takes 12 bytes): at bit
+    ``offset_bits`` (a multiple of 8; default 0), each field big endian, the
+    frame's length in bytes (16 bits), the counter (16 bits, 0..65535), the
+    Data ID (``data_id``, 32 bits) and the CRC-32P4 (poly 0xF4ACFB13,
+    reflected, init and final XOR 0xFFFFFFFF) over every byte but the CRC's.
+    ``crc`` (a 32-bit Motorola signal on the CRC) and ``counter`` (a 16-bit
+    Motorola signal on the counter) name the message's signals there when it
+    has them. A receiver also rejects a frame whose length or Data ID field
+    is not the message's (as a bad CRC). ``max_delta_counter`` 1..255.
 
 A receiver rejects a frame whose checksum is wrong or whose counter repeats
 or advances by more than ``max_delta_counter``.
@@ -51,9 +61,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["KINDS", "P1_DATA_ID_MODES", "Protection", "ProtectionError", "parse_protection"]
+__all__ = ["HEADER_BYTES", "KINDS", "P1_DATA_ID_MODES", "Protection", "ProtectionError", "parse_protection"]
 
-KINDS = ("none", "counter", "dct", "p1", "p2", "xor", "p5")
+KINDS = ("none", "counter", "dct", "p1", "p2", "xor", "p5", "p4")
 P1_DATA_ID_MODES = ("both", "alt", "low", "nibble")
 #: which fields each kind needs
 _NEEDS = {
@@ -64,9 +74,14 @@ _NEEDS = {
     "p2": ("crc_signal", "counter_signal", "data_id_list"),
     "xor": ("crc_signal",),
     "p5": ("data_id",),
+    "p4": ("data_id",),
 }
 #: the largest max_delta_counter per kind (the counter's range less one; 14 for the 4-bit ones)
-_MAX_DELTA = {"p5": 255}
+_MAX_DELTA = {"p5": 255, "p4": 255}
+#: the Data ID's largest value per kind (16 bits unless named here)
+_MAX_DATA_ID = {"p4": 0xFFFFFFFF}
+#: the kinds with a header at offset_bits: its length in bytes
+HEADER_BYTES = {"p5": 3, "p4": 12}
 _KEYS = ("kind", "crc", "counter", "data_id", "data_id_mode", "data_id_nibble", "data_id_list",
          "max_delta_counter", "offset_bits")
 
@@ -80,12 +95,12 @@ class Protection:
     kind: str = "none"
     crc_signal: str | None = None           # the checksum signal (dct, p1, p2, xor)
     counter_signal: str | None = None       # the counter signal
-    data_id: int | None = None              # p1: 16-bit Data ID
+    data_id: int | None = None              # p1, p5: 16-bit Data ID; p4: 32 bits
     data_id_mode: str = "both"              # p1: P1_DATA_ID_MODES
     data_id_nibble_signal: str | None = None  # p1 "nibble": where the high nibble goes
     data_id_list: tuple[int, ...] | None = None  # p2: 16 Data IDs (8 bits), one per counter value
     max_delta_counter: int = 2              # a counter may advance by 1..this
-    offset_bits: int = 0                    # p5: where its header (CRC, counter) starts, a multiple of 8
+    offset_bits: int = 0                    # p5, p4: where the header starts, a multiple of 8
     extra: dict = field(default_factory=dict, compare=False, repr=False)
 
     def signals(self) -> tuple[str, ...]:
@@ -115,9 +130,10 @@ def parse_protection(spec: Any, where: str) -> Protection:
     crc = _name(spec.get("crc"), f"{where}.crc")
     counter = _name(spec.get("counter"), f"{where}.counter")
     data_id = spec.get("data_id")
+    most_id = _MAX_DATA_ID.get(kind, 0xFFFF)
     if data_id is not None and (isinstance(data_id, bool) or not isinstance(data_id, int)
-                                or not 0 <= data_id <= 0xFFFF):
-        raise ProtectionError(f"{where}.data_id: must be a whole number 0..65535, got {data_id!r}")
+                                or not 0 <= data_id <= most_id):
+        raise ProtectionError(f"{where}.data_id: must be a whole number 0..{most_id}, got {data_id!r}")
     mode = spec.get("data_id_mode", "both")
     if mode not in P1_DATA_ID_MODES:
         raise ProtectionError(f"{where}.data_id_mode: {mode!r}: choose one of "
@@ -139,11 +155,13 @@ def parse_protection(spec: Any, where: str) -> Protection:
     if isinstance(delta, bool) or not isinstance(delta, int) or not 1 <= delta <= most:
         raise ProtectionError(f"{where}.max_delta_counter: must be 1..{most}, got {delta!r}")
     offset = spec.get("offset_bits", 0)
-    if "offset_bits" in spec and kind != "p5":
-        raise ProtectionError(f"{where}.offset_bits: only protection \"p5\" has an offset (its header's bit)")
-    if isinstance(offset, bool) or not isinstance(offset, int) or not 0 <= offset <= 488 or offset % 8:
+    if "offset_bits" in spec and kind not in HEADER_BYTES:
+        raise ProtectionError(f"{where}.offset_bits: only protections p4 and p5 have an offset (their "
+                              "header's first bit)")
+    last = 8 * (64 - HEADER_BYTES.get(kind, 3))
+    if isinstance(offset, bool) or not isinstance(offset, int) or not 0 <= offset <= last or offset % 8:
         raise ProtectionError(f"{where}.offset_bits: must be the header's first bit, a multiple of 8 "
-                              f"from 0 to 488, got {offset!r}")
+                              f"from 0 to {last}, got {offset!r}")
     p = Protection(kind=kind, crc_signal=crc, counter_signal=counter, data_id=data_id,
                    data_id_mode=mode, data_id_nibble_signal=nibble, data_id_list=ids,
                    max_delta_counter=delta, offset_bits=offset)

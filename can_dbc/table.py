@@ -29,7 +29,7 @@ import math
 import sys
 
 from . import codec
-from .protection import KINDS, P1_DATA_ID_MODES, Protection
+from .protection import HEADER_BYTES, KINDS, P1_DATA_ID_MODES, Protection
 from .python_can import python_can
 
 __all__ = ["CodecTable", "TableError", "bench", "contract_protection", "contract_table"]
@@ -434,8 +434,8 @@ def _check_protection(msg, prot):
         raise TableError(f"{msg.name}: protection kind {prot.kind!r}: choose one of {', '.join(KINDS)}")
     if prot.kind == "none":
         return
-    if prot.kind == "p5":
-        _check_p5(msg, prot)
+    if prot.kind in HEADER_FIELDS:
+        _check_header(msg, prot)
         return
     sigs = {s.name: s for s in msg.signals}
     kind = prot.kind
@@ -480,41 +480,56 @@ def _check_protection(msg, prot):
         raise TableError(f"{msg.name}: max_delta_counter {prot.max_delta_counter}, must be 1..14")
 
 
-def p5_header(prot):
-    """The bytes of a Profile 5 header: (CRC low, CRC high, counter)."""
-    h = prot.offset_bits // 8
-    return h, h + 1, h + 2
+#: the fields of the header kinds: role -> (byte within the header, bits, byte order of a
+#: multi-byte field), and the profile's number
+HEADER_FIELDS = {
+    "p5": (5, {"crc": (0, 16, "little_endian"), "counter": (2, 8, None)}),
+    "p4": (4, {"counter": (2, 16, "big_endian"), "crc": (8, 32, "big_endian")}),
+}
 
 
-def _check_p5(msg, prot):
-    """Profile 5: the Data ID, the header inside the frame, the named CRC and
-    counter signals on the header's bytes, no other signal on them (the codec
-    writes them)."""
-    if prot.data_id is None or not 0 <= prot.data_id <= 0xFFFF:
-        raise TableError(f"{msg.name}: protection 'p5' needs data_id (16 bits)")
-    if prot.offset_bits % 8 or prot.offset_bits // 8 + 3 > msg.length:
-        raise TableError(f"{msg.name}: the E2E Profile 5 header (3 bytes at bit {prot.offset_bits}) "
+def header_field_bits(prot, role):
+    """The frame bits (8 * byte + bit) of a header kind's field ``role`` (crc, counter)."""
+    first, bits, _ = HEADER_FIELDS[prot.kind][1][role]
+    b = prot.offset_bits // 8 + first
+    return set(range(8 * b, 8 * b + bits))
+
+
+def _check_header(msg, prot):
+    """Profiles 5 and 4: the Data ID, the header inside the frame, the named
+    CRC and counter signals on the header's fields, no other signal on the
+    header (the codec writes it)."""
+    number, fields = HEADER_FIELDS[prot.kind]
+    size = HEADER_BYTES[prot.kind]
+    id_bits = 32 if prot.kind == "p4" else 16
+    what = f"E2E Profile {number}"
+    if prot.data_id is None or not 0 <= prot.data_id < 2 ** id_bits:
+        raise TableError(f"{msg.name}: protection {prot.kind!r} needs data_id ({id_bits} bits)")
+    if prot.offset_bits % 8 or prot.offset_bits // 8 + size > msg.length:
+        raise TableError(f"{msg.name}: the {what} header ({size} bytes at bit {prot.offset_bits}) "
                          f"does not fit the message's {msg.length} bytes")
     if not 1 <= prot.max_delta_counter <= 255:
         raise TableError(f"{msg.name}: max_delta_counter {prot.max_delta_counter}, must be 1..255")
-    lo, _, ctr = p5_header(prot)
+    lo = prot.offset_bits // 8
     sigs = {s.name: s for s in msg.signals}
-    header_bits = set(range(8 * lo, 8 * lo + 24))
-    for role, name, first, length in (("CRC", prot.crc_signal, lo, 16), ("counter", prot.counter_signal, ctr, 8)):
+    for role, name in (("crc", prot.crc_signal), ("counter", prot.counter_signal)):
         if name is None:
             continue
         if name not in sigs:
             raise TableError(f"{msg.name}: {role} signal {name} is not a signal of the message")
         s = sigs[name]
-        want = set(range(8 * first, 8 * first + length))
-        if set(signal_bits(s)) != want or (length == 16 and s.byte_order != "little_endian") or s.is_float:
-            raise TableError(f"{msg.name}.{name}: the E2E Profile 5 {role} takes {length} bits at byte "
-                             f"{first}{' (low byte first)' if length == 16 else ''}, not start bit "
-                             f"{s.start}, {s.length} bits ({s.byte_order.replace('_', ' ')})")
+        first, bits, order = fields[role]
+        if (set(signal_bits(s)) != header_field_bits(prot, role) or s.is_float
+                or (order is not None and s.byte_order != order)):
+            how = {"little_endian": " (low byte first)", "big_endian": " (high byte first)", None: ""}[order]
+            raise TableError(f"{msg.name}.{name}: the {what} {'CRC' if role == 'crc' else role} takes "
+                             f"{bits} bits at byte {lo + first}{how}, not start bit {s.start}, {s.length} "
+                             f"bits ({s.byte_order.replace('_', ' ')})")
     mine = {prot.crc_signal, prot.counter_signal}
+    header_bits = set(range(8 * lo, 8 * (lo + size)))
     for s in msg.signals:
         if s.name not in mine and header_bits & set(signal_bits(s)):
-            raise TableError(f"{msg.name}.{s.name}: lies on the E2E Profile 5 header (bytes {lo}..{ctr}), "
+            raise TableError(f"{msg.name}.{s.name}: lies on the {what} header (bytes {lo}..{lo + size - 1}), "
                              "which the protection writes")
 
 
@@ -528,10 +543,15 @@ def _fill_protection(cm, msg, prot, index):
     cm.max_delta_counter = prot.max_delta_counter
     if kind == "none":
         return
-    if kind == "p5":
+    if kind in HEADER_FIELDS:
         cm.crc_byte = prot.offset_bits // 8
-        cm.counter_modulus = 256
-        cm.data_id = prot.data_id
+        if kind == "p5":
+            cm.counter_modulus = 256
+            cm.data_id = prot.data_id
+        else:                                    # p4: the 32-bit Data ID in data_id_list[0..3]
+            cm.counter_modulus = 65536
+            for k in range(4):
+                cm.data_id_list[k] = (prot.data_id >> (8 * k)) & 0xFF
         if prot.crc_signal:
             cm.crc_signal = index[prot.crc_signal]
         if prot.counter_signal:

@@ -189,11 +189,14 @@ def test_every_pt_message_gives_the_same_frames_through_the_arxml_as_through_the
 
 def _arxml(messages, e2e_style="set", profile="PROFILE_05", data_ids=(0x1234,), fields=""):
     """A small AUTOSAR 4 ARXML: a CAN cluster ``C`` with ECUs E (sender) and T,
-    messages [(name, id, [(signal, start, length)])], each of them protected by
-    one E2E profile (END-TO-END-PROTECTION-SET or an E2E transformer)."""
+    messages [(name, id, [(signal, start, length)], frame length (default 8;
+    above 8 a CAN FD frame))], each of them protected by one E2E profile
+    (END-TO-END-PROTECTION-SET or an E2E transformer)."""
     ns = "http://autosar.org/schema/r4.0"
     sig_els, pdu_els, frame_els, trig_els, refs, groups = [], [], [], [], [], []
-    for name, ident, signals in messages:
+    for name, ident, signals, *rest in messages:
+        size = rest[0] if rest else 8
+        fd = "<CAN-FRAME-TX-BEHAVIOR>CAN-FD</CAN-FRAME-TX-BEHAVIOR>" if size > 8 else ""
         maps = []
         for s, start, length in signals:
             sig_els.append(f"<I-SIGNAL><SHORT-NAME>{s}</SHORT-NAME><LENGTH>{length}</LENGTH>"
@@ -217,25 +220,25 @@ def _arxml(messages, e2e_style="set", profile="PROFILE_05", data_ids=(0x1234,), 
             maps.append(f"<I-SIGNAL-TO-I-PDU-MAPPING><SHORT-NAME>{name}_G</SHORT-NAME>"
                         f"<I-SIGNAL-GROUP-REF DEST=\"I-SIGNAL-GROUP\">/P/S/{name}_G</I-SIGNAL-GROUP-REF>"
                         "</I-SIGNAL-TO-I-PDU-MAPPING>")
-        pdu_els.append(f"<I-SIGNAL-I-PDU><SHORT-NAME>{name}_Pdu</SHORT-NAME><LENGTH>8</LENGTH>"
+        pdu_els.append(f"<I-SIGNAL-I-PDU><SHORT-NAME>{name}_Pdu</SHORT-NAME><LENGTH>{size}</LENGTH>"
                        "<I-PDU-TIMING-SPECIFICATIONS><I-PDU-TIMING><TRANSMISSION-MODE-DECLARATION>"
                        "<TRANSMISSION-MODE-TRUE-TIMING><CYCLIC-TIMING><TIME-PERIOD><VALUE>0.01</VALUE>"
                        "</TIME-PERIOD></CYCLIC-TIMING></TRANSMISSION-MODE-TRUE-TIMING>"
                        "</TRANSMISSION-MODE-DECLARATION></I-PDU-TIMING></I-PDU-TIMING-SPECIFICATIONS>"
                        f"<I-SIGNAL-TO-PDU-MAPPINGS>{''.join(maps)}</I-SIGNAL-TO-PDU-MAPPINGS></I-SIGNAL-I-PDU>")
-        frame_els.append(f"<CAN-FRAME><SHORT-NAME>{name}</SHORT-NAME><FRAME-LENGTH>8</FRAME-LENGTH>"
+        frame_els.append(f"<CAN-FRAME><SHORT-NAME>{name}</SHORT-NAME><FRAME-LENGTH>{size}</FRAME-LENGTH>"
                          f"<PDU-TO-FRAME-MAPPINGS><PDU-TO-FRAME-MAPPING><SHORT-NAME>{name}</SHORT-NAME>"
                          f"<PDU-REF DEST=\"I-SIGNAL-I-PDU\">/P/S/{name}_Pdu</PDU-REF><START-POSITION>0</START-POSITION>"
                          "</PDU-TO-FRAME-MAPPING></PDU-TO-FRAME-MAPPINGS></CAN-FRAME>")
         trig_els.append(f"<CAN-FRAME-TRIGGERING><SHORT-NAME>FT_{name}</SHORT-NAME>"
-                        f"<FRAME-REF DEST=\"CAN-FRAME\">/P/S/{name}</FRAME-REF>"
+                        f"<FRAME-REF DEST=\"CAN-FRAME\">/P/S/{name}</FRAME-REF>{fd}"
                         f"<IDENTIFIER>{ident}</IDENTIFIER></CAN-FRAME-TRIGGERING>")
         refs.append(f"<I-SIGNAL-I-PDU-REF-CONDITIONAL><I-SIGNAL-I-PDU-REF DEST=\"I-SIGNAL-I-PDU\">/P/S/{name}_Pdu"
                     "</I-SIGNAL-I-PDU-REF></I-SIGNAL-I-PDU-REF-CONDITIONAL>")
     ids = "".join(f"<DATA-ID>{d}</DATA-ID>" for d in data_ids)
     if e2e_style == "set":
         pdus = "".join(f"<END-TO-END-PROTECTION-I-SIGNAL-I-PDU><I-SIGNAL-I-PDU-REF DEST=\"I-SIGNAL-I-PDU\">"
-                       f"/P/S/{n}_Pdu</I-SIGNAL-I-PDU-REF></END-TO-END-PROTECTION-I-SIGNAL-I-PDU>" for n, _, _ in messages)
+                       f"/P/S/{m[0]}_Pdu</I-SIGNAL-I-PDU-REF></END-TO-END-PROTECTION-I-SIGNAL-I-PDU>" for m in messages)
         e2e = ("<END-TO-END-PROTECTION-SET><SHORT-NAME>E2E</SHORT-NAME><END-TO-END-PROTECTIONS>"
                "<END-TO-END-PROTECTION><SHORT-NAME>Prot</SHORT-NAME><END-TO-END-PROFILE>"
                f"<CATEGORY>{profile}</CATEGORY><DATA-IDS>{ids}</DATA-IDS>{fields}</END-TO-END-PROFILE>"
@@ -312,10 +315,12 @@ def test_the_mapping_overrides_the_files_protection(tmp_path):
 
 
 @pytest.mark.parametrize("profile, fields, ids, words", [
-    ("PROFILE_04", "", (1,), ["PROFILE_04", "CAN FD, CRC-32", "not supported", "profiles 1, 2 and 5"]),
-    ("PROFILE_07", "", (1,), ["PROFILE_07", "CRC-64", "not supported"]),
+    ("PROFILE_07", "", (1,), ["PROFILE_07", "CAN FD, CRC-64, a 32-bit counter", "not supported",
+                              "profiles 1, 2, 4 and 5"]),
+    ("PROFILE_11", "", (1,), ["PROFILE_11", "not supported"]),
+    ("PROFILE_04", "", (1,), ["profile 4 header (12 bytes) at bit 0", "8-byte frame"]),
     ("PROFILE_05", "", (1, 2), ["profile 5 needs one Data ID", "gives 2"]),
-    ("PROFILE_05", "<OFFSET>48</OFFSET>", (1,), ["header at bit 48", "8-byte"]),
+    ("PROFILE_05", "<OFFSET>48</OFFSET>", (1,), ["header (3 bytes) at bit 48", "8-byte"]),
     ("PROFILE_01", "<CRC-OFFSET>56</CRC-OFFSET>", (1,), ["CRC at bits 56..63", "no 8-bit signal"]),
 ])
 def test_a_protection_from_the_file_the_codec_cannot_take_is_one_line(tmp_path, profile, fields, ids, words):
@@ -329,6 +334,29 @@ def test_a_protection_from_the_file_the_codec_cannot_take_is_one_line(tmp_path, 
     # a protection in the mapping (or ignoring the message) is the way out
     assert mapping.load(_mapping(tmp_path, _arxml(P5_MESSAGES, "set", profile, ids, fields),
                                  '[message.Brake]\nprotection = "none"\n')).message("Brake")
+
+
+@pytest.mark.parametrize("style", ["set", "transformer"])
+def test_a_profile_4_can_fd_message_of_an_arxml_is_protected_as_the_file_says(tmp_path, style):
+    msgs = [("Fd", 0x300, [("Fd_Ctr", 23, 16), ("Fd_Crc", 71, 32), ("Fd_Value", 96, 32)], 16)]
+    text = _arxml(msgs, style, "PROFILE_04", (0xDEADBEEF,), "<MAX-DELTA-COUNTER>5</MAX-DELTA-COUNTER>")
+    text = text.replace("MOST-SIGNIFICANT-BYTE-LAST</PACKING-BYTE-ORDER><START-POSITION>23",
+                        "MOST-SIGNIFICANT-BYTE-FIRST</PACKING-BYTE-ORDER><START-POSITION>23")
+    text = text.replace("MOST-SIGNIFICANT-BYTE-LAST</PACKING-BYTE-ORDER><START-POSITION>71",
+                        "MOST-SIGNIFICANT-BYTE-FIRST</PACKING-BYTE-ORDER><START-POSITION>71")
+    path = _mapping(tmp_path, text)
+    toml = Path(path).read_text().replace('tcu_nodes = ["T"]', 'tcu_nodes = ["T"]\nfd = true')
+    Path(path).write_text(toml)
+    m = mapping.load(path)
+    msg = m.message("Fd")
+    p = msg.protection
+    assert (p.kind, p.data_id, p.offset_bits, p.max_delta_counter, p.crc_signal, p.counter_signal) == \
+        ("p4", 0xDEADBEEF, 0, 5, "Fd_Crc", "Fd_Ctr")
+    assert msg.is_fd and msg.length == 16
+    e2e_p04 = requires.module("e2e.p04")
+    t = CodecTable([(msg.message, p)])
+    frame = t.encode(0, {"Fd_Value": 123456}, counter=300)
+    assert e2e_p04.e2e_p04_check(frame, 0xDEADBEEF) and int.from_bytes(frame[2:4], "big") == 300
 
 
 def test_a_profile_1_transformer_gives_its_mode_and_offsets(tmp_path):

@@ -22,7 +22,12 @@
  *   P5   a 3-byte header at byte h (crc_byte): CRC-16/CCITT-FALSE (0x1021,
  *        init 0xFFFF, no final XOR) over bytes 0 .. h-1, then h+2 .. len-1
  *        (the counter first), then the Data ID low and high byte, written
- *        low byte first into bytes h, h+1; the counter (0..255) in byte h+2.
+ *        low byte first into bytes h, h+1; the counter (0..255) in byte h+2;
+ *   P4   a 12-byte header at byte h, each field big endian: the length
+ *        (bytes, 16 bit), the counter (0..65535), the Data ID (32 bit, in
+ *        data_id_list[0..3] low byte first), the CRC-32P4 (0xF4ACFB13,
+ *        reflected, init and final XOR 0xFFFFFFFF) over bytes 0 .. h+7 and
+ *        h+12 .. len-1.
  *
  * Floating point: every double converted to an integer has been limited to
  * the integer's range first; rint() rounds half to even in the default
@@ -133,6 +138,54 @@ static const uint16_t crc_1021[256] = {
     0x6E17, 0x7E36, 0x4E55, 0x5E74, 0x2E93, 0x3EB2, 0x0ED1, 0x1EF0
 };
 
+/* the next CRC-32P4 register after one byte (reflected polynomial 0xF4ACFB13,
+ * E2E Profile 4): crc = (crc >> 8) ^ crc_p4[(crc ^ byte) & 0xFF] */
+static const uint32_t crc_p4[256] = {
+    0x00000000u, 0x30850FF5u, 0x610A1FEAu, 0x518F101Fu, 0xC2143FD4u, 0xF2913021u,
+    0xA31E203Eu, 0x939B2FCBu, 0x159615F7u, 0x25131A02u, 0x749C0A1Du, 0x441905E8u,
+    0xD7822A23u, 0xE70725D6u, 0xB68835C9u, 0x860D3A3Cu, 0x2B2C2BEEu, 0x1BA9241Bu,
+    0x4A263404u, 0x7AA33BF1u, 0xE938143Au, 0xD9BD1BCFu, 0x88320BD0u, 0xB8B70425u,
+    0x3EBA3E19u, 0x0E3F31ECu, 0x5FB021F3u, 0x6F352E06u, 0xFCAE01CDu, 0xCC2B0E38u,
+    0x9DA41E27u, 0xAD2111D2u, 0x565857DCu, 0x66DD5829u, 0x37524836u, 0x07D747C3u,
+    0x944C6808u, 0xA4C967FDu, 0xF54677E2u, 0xC5C37817u, 0x43CE422Bu, 0x734B4DDEu,
+    0x22C45DC1u, 0x12415234u, 0x81DA7DFFu, 0xB15F720Au, 0xE0D06215u, 0xD0556DE0u,
+    0x7D747C32u, 0x4DF173C7u, 0x1C7E63D8u, 0x2CFB6C2Du, 0xBF6043E6u, 0x8FE54C13u,
+    0xDE6A5C0Cu, 0xEEEF53F9u, 0x68E269C5u, 0x58676630u, 0x09E8762Fu, 0x396D79DAu,
+    0xAAF65611u, 0x9A7359E4u, 0xCBFC49FBu, 0xFB79460Eu, 0xACB0AFB8u, 0x9C35A04Du,
+    0xCDBAB052u, 0xFD3FBFA7u, 0x6EA4906Cu, 0x5E219F99u, 0x0FAE8F86u, 0x3F2B8073u,
+    0xB926BA4Fu, 0x89A3B5BAu, 0xD82CA5A5u, 0xE8A9AA50u, 0x7B32859Bu, 0x4BB78A6Eu,
+    0x1A389A71u, 0x2ABD9584u, 0x879C8456u, 0xB7198BA3u, 0xE6969BBCu, 0xD6139449u,
+    0x4588BB82u, 0x750DB477u, 0x2482A468u, 0x1407AB9Du, 0x920A91A1u, 0xA28F9E54u,
+    0xF3008E4Bu, 0xC38581BEu, 0x501EAE75u, 0x609BA180u, 0x3114B19Fu, 0x0191BE6Au,
+    0xFAE8F864u, 0xCA6DF791u, 0x9BE2E78Eu, 0xAB67E87Bu, 0x38FCC7B0u, 0x0879C845u,
+    0x59F6D85Au, 0x6973D7AFu, 0xEF7EED93u, 0xDFFBE266u, 0x8E74F279u, 0xBEF1FD8Cu,
+    0x2D6AD247u, 0x1DEFDDB2u, 0x4C60CDADu, 0x7CE5C258u, 0xD1C4D38Au, 0xE141DC7Fu,
+    0xB0CECC60u, 0x804BC395u, 0x13D0EC5Eu, 0x2355E3ABu, 0x72DAF3B4u, 0x425FFC41u,
+    0xC452C67Du, 0xF4D7C988u, 0xA558D997u, 0x95DDD662u, 0x0646F9A9u, 0x36C3F65Cu,
+    0x674CE643u, 0x57C9E9B6u, 0xC8DF352Fu, 0xF85A3ADAu, 0xA9D52AC5u, 0x99502530u,
+    0x0ACB0AFBu, 0x3A4E050Eu, 0x6BC11511u, 0x5B441AE4u, 0xDD4920D8u, 0xEDCC2F2Du,
+    0xBC433F32u, 0x8CC630C7u, 0x1F5D1F0Cu, 0x2FD810F9u, 0x7E5700E6u, 0x4ED20F13u,
+    0xE3F31EC1u, 0xD3761134u, 0x82F9012Bu, 0xB27C0EDEu, 0x21E72115u, 0x11622EE0u,
+    0x40ED3EFFu, 0x7068310Au, 0xF6650B36u, 0xC6E004C3u, 0x976F14DCu, 0xA7EA1B29u,
+    0x347134E2u, 0x04F43B17u, 0x557B2B08u, 0x65FE24FDu, 0x9E8762F3u, 0xAE026D06u,
+    0xFF8D7D19u, 0xCF0872ECu, 0x5C935D27u, 0x6C1652D2u, 0x3D9942CDu, 0x0D1C4D38u,
+    0x8B117704u, 0xBB9478F1u, 0xEA1B68EEu, 0xDA9E671Bu, 0x490548D0u, 0x79804725u,
+    0x280F573Au, 0x188A58CFu, 0xB5AB491Du, 0x852E46E8u, 0xD4A156F7u, 0xE4245902u,
+    0x77BF76C9u, 0x473A793Cu, 0x16B56923u, 0x263066D6u, 0xA03D5CEAu, 0x90B8531Fu,
+    0xC1374300u, 0xF1B24CF5u, 0x6229633Eu, 0x52AC6CCBu, 0x03237CD4u, 0x33A67321u,
+    0x646F9A97u, 0x54EA9562u, 0x0565857Du, 0x35E08A88u, 0xA67BA543u, 0x96FEAAB6u,
+    0xC771BAA9u, 0xF7F4B55Cu, 0x71F98F60u, 0x417C8095u, 0x10F3908Au, 0x20769F7Fu,
+    0xB3EDB0B4u, 0x8368BF41u, 0xD2E7AF5Eu, 0xE262A0ABu, 0x4F43B179u, 0x7FC6BE8Cu,
+    0x2E49AE93u, 0x1ECCA166u, 0x8D578EADu, 0xBDD28158u, 0xEC5D9147u, 0xDCD89EB2u,
+    0x5AD5A48Eu, 0x6A50AB7Bu, 0x3BDFBB64u, 0x0B5AB491u, 0x98C19B5Au, 0xA84494AFu,
+    0xF9CB84B0u, 0xC94E8B45u, 0x3237CD4Bu, 0x02B2C2BEu, 0x533DD2A1u, 0x63B8DD54u,
+    0xF023F29Fu, 0xC0A6FD6Au, 0x9129ED75u, 0xA1ACE280u, 0x27A1D8BCu, 0x1724D749u,
+    0x46ABC756u, 0x762EC8A3u, 0xE5B5E768u, 0xD530E89Du, 0x84BFF882u, 0xB43AF777u,
+    0x191BE6A5u, 0x299EE950u, 0x7811F94Fu, 0x4894F6BAu, 0xDB0FD971u, 0xEB8AD684u,
+    0xBA05C69Bu, 0x8A80C96Eu, 0x0C8DF352u, 0x3C08FCA7u, 0x6D87ECB8u, 0x5D02E34Du,
+    0xCE99CC86u, 0xFE1CC373u, 0xAF93D36Cu, 0x9F16DC99u
+};
+
 /* ------------------------------------------------------------------ */
 /* CRC                                                                 */
 /* ------------------------------------------------------------------ */
@@ -162,6 +215,15 @@ uint16_t ct_crc16_ccitt_false(const uint8_t *bytes, size_t n)
         crc = (uint16_t)((crc << 8) ^ crc_1021[(crc >> 8) ^ bytes[i]]);
     }
     return crc;
+}
+
+uint32_t ct_crc32_p4(const uint8_t *bytes, size_t n)
+{
+    uint32_t crc = 0xFFFFFFFFu;
+    for (size_t i = 0; i < n; i++) {
+        crc = (crc >> 8) ^ crc_p4[(crc ^ bytes[i]) & 0xFFu];
+    }
+    return crc ^ 0xFFFFFFFFu;
 }
 
 /* crc register run over data[0 .. len-1] without data[skip] */
@@ -584,6 +646,49 @@ static int is_p5(const ct_message *m)
     return m->protection == CT_PROT_P5 && m->crc_byte >= 0 && m->crc_byte + 3 <= (int)m->length;
 }
 
+/* 1 if message m is protected by Profile 4 and its header fits the frame */
+static int is_p4(const ct_message *m)
+{
+    return m->protection == CT_PROT_P4 && m->crc_byte >= 0 && m->crc_byte + 12 <= (int)m->length;
+}
+
+static uint32_t p4_data_id(const ct_message *m)
+{
+    return (uint32_t)m->data_id_list[0] | ((uint32_t)m->data_id_list[1] << 8)
+        | ((uint32_t)m->data_id_list[2] << 16) | ((uint32_t)m->data_id_list[3] << 24);
+}
+
+static void put_be(uint8_t *p, uint32_t v, int n)
+{
+    for (int i = n - 1; i >= 0; i--) {
+        p[i] = (uint8_t)(v & 0xFFu);
+        v >>= 8;
+    }
+}
+
+static uint32_t get_be(const uint8_t *p, int n)
+{
+    uint32_t v = 0;
+    for (int i = 0; i < n; i++) {
+        v = (v << 8) | p[i];
+    }
+    return v;
+}
+
+/* Profile 4's CRC of a frame of message m (its header at crc_byte): every
+ * byte but the CRC's four */
+static uint32_t p4_crc(const ct_message *m, const uint8_t *data)
+{
+    int h = m->crc_byte;
+    uint32_t crc = 0xFFFFFFFFu;
+    for (int i = 0; i < (int)m->length; i++) {
+        if (i < h + 8 || i >= h + 12) {
+            crc = (crc >> 8) ^ crc_p4[(crc ^ data[i]) & 0xFFu];
+        }
+    }
+    return crc ^ 0xFFFFFFFFu;
+}
+
 static int has_checksum(const ct_message *m)
 {
     return m->crc_byte >= 0 && m->crc_byte < (int)m->length
@@ -599,6 +704,15 @@ int ct_protect(const ct_table *t, int msg, uint8_t *data, uint32_t counter)
     }
     const ct_signal *sig = t->signals + m->first_signal;
     int c = 0;
+    if (is_p4(m)) {
+        uint8_t *h = data + m->crc_byte;
+        c = (int)(counter & 0xFFFFu);
+        put_be(h, m->length, 2);
+        put_be(h + 2, (uint32_t)c, 2);
+        put_be(h + 4, p4_data_id(m), 4);
+        put_be(h + 8, p4_crc(m, data), 4);
+        return c;
+    }
     if (is_p5(m)) {
         c = (int)(counter & 0xFFu);
         data[m->crc_byte + 2] = (uint8_t)c;
@@ -631,7 +745,14 @@ int ct_check(const ct_table *t, int msg, const uint8_t *data, int len, ct_rx_sta
     }
     const ct_signal *sig = t->signals + m->first_signal;
     int c = -1;
-    if (is_p5(m)) {
+    if (is_p4(m)) {
+        const uint8_t *h = data + m->crc_byte;
+        if (get_be(h, 2) != m->length || get_be(h + 4, 4) != p4_data_id(m)
+            || get_be(h + 8, 4) != p4_crc(m, data)) {
+            return CT_RX_BAD_CRC;
+        }
+        c = (int)get_be(h + 2, 2);
+    } else if (is_p5(m)) {
         uint16_t crc = p5_crc(m, data);
         if (data[m->crc_byte] != (uint8_t)(crc & 0xFFu) || data[m->crc_byte + 1] != (uint8_t)(crc >> 8)) {
             return CT_RX_BAD_CRC;
