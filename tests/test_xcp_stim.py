@@ -208,14 +208,18 @@ def test_pyxcp_stim_writes_a_parameter_of_the_running_loop_at_a_tick_boundary():
             send_stim(x, 0, 0, struct.pack("<d", tau * 1.5))
             assert wait_until(lambda: loop.double(TAU_RISE) == tau * 1.5)
             assert int(loop.c.cal.applied) > applied          # through the cal ring, at a tick
-            # dropped and counted: a value the plant refuses, a wrong length, no such list
+            # a value the plant refuses: queued (nobody waits for a STIM write), refused
+            # and undone by the loop at the tick, counted there
+            refused = int(loop.c.cal.refused)
             send_stim(x, 0, 0, struct.pack("<d", -1.0))
+            assert wait_until(lambda: int(loop.c.cal.refused) == refused + 1)
+            # dropped and counted: a wrong length, no such list
             send_stim(x, 0, 0, struct.pack("<d", 0.1)[:7])
             send_stim(x, 0, 9, struct.pack("<d", 0.1))
             assert wait_until(lambda: srv.slave.counters()["stim"]["dtos"] == 4)
             stim = srv.slave.counters()["stim"]
-            assert stim["written"] == 1
-            assert stim["dropped"] == {"ERR_OUT_OF_RANGE": 1, "bad_length": 1, "unknown_list": 1}
+            assert stim["written"] == 2
+            assert stim["dropped"] == {"bad_length": 1, "unknown_list": 1}
             assert loop.double(TAU_RISE) == tau * 1.5
             x.startStopDaqList(0, 0)
             x.disconnect()

@@ -19,7 +19,9 @@ An XCP address is a byte offset from the start of the ``rt_loop`` struct
   than RT_WRITE_BYTES is several). The answer waits for the loop (at most
   ``write_wait_s``): ERR_OUT_OF_RANGE when the plant refused the new
   parameters (the loop undid that piece), OK when applied, or when the loop
-  is not ticking (queued: applied at its first tick). The ``cal`` ring has
+  is not ticking (queued: applied at its first tick). ``write_queued`` (STIM,
+  which nobody answers) does not wait: OK once queued (a value the plant
+  refuses then shows in ``cal_refused`` only). The ``cal`` ring has
   one producer side: every producer (this backend, the control channel,
   ``rt_loop.control``) pushes through ``push_writes`` holding the same lock
   (``Server.cal_lock``, given as ``cal_lock``; the loop never takes it), and
@@ -258,7 +260,7 @@ class LoopBackend(Memory, Daq):
             at = stop
         return pieces
 
-    def write(self, address: int, data: bytes) -> int | None:
+    def write(self, address: int, data: bytes, wait: bool = True) -> int | None:
         if not data or address < 0 or address + len(data) > self.size:
             return ERR_ACCESS_DENIED
         pieces = self._pieces(address, data)
@@ -274,6 +276,8 @@ class LoopBackend(Memory, Daq):
         first, last = ids
         self._counts["writes"] += 1
         self._counts["write_pieces"] += len(pieces)
+        if not wait:
+            return OK                              # queued: applied at the next tick boundary
         deadline = time.monotonic() + self.write_wait_s
         while self.ticking():
             if max(int(cal.last_applied_id), int(cal.last_refused_id)) >= last:
@@ -286,6 +290,9 @@ class LoopBackend(Memory, Daq):
             time.sleep(_POLL_S)
         self._counts["writes_queued"] += 1
         return OK                                  # queued: the loop applies it when it ticks
+
+    def write_queued(self, address: int, data: bytes) -> int | None:
+        return self.write(address, data, wait=False)
 
     # ---- Daq ------------------------------------------------------------------------
     def _wait_ack(self) -> bool:

@@ -7,8 +7,9 @@ through two pluggable backends:
 
 * ``Memory``: ``read(address, n)`` (bytes, or an XCP error code),
   ``write(address, data)`` (``OK`` or an XCP error code: ERR_WRITE_PROTECTED,
-  ERR_OUT_OF_RANGE, ERR_ACCESS_DENIED, ...) and ``cal_regions()`` (the
-  calibration regions, for the reference page). Address extension 0 only.
+  ERR_OUT_OF_RANGE, ERR_ACCESS_DENIED, ...), ``write_queued`` (the same for
+  STIM, without waiting for the write to be applied) and ``cal_regions()``
+  (the calibration regions, for the reference page). Address extension 0 only.
 * ``Daq``: ``apply(lists)`` (a whole DAQ configuration with each list's
   running flag: starting and stopping lists is applying a new one),
   ``pop(n)`` (the measured ODTs, ``Dto``) and ``dropped()`` (ODTs lost by the
@@ -59,7 +60,8 @@ What the slave declares (CONNECT and the GET_*_INFO commands):
   has it, no timestamp) is decoded by its list's ODT and written like a
   DOWNLOAD (page rules, the backend's region and range checks; adjacent
   entries of an ODT in one write, applied whole at one tick boundary by the
-  loop); it gets no answer. A STIM DTO for no running STIM list, an unknown
+  loop) with ``Memory.write_queued``: nobody waits for it to be applied;
+  it gets no answer. A STIM DTO for no running STIM list, an unknown
   ODT, a wrong length, or a value refused, is dropped and counted by reason
   (``counters()["stim"]``);
 * BUILD_CHECKSUM: XCP_CRC_32 (the CRC-32 of IEEE 802.3, zlib's) over the
@@ -316,6 +318,12 @@ class Memory:
     def write(self, address: int, data: bytes) -> int | None:
         """``OK`` (None) once written, else an XCP error code."""
         return ERR_WRITE_PROTECTED
+
+    def write_queued(self, address: int, data: bytes) -> int | None:
+        """A write no answer waits for (STIM): ``OK`` once accepted, else an XCP
+        error code; a backend that queues writes returns before they are
+        applied. By default ``write``."""
+        return self.write(address, data)
 
     def cal_regions(self) -> list[tuple[int, int]]:
         """The calibration regions (address, size): the pages' contents."""
@@ -960,7 +968,7 @@ class Slave:
                 out[lo - address:hi - address] = blob[lo - start:hi - start]
         return bytes(out)
 
-    def _write(self, address: int, data: bytes) -> None:
+    def _write(self, address: int, data: bytes, queued: bool = False) -> None:
         if self.epk is not None and EPK_ADDRESS <= address < EPK_ADDRESS + 0x10000:
             raise _Refused(ERR_WRITE_PROTECTED)      # the EPK is read only
         if self._xcp_page == 1:
@@ -972,7 +980,8 @@ class Slave:
                     return
                 if address < start + len(blob) and start < address + len(data):
                     raise _Refused(ERR_WRITE_PROTECTED)  # across a region's border
-        _check(self.memory.write(address, bytes(data)))
+        write = self.memory.write_queued if queued else self.memory.write
+        _check(write(address, bytes(data)))
 
     def _write_regions(self, values: dict[int, bytes] | dict[int, bytearray]) -> None:
         for start, blob in values.items():
@@ -1374,7 +1383,7 @@ class Slave:
                 spans.append([e.address, bytearray(value)])
         try:
             for address, data in spans:
-                self._write(address, bytes(data))
+                self._write(address, bytes(data), queued=True)
         except _Refused as e:
             return self._stim_drop(error_name(e.code))
         except Exception:  # a backend's bug must not stop the slave
