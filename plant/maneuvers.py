@@ -269,6 +269,10 @@ def fuel_l_per_100km(rec):
 
 
 SHIFT_MIN_HOLD_S = 0.1
+#: slack on the hold: a recording's times carry rounding (a CSV's printed times differ
+#: from the run's by up to 0.2 us), so a gear held exactly ``min_hold_s`` counts the
+#: same in the run and in its CSV
+SHIFT_HOLD_SLACK_S = 1e-6
 
 
 def gear_shifts(time_s, gear, min_hold_s=SHIFT_MIN_HOLD_S):
@@ -281,8 +285,9 @@ def gear_shifts(time_s, gear, min_hold_s=SHIFT_MIN_HOLD_S):
     gear held for less than ``min_hold_s`` is not a shift and is dropped (the
     plant's gear does not flicker; a recording of the gear carrying the
     torque, without the hold, does at each torque handover and zero
-    crossing). A shift is the first sample of the next gear held that long;
-    the first gear of the run is no shift."""
+    crossing; within ``SHIFT_HOLD_SLACK_S``, the times' rounding). A shift is
+    the first sample of the next gear held that long; the first gear of the
+    run is no shift."""
     t = np.asarray(time_s, dtype=float)
     g = np.rint(np.asarray(gear, dtype=float)).astype(int)
     if t.shape != g.shape:
@@ -297,7 +302,7 @@ def gear_shifts(time_s, gear, min_hold_s=SHIFT_MIN_HOLD_S):
             segments.append([gk, tk, tk])
     kept = []
     for seg in segments:
-        if seg[2] - seg[1] < min_hold_s:
+        if seg[2] - seg[1] < min_hold_s - SHIFT_HOLD_SLACK_S:
             continue
         if kept and kept[-1][0] == seg[0]:
             kept[-1][2] = seg[2]

@@ -256,3 +256,39 @@ def test_a_channel_that_is_no_multicast_group_is_one_line(capsys):
     assert code == 2, err
     lines = [x for x in err.splitlines() if x.strip()]
     assert len(lines) == 1 and "10.1.2.3" in lines[0] and "not a multicast group" in lines[0], err
+
+
+# ------------------------------------------------------------ (e) shifts as the CSV shows them
+
+def test_the_simulate_report_counts_the_shifts_its_csv_shows(tmp_path, capsys):
+    import numpy as np
+
+    from plant.maneuvers import gear_shifts
+
+    out = tmp_path / "run.csv"
+    code, text, err = run_cli(capsys, "simulate", "--scenario", "paper-cycle", "--out", out)
+    assert code == 0, err
+    line = next(x for x in text.splitlines() if x.startswith("report"))
+    reported = int(re.search(r"shifts = (\d+) \(the gear column; the TCU started (\d+)\)", line).group(1))
+    names = out.read_text().splitlines()[0].split(",")
+    data = np.loadtxt(out, delimiter=",", skiprows=1, usecols=(names.index("time_s"), names.index("gear")))
+    assert reported == len(gear_shifts(data[:, 0], data[:, 1])) > 3
+
+
+def test_a_gear_held_exactly_the_hold_counts_the_same_in_the_run_and_its_csv():
+    """A gear held 0.1 s (the hold) in 10 ms records: the run's times and the CSV's
+    printed ones differ by rounding (up to 0.2 us); both count the shift."""
+    import numpy as np
+
+    from plant.maneuvers import SHIFT_MIN_HOLD_S, gear_shifts
+
+    t = np.arange(0, 100) * 0.01
+    gear = np.where(t < 0.3, 1, np.where(t < 0.3 + SHIFT_MIN_HOLD_S + 0.005, 2, 3))
+    for jitter in (0.0, -2e-7, 2e-7):
+        tt = t.copy()
+        tt[30:] += jitter                       # the first sample of gear 2 printed late or early
+        tt[40] -= jitter                        # its last one the other way
+        assert [(a, b) for _, a, b in gear_shifts(tt, gear)] == [(1, 2), (2, 3)], jitter
+    # a gear held one sample less is no shift
+    gear_short = np.where(t < 0.3, 1, np.where(t < 0.3 + SHIFT_MIN_HOLD_S - 0.005, 2, 3))
+    assert [(a, b) for _, a, b in gear_shifts(t, gear_short)] == [(1, 3)]

@@ -156,7 +156,7 @@ def _stub_link(args):
 
 
 def _simulate_maneuver(args):
-    from plant.maneuvers import format_report, get_maneuver, report
+    from plant.maneuvers import format_report, gear_shifts, get_maneuver, report
     from plant.model import Plant
     from tcu_stub.offline import run_with_stub
 
@@ -187,8 +187,12 @@ def _simulate_maneuver(args):
     rec = {n: data[:, k] for k, n in enumerate(names)}
     figures = report(m, rec)
     clashes = float(rec["gear_clashes"][-1] - rec["gear_clashes"][0])
+    # shifts as the CSV shows them: the gear column's changes (plant.maneuvers.gear_shifts).
+    # The TCU's count differs: the gear carrying the torque can change without a shift
+    # (wltc: four 1-2-1 handovers while creeping), a shift taken back changes none
     print(f"report            {format_report(m.name, figures)}, gear_clashes = {clashes:.0f}, "
-          f"shifts = {len(shifts)}")
+          f"shifts = {len(gear_shifts(rec['time_s'], rec['gear']))} (the gear column; "
+          f"the TCU started {len(shifts)})")
     if args.plot:
         _plots(args, names, data, m.name)
     return 0
