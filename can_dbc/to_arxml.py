@@ -2,7 +2,7 @@
 
 ``arxml_text(mapping, bus)`` writes the bus's matrix (its DBC, as cantools
 reads it) in AUTOSAR R4 form, with the mapping's end-to-end protection where
-AUTOSAR has it (Profiles 1, 2 and 5 as E2E transformers):
+AUTOSAR has it (Profiles 1, 2, 4 and 5 as E2E transformers):
 
 * ``<package>/Units``, ``CompuMethods`` (factor and offset as a LINEAR scale
   over the raw range, value names as TEXTTABLE scales beside it), ``BaseTypes``
@@ -12,7 +12,8 @@ AUTOSAR has it (Profiles 1, 2 and 5 as E2E transformers):
   END-TO-END-TRANSFORMATION-I-SIGNAL-PROPS: transformer and Data IDs) and
   ``Transformers`` (a DATA-TRANSFORMATION-SET: one E2E transformation
   technology per profile configuration: CRC, counter and Data ID nibble
-  offsets, Data ID mode, max delta counter; Profile 5 its header's OFFSET);
+  offsets, Data ID mode, max delta counter; Profiles 4 and 5 their header's
+  OFFSET);
 * ``Pdus``: an I-SIGNAL-I-PDU per message (length, cycle time, unused bits 0,
   I-signal-to-PDU mappings with start position and packing byte order), a
   MULTIPLEXED-I-PDU with one alternative I-SIGNAL-I-PDU per branch for a
@@ -49,7 +50,7 @@ __all__ = ["E2E_KINDS", "arxml_text", "example_mapping_text", "main"]
 NS = "http://autosar.org/schema/r4.0"
 SCHEMA = "http://autosar.org/schema/r4.0 AUTOSAR_4-2-2.xsd"
 #: the protection kinds an ARXML can carry, as AUTOSAR profile names
-E2E_KINDS = {"p1": "PROFILE_01", "p2": "PROFILE_02", "p5": "PROFILE_05"}
+E2E_KINDS = {"p1": "PROFILE_01", "p2": "PROFILE_02", "p4": "PROFILE_04", "p5": "PROFILE_05"}
 _P1_MODES = {"both": "ALL_16_BIT", "alt": "ALTERNATING_8_BIT", "low": "LOWER_8_BIT",
              "nibble": "LOWER_12_BIT"}
 
@@ -105,6 +106,7 @@ class _Writer:
         self._pkgs = {}
         self.units = {}
         self.base_types = {}
+        self.compu = {}
         self.transformers = {}
 
     def package(self, name):
@@ -140,9 +142,21 @@ class _Writer:
         return self.base_types[key]
 
     def compu_method(self, msg, sig):
-        name = f"CM_{msg.name}_{sig.name}"
-        el = _named(self.package("CompuMethods"), "COMPU-METHOD", name)
+        """The path of a compu method for the signal's scaling, range, unit and
+        value names: shared by every signal with the same (named after the first)."""
         choices = dict(sig.choices or {})
+        limits = None
+        if sig.minimum is not None and sig.maximum is not None:
+            lo = round((sig.minimum - sig.offset) / sig.scale)
+            hi = round((sig.maximum - sig.offset) / sig.scale)
+            limits = (min(lo, hi), max(lo, hi))
+        key = (float(sig.scale), float(sig.offset), (sig.unit or "").strip(), limits,
+               tuple(sorted((k, str(v)) for k, v in choices.items())))
+        if key in self.compu:
+            return self.compu[key]
+        name = f"CM_{msg.name}_{sig.name}"
+        self.compu[key] = self.path("CompuMethods", name)
+        el = _named(self.package("CompuMethods"), "COMPU-METHOD", name)
         _e(el, "CATEGORY", "SCALE_LINEAR_AND_TEXTTABLE" if choices else "LINEAR")
         unit = self.unit(sig.unit)
         if unit:
@@ -155,17 +169,15 @@ class _Writer:
             _e(sc, "UPPER-LIMIT", _num(raw), INTERVAL_TYPE="CLOSED")
             _e(_e(sc, "COMPU-CONST"), "VT", str(text))
         sc = _e(scales, "COMPU-SCALE")
-        if sig.minimum is not None and sig.maximum is not None:
-            lo = round((sig.minimum - sig.offset) / sig.scale)
-            hi = round((sig.maximum - sig.offset) / sig.scale)
-            _e(sc, "LOWER-LIMIT", _num(min(lo, hi)), INTERVAL_TYPE="CLOSED")
-            _e(sc, "UPPER-LIMIT", _num(max(lo, hi)), INTERVAL_TYPE="CLOSED")
+        if limits is not None:
+            _e(sc, "LOWER-LIMIT", _num(limits[0]), INTERVAL_TYPE="CLOSED")
+            _e(sc, "UPPER-LIMIT", _num(limits[1]), INTERVAL_TYPE="CLOSED")
         coeffs = _e(sc, "COMPU-RATIONAL-COEFFS")
         num = _e(coeffs, "COMPU-NUMERATOR")
         _e(num, "V", _num(sig.offset))
         _e(num, "V", _num(sig.scale))
         _e(_e(coeffs, "COMPU-DENOMINATOR"), "V", "1")
-        return self.path("CompuMethods", name)
+        return self.compu[key]
 
     def system_signal_name(self, msg, sig):
         """The I-signal's and system signal's name: the signal's name in the
@@ -207,7 +219,7 @@ class _Writer:
             fields["DATA-ID-MODE"] = _P1_MODES[prot.data_id_mode]
             if prot.data_id_mode == "nibble":
                 fields["DATA-ID-NIBBLE-OFFSET"] = min(signal_bits(sigs[prot.data_id_nibble_signal]))
-        if prot.kind == "p5":
+        if prot.kind in ("p4", "p5"):
             fields["OFFSET"] = prot.offset_bits
         key = tuple(sorted(fields.items()))
         if key not in self.transformers:
@@ -437,9 +449,10 @@ def example_mapping_text(mapping_text, arxml_name, protected):
     the ``protection`` of the messages in ``protected`` (the ARXML carries it)."""
     out = ["# The example vehicle matrix with its pt bus as an AUTOSAR system description",
            f"# (can_dbc/matrices/{arxml_name}): written by `python -m can_dbc.to_arxml` from",
-           "# vehicle.toml; the ARXML carries the E2E Profile 1 protection of " + ", ".join(sorted(protected)) + ",",
-           "# the mapping the XOR and counter protections AUTOSAR has no profile for. Its frames are",
-           "# vehicle.toml's, bit for bit (tests/test_arxml.py).",
+           "# vehicle.toml. The ARXML carries the E2E protection of",
+           f"# {', '.join(sorted(protected))};",
+           "# this file the XOR and counter protections, which AUTOSAR has no profile for. Its frames",
+           "# are vehicle.toml's, bit for bit (tests/test_arxml.py).",
            "#"]
     current = None
     for line in mapping_text.splitlines():
@@ -451,7 +464,7 @@ def example_mapping_text(mapping_text, arxml_name, protected):
         if line.strip() == 'dbc = "../matrices/vehicle_pt.dbc"':
             line = f'dbc = "../matrices/{arxml_name}"'
         if current in protected and line.startswith("protection = "):
-            line = f"# protection: the ARXML's E2E transformer ({current})"
+            line = f"# protection: the E2E transformer of {arxml_name}"
         out.append(line)
     return "\n".join(out) + "\n"
 

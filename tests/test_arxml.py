@@ -455,3 +455,45 @@ def test_the_demo_serves_the_arxml_mapping_and_its_frames_decode(tmp_path):
         assert c["sent"] > 0, name
     for name, r in summary["tcu"]["received"].items():
         assert r["accepted"] > 0 and not any(r["rejected"].values()), (name, r)
+
+
+def test_the_generator_writes_profiles_4_and_5_that_read_back_as_the_mapping_gave_them(tmp_path):
+    """A CAN FD bus whose mapping protects one message with P5 and one with P4:
+    written as ARXML by can_dbc.to_arxml and read back without the mapping's
+    protection, the messages have the same protection and give the same frames."""
+    from cantools.database.can import Database, Message, Node, Signal
+    from cantools.database.conversion import BaseConversion
+
+    msgs = [Message(frame_id=0x120, name="P5_Msg", length=8, senders=["E"], cycle_time=10, signals=[
+                Signal("P5_Crc", start=16, length=16), Signal("P5_Ctr", start=32, length=8),
+                Signal("P5_Value", start=0, length=16, unit="Nm", minimum=0, maximum=1000,
+                       conversion=BaseConversion.factory(scale=0.5, offset=0))]),
+            Message(frame_id=0x130, name="P4_Msg", length=24, senders=["E"], cycle_time=20, is_fd=True, signals=[
+                Signal("P4_Ctr", start=23, length=16, byte_order="big_endian"),
+                Signal("P4_Crc", start=71, length=32, byte_order="big_endian"),
+                Signal("P4_Value", start=96, length=32, is_signed=True)])]
+    db = Database(messages=msgs, nodes=[Node("E"), Node("T")], strict=False)
+    (tmp_path / "fd.dbc").write_text(db.as_dbc_string(), encoding="utf-8")
+    prots = ('[message.P5_Msg]\nprotection = { kind = "p5", data_id = 0x0456, offset_bits = 16, crc = "P5_Crc", '
+             'counter = "P5_Ctr", max_delta_counter = 4 }\n'
+             '[message.P4_Msg]\nprotection = { kind = "p4", data_id = 0x12345678, crc = "P4_Crc", counter = "P4_Ctr" }\n')
+    head = '[[bus]]\nname = "fd"\ndbc = "{}"\nbitrate = 500000\ndata_bitrate = 2000000\nfd = true\n' \
+           'plant_nodes = ["E"]\ntcu_nodes = ["T"]\n'
+    (tmp_path / "dbc.toml").write_text(head.format("fd.dbc") + prots, encoding="utf-8")
+    src = mapping.load(str(tmp_path / "dbc.toml"))
+    (tmp_path / "fd.arxml").write_text(to_arxml.arxml_text(src, "fd"), encoding="utf-8")
+    (tmp_path / "arxml.toml").write_text(head.format("fd.arxml"), encoding="utf-8")
+    got = mapping.load(str(tmp_path / "arxml.toml"))
+    assert got.bus("fd").fd and got.bus("fd").data_bitrate == 2_000_000
+    for m in src.codec_order("fd"):
+        a = got.message(m.name)
+        assert a.protection == m.protection and a.protection_from_file, m.name
+        assert (a.frame_id, a.length, a.is_fd, a.cycle_ms) == (m.frame_id, m.length, m.is_fd, m.cycle_ms)
+    (ta, ma), (tb, mb) = tables(src, "fd"), tables(got, "fd")
+    assert [m.name for m in ma] == [m.name for m in mb]
+    rng = random.Random(45)
+    for i, m in enumerate(ma):
+        for counter in range(0, 70000, 997):
+            values = {s.name: rng.uniform(*mapping._signal_range(s.signal)) for s in m.signals
+                      if s.protection_field is None}
+            assert ta.encode(i, values, counter=counter) == tb.encode(i, values, counter=counter), m.name
