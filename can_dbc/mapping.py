@@ -1578,6 +1578,7 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
         inputs = INPUT_NAMES if inputs is None else inputs
     try:
         db = read_dbc(dbc_path)
+        file_prot = file_protections(db, dbc_path)       # an ARXML's E2E protection
     except ValueError as e:
         raise MappingError(f"{dbc_path}: {e}") from None
     nodes = _dbc_nodes(db)
@@ -1682,24 +1683,34 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
             w(f"direction = \"{direction}\"")
         if not m.cycle_time:
             w("# cycle_ms =                    # cycle time missing: give cycle_ms")
-        crc, cnt = _protection_names(m)
-        if crc or cnt:
+        crc, cnt = _template_protection_names(m, file_prot)
+        given = file_prot.get(m.name)
+        if isinstance(given, Protection):
+            w(f"# {_describe_protection(given)}: from {os.path.basename(dbc_path)} (give protection to "
+              "override it)")
+        elif given is not None:
+            w(f"# protection: {given}")
+        elif crc or cnt:
             parts = ", ".join(x for x in (f"crc = \"{crc[0]}\"" if crc else "",
                                           f"counter = \"{cnt[0]}\"" if cnt else "") if x)
             w(f"# protection = {{ kind = \"?\", {parts} }}")
             w("#   (a checksum or counter by its name; the DBC does not say how it is computed: kind is")
-            w("#    none, counter, dct, p1 (data_id), p2 (data_id_list) or xor; see can_dbc/protection.py)")
+            w("#    none, counter, dct, p1 (data_id), p2 (data_id_list), xor, p5 or p4 (data_id);")
+            w("#    see can_dbc/protection.py)")
 
     def signals(m, direction):
         w("")
         w(f"[message.{_toml_key(m.name)}.signals]")
         groups = out_groups if direction == "send" else in_groups
-        crc, cnt = _protection_names(m)
+        crc, cnt = _template_protection_names(m, file_prot)
         for sig in m.signals:
             w(f"# {sig.name}: {_describe_signal(sig)}")
-            if sig.name in crc[:1] + cnt[:1]:
-                w(f"#   (the protection's {'checksum' if sig.name in crc[:1] else 'counter'}: written "
-                  "or checked by the protection, no entry)")
+            given = file_prot.get(m.name)
+            nibble = given.data_id_nibble_signal if isinstance(given, Protection) else None
+            if sig.name in crc[:1] + cnt[:1] or sig.name == nibble:
+                role = ("checksum" if sig.name in crc[:1] else "counter" if sig.name in cnt[:1]
+                        else "Data ID nibble")
+                w(f"#   (the protection's {role}: written or checked by the protection, no entry)")
                 continue
             guess = guesses.get((direction, sig.name))
             entry = _guess_entry(guess, sig, direction) if guess else None
@@ -1761,6 +1772,16 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
             cycle = f"every {m.cycle_time} ms" if m.cycle_time else "no cycle time"
             w(f"# {_ident_of(m)} {m.name} ({senders}), {m.length} bytes, {cycle}")
     return "\n".join(L) + "\n"
+
+
+def _template_protection_names(msg, file_prot):
+    """The checksum and counter signals of a message for the template: the
+    file's protection's (an ARXML's E2E), else by their names."""
+    given = file_prot.get(msg.name)
+    if isinstance(given, Protection):
+        return ([given.crc_signal] if given.crc_signal else []), \
+            ([given.counter_signal] if given.counter_signal else [])
+    return _protection_names(msg)
 
 
 def _protection_names(msg):

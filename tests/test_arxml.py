@@ -497,3 +497,17 @@ def test_the_generator_writes_profiles_4_and_5_that_read_back_as_the_mapping_gav
             values = {s.name: rng.uniform(*mapping._signal_range(s.signal)) for s in m.signals
                       if s.protection_field is None}
             assert ta.encode(i, values, counter=counter) == tb.encode(i, values, counter=counter), m.name
+
+
+def test_the_template_of_an_arxml_names_its_e2e_protection_and_loads_with_it(tmp_path):
+    out = tmp_path / "from_arxml.toml"
+    text = mapping.template(str(ARXML), tcu_nodes=["TCU"], out_path=str(out))
+    assert ("# protection p1 (crc ESP_Motion_CRC, counter ESP_Motion_Ctr, data id 0x074B (nibble)): from "
+            "vehicle_pt.arxml") in text
+    assert "#   (the protection's Data ID nibble: written or checked by the protection, no entry)" in text
+    assert 'dbc = "' in text and "vehicle_pt.arxml" in text and "bitrate = 500000" in text
+    out.write_text(text, encoding="utf-8")
+    m = mapping.load(str(out))
+    p = m.message("ESP_Motion").protection
+    assert (p.kind, p.data_id, p.data_id_mode) == ("p1", 0x074B, "nibble")
+    assert m.message("ECM_Speed").protection.kind == "none"      # XOR: not in the file
