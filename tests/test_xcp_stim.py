@@ -126,6 +126,7 @@ def test_stim_dtos_write_the_lists_entries_and_bad_ones_are_counted(fakes):
     assert stim["dropped"] == {"bad_length": 3, "unknown_odt": 1, "unknown_list": 1,
                                "not_running": 2, "ERR_OUT_OF_RANGE": 1}
     assert slave.counters()["errors"] == {"ERR_WRITE_PROTECTED": 1}       # STIM gets no answer
+    assert slave.counters()["ignored"]["stim_bad_length"] == 3            # packets ignored
     # a STIM DTO before CONNECT
     slave.reset()
     assert slave.handle(stim_dto(0, 0, b"\x01")) == []

@@ -63,7 +63,7 @@ What the slave declares (CONNECT and the GET_*_INFO commands):
   loop) with ``Memory.write_queued``: nobody waits for it to be applied;
   it gets no answer. A STIM DTO for no running STIM list, an unknown
   ODT, a wrong length, or a value refused, is dropped and counted by reason
-  (``counters()["stim"]``);
+  (``counters()``: ``ignored`` as ``stim_REASON``, and ``stim``);
 * BUILD_CHECKSUM: XCP_CRC_32 (the CRC-32 of IEEE 802.3, zlib's) over the
   MTA's next ``block size`` bytes as UPLOAD reads them; the MTA advances past
   them; at most ``MAX_CHECKSUM_BLOCK`` bytes (more: ERR_OUT_OF_RANGE with
@@ -537,8 +537,7 @@ class Slave:
         self._ignored: dict[str, int] = {}
         self._session_ends: dict[str, int] = {}
         self._dto_dropped = {"not_running": 0, "stale": 0}
-        self._stim: dict[str, int] = {"dtos": 0, "written": 0}
-        self._stim_dropped: dict[str, int] = {}
+        self._stim: dict[str, int] = {"dtos": 0, "written": 0}   # dropped: in _ignored, stim_*
         self._overloads_seen = 0
         self._overload_events = 0
         # calibration pages: the reference page is the regions' values now
@@ -604,7 +603,8 @@ class Slave:
             "ignored": dict(self._ignored),
             "session_ends": dict(self._session_ends),
             "dto_dropped": dict(self._dto_dropped),
-            "stim": {**self._stim, "dropped": dict(self._stim_dropped)},
+            "stim": {**self._stim, "dropped": {k[5:]: v for k, v in list(self._ignored.items())
+                                               if k.startswith("stim_")}},
             "overload_events": self._overload_events,
             "connected": self.connected,
             "daq_running": self.daq_running,
@@ -1352,7 +1352,7 @@ class Slave:
 
     # ---- STIM: DTOs from the master -------------------------------------------------
     def _stim_drop(self, reason: str) -> None:
-        self._bump(self._stim_dropped, reason)
+        self._bump(self._ignored, "stim_" + reason)    # a packet ignored, as every other
 
     def _stim_dto(self, p: bytes) -> None:
         """Writes one STIM DTO's values (``[odt, fill, list lo, list hi, data]``)."""
