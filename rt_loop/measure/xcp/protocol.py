@@ -104,7 +104,8 @@ ERR_ACCESS_LOCKED and ends the session, as the standard says.
 Before CONNECT every command but CONNECT is ignored (no answer). Unknown
 commands answer ERR_CMD_UNKNOWN, packets too short for their command
 ERR_CMD_SYNTAX (trailing bytes are allowed: some masters pad). Every packet
-not answered positively is counted by reason (``counters()``).
+not answered positively is counted by reason (``counters()``; a master
+block's packets are answered together, by the answer to its last).
 """
 
 from __future__ import annotations
