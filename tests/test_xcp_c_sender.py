@@ -30,7 +30,7 @@ built_with(lib, "rt_xcp_sender_new")
 module("pyxcp")
 
 from test_xcp_loop import SIM_TIME, TAU_RISE, TICKS, Loop
-from test_xcp_protocol import FakeDaq, FakeMemory, Measured, pyxcp_master
+from test_xcp_protocol import FakeDaq, FakeMemory, Measured, Raw, pyxcp_master
 from waiting import wait_for
 
 from rt_loop.measure.xcp import XcpServer
@@ -43,7 +43,7 @@ from rt_loop.measure.xcp.transport import (
     delay_percentiles_us,
     sender_layout,
 )
-from rt_loop.tools.bench_xcp_daq import Busy, Master
+from rt_loop.tools.bench_xcp_daq import Busy, Master, summary, window_rows
 from rt_loop.tools.xcp_bench import measurable_doubles
 
 SIGNALS = 100
@@ -250,6 +250,23 @@ def test_a_tcp_master_that_vanishes_is_let_go_counted_and_never_blocks():
     assert sender_threads() == 0
 
 
+@pytest.mark.parametrize("protocol", ["udp", "tcp"])
+def test_a_server_stopped_under_a_connected_master_ends_clean(protocol):
+    memory = FakeMemory()
+    srv = XcpServer(memory=memory, daq=FakeDaq(memory), port=0, protocol=protocol)
+    srv.start()
+    raw = Raw(srv)
+    try:
+        assert raw.command(xp.CONNECT, 0)[0] == xp.PID_RES
+        assert sender_threads() == 1
+        srv.stop()                                             # the master still there
+        assert sender_threads() == 0
+        c = srv.counters()
+        assert c["transport"]["packets_out"] == 1 and c["transport"]["error"] is None
+    finally:
+        raw.close()
+
+
 # ---- the chain on the running loop, pyxcp as the master ------------------------------
 
 def signal_measurements(n=SIGNALS):
@@ -349,3 +366,20 @@ def test_delay_percentiles_of_a_histogram():
     hist[2], hist[5], hist[9] = 50, 49, 1
     assert delay_percentiles_us(hist) == {"p50": 3, "p99": 6, "p99.9": 10}
     assert delay_percentiles_us([0, 0]) == {"p50": None, "p99": None, "p99.9": None}
+
+
+def test_the_benchmarks_windows_count_the_ticks_missing_and_pool_the_delays():
+    assert window_rows([5, 6, 8, 9, 30], 6, 10) == {"expected": 4, "received": 3, "lost": 1}
+    assert window_rows([1, 2], 6, 10) == {"expected": 5, "received": 0, "lost": 5}
+
+    def window(case, hist, lost):
+        return {"case": case, "delay_hist_us": hist, "dtos_expected": 40, "dtos_received": 40 - lost,
+                "rows": {"expected": 10, "received": 10 - lost, "lost": lost}}
+
+    runs = [{"protocol": "udp", "windows": [window("busy", {3: 98, 40: 2}, 1),
+                                            window("quiet", {2: 100}, 0),
+                                            window("busy", {3: 100}, 0)]}]
+    busy = summary(runs)["udp"]["busy"]
+    assert (busy["rows_lost"], busy["dtos_expected"], busy["dtos_received"]) == (1, 80, 79)
+    assert (busy["delay_p50_us"], busy["delay_p99_us"], busy["delay_max_us"]) == (4, 4, 41)
+    assert summary(runs)["udp"]["quiet"]["delay_p99_9_us"] == 3

@@ -713,7 +713,7 @@ typedef struct {
     uint32_t daq_ack;                 /* written by the loop: the generation its last tick used */
     uint64_t daq_refused;             /* configurations the loop found bad and ignored */
     rt_daq_config daq[2];
-    rt_daq_ring daq_ring;             /* loop -> the XCP slave's sender */
+    rt_daq_ring daq_ring;             /* loop -> the XCP slave's sender (rt_xcp_send.h) */
     rt_write_ring cal;                /* calibration writes: Python -> loop */
     rt_write_ring stim;               /* stimulus writes: Python -> loop */
     int n_signal_values;              /* set by rt_loop_prepare: signals of all channels */

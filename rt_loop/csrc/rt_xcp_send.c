@@ -390,6 +390,8 @@ void rt_xcp_sender_free(rt_xcp_sender *s)
 int rt_xcp_sender_set_peer(rt_xcp_sender *s, int family, const char *host, int port,
                            uint32_t scope_id)
 {
+    if (!s)
+        return -1;
     struct sockaddr_storage a;
     socklen_t len = 0;
     memset(&a, 0, sizeof a);
@@ -423,6 +425,8 @@ int rt_xcp_sender_set_peer(rt_xcp_sender *s, int family, const char *host, int p
 
 void rt_xcp_sender_clear_peer(rt_xcp_sender *s)
 {
+    if (!s)
+        return;
     pthread_mutex_lock(&s->mu);
     s->has_peer = 0;
     pthread_mutex_unlock(&s->mu);
@@ -430,6 +434,8 @@ void rt_xcp_sender_clear_peer(rt_xcp_sender *s)
 
 void rt_xcp_sender_set_tcp(rt_xcp_sender *s, int fd)
 {
+    if (!s)
+        return;
     pthread_mutex_lock(&s->mu);
     s->tcp_fd = s->protocol == RT_XCP_TCP ? fd : -1;
     s->q_start = s->q_end = 0;
@@ -440,6 +446,8 @@ void rt_xcp_sender_set_tcp(rt_xcp_sender *s, int fd)
 
 int rt_xcp_sender_set_layout(rt_xcp_sender *s, const rt_xcp_layout *layout)
 {
+    if (!s || !layout)
+        return -1;
     int ok = layout_ok(layout);
     pthread_mutex_lock(&s->mu);
     if (ok) {
@@ -458,6 +466,8 @@ int rt_xcp_sender_set_layout(rt_xcp_sender *s, const rt_xcp_layout *layout)
 int rt_xcp_send_packets(rt_xcp_sender *s, const uint8_t *data, const uint16_t *lens, int n)
 {
     int sent = 0;
+    if (!s || (!data && n > 0) || (!lens && n > 0))
+        return 0;
     pthread_mutex_lock(&s->mu);
     uint64_t before = s->st.packets_out;
     for (int k = 0; k < n; k++) {
@@ -475,7 +485,7 @@ int rt_xcp_send_packets(rt_xcp_sender *s, const uint8_t *data, const uint16_t *l
 
 int rt_xcp_sender_feed(rt_xcp_sender *s, const rt_dto *dtos, int n, uint64_t dropped)
 {
-    if (!s->own_ring)
+    if (!s || !s->own_ring || (!dtos && n > 0))
         return 0;
     int k = dto_push_many(s->own_ring, dtos, n);
     atomic_store_explicit(A64(&s->own_ring->dropped), dropped, RELAXED);
@@ -484,6 +494,8 @@ int rt_xcp_sender_feed(rt_xcp_sender *s, const rt_dto *dtos, int n, uint64_t dro
 
 void rt_xcp_sender_read(rt_xcp_sender *s, rt_xcp_send_stats *out)
 {
+    if (!s || !out)
+        return;
     pthread_mutex_lock(&s->mu);
     *out = s->st;
     out->ctr = s->ctr;
@@ -494,8 +506,8 @@ int rt_xcp_sender_delays(rt_xcp_sender *s, uint64_t *hist, int n)
 {
     if (n > RT_XCP_DELAY_BINS)
         n = RT_XCP_DELAY_BINS;
-    if (n < 0)
-        n = 0;
+    if (n < 0 || !s || !hist)
+        return 0;
     pthread_mutex_lock(&s->mu);
     memcpy(hist, s->hist, (size_t)n * sizeof *hist);
     pthread_mutex_unlock(&s->mu);

@@ -136,10 +136,13 @@ class Master:
         return rest[0], rest[1]
 
     def _receive(self, timeout_s: float):
-        if not self._conn.poll(timeout_s):
-            self._proc.kill()
-            raise RuntimeError(f"the pyxcp master said nothing for {timeout_s:g} s")
-        return self._conn.recv()
+        try:
+            if self._conn.poll(timeout_s):
+                return self._conn.recv()
+        except EOFError:
+            raise RuntimeError(f"the pyxcp master ended (exit code {self._proc.exitcode})") from None
+        self._proc.kill()
+        raise RuntimeError(f"the pyxcp master said nothing for {timeout_s:g} s")
 
     def kill(self) -> None:
         if self._proc.is_alive():
@@ -237,8 +240,10 @@ def run(protocol: str, signals: int, window_s: float, pairs: int, priority: int)
                     busy.__exit__()
                 hist1, t1 = sender.delays(), int(srv.stats.read().ticks)
                 out1 = sender.stats()["dtos_out"]
+                hist = [b - a for a, b in zip(hist0, hist1)]
                 windows.append({"protocol": protocol, "case": case, "index": pair, "ticks": (t0, t1),
-                                "delay": histogram_figures([b - a for a, b in zip(hist0, hist1)]),
+                                "delay": histogram_figures(hist),
+                                "delay_hist_us": {k: n for k, n in enumerate(hist) if n},
                                 "dtos_sent": out1 - out0, "busy_rounds": busy.rounds})
         stamps, cols = master.stop()
     except BaseException:
@@ -273,22 +278,25 @@ def run(protocol: str, signals: int, window_s: float, pairs: int, priority: int)
 
 
 def summary(runs: list[dict]) -> dict:
-    """Per protocol and case: the windows' rows lost, and the delay figures of
-    all their DTOs together (worst of the windows for max)."""
+    """Per protocol and case: the windows' rows and DTOs, expected and lost, and
+    the delay figures of all their DTOs together (their histograms summed)."""
     out: dict = {}
     for r in runs:
         for case in ("busy", "quiet"):
             ws = [w for w in r["windows"] if w["case"] == case]
+            hist = [0] * max((max(w["delay_hist_us"], default=0) + 1 for w in ws), default=0)
+            for w in ws:
+                for k, n in w["delay_hist_us"].items():
+                    hist[k] += n
+            d = histogram_figures(hist)
             out.setdefault(r["protocol"], {})[case] = {
                 "windows": len(ws),
                 "rows_expected": sum(w["rows"]["expected"] for w in ws),
                 "rows_lost": sum(w["rows"]["lost"] for w in ws),
                 "dtos_expected": sum(w["dtos_expected"] for w in ws),
                 "dtos_received": sum(w["dtos_received"] for w in ws),
-                "delay_p50_us": max((w["delay"]["p50_us"] or 0) for w in ws) if ws else None,
-                "delay_p99_us": max((w["delay"]["p99_us"] or 0) for w in ws) if ws else None,
-                "delay_p99_9_us": max((w["delay"]["p99_9_us"] or 0) for w in ws) if ws else None,
-                "delay_max_us": max((w["delay"]["max_us"] or 0) for w in ws) if ws else None,
+                "delay_p50_us": d["p50_us"], "delay_p99_us": d["p99_us"],
+                "delay_p99_9_us": d["p99_9_us"], "delay_max_us": d["max_us"],
             }
     return out
 
@@ -316,6 +324,9 @@ def main(argv=None) -> int:
         except (OSError, RuntimeError) as e:
             print(f"bench-xcp-daq: {protocol}: {e}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:
+            print(f"bench-xcp-daq: interrupted during {protocol}; nothing written", file=sys.stderr)
+            return 130
     figures = summary(runs)
     lost = 0
     for protocol, cases in figures.items():
@@ -324,7 +335,7 @@ def main(argv=None) -> int:
             print(f"{protocol} {case:5s}: DTOs {f['dtos_received']} of {f['dtos_expected']} "
                   f"({f['dtos_expected'] - f['dtos_received']} lost); DTO delay (tick deadline "
                   f"to send) p50 {f['delay_p50_us']} p99 {f['delay_p99_us']} p99.9 "
-                  f"{f['delay_p99_9_us']} max {f['delay_max_us']} us (worst window)", flush=True)
+                  f"{f['delay_p99_9_us']} max {f['delay_max_us']} us", flush=True)
     result = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine_info(),
               "args": vars(args), "summary": figures, "runs": runs}
     if args.json:

@@ -225,6 +225,8 @@ class CSender:
         self._s = None
 
     def set_peer(self, addr: tuple | None) -> None:
+        if self._s is None:
+            return
         if addr is None:
             lib.rt_xcp_sender_clear_peer(self._s)
             return
@@ -234,10 +236,13 @@ class CSender:
         lib.rt_xcp_sender_set_peer(self._s, family, host.encode("ascii"), int(addr[1]), scope)
 
     def set_tcp(self, fd: int) -> None:
-        lib.rt_xcp_sender_set_tcp(self._s, fd)
+        if self._s is not None:
+            lib.rt_xcp_sender_set_tcp(self._s, fd)
 
     def set_layout(self, views: Sequence) -> bool:
         layout, ok = sender_layout(views)
+        if self._s is None:
+            return ok
         return lib.rt_xcp_sender_set_layout(self._s, layout) == 0 and ok
 
     def send(self, packets: Sequence[bytes]) -> int:
@@ -249,6 +254,8 @@ class CSender:
                                        len(packets))
 
     def feed(self, dtos, n: int, dropped: int) -> int:
+        if self._s is None:
+            return 0
         return lib.rt_xcp_sender_feed(self._s, dtos, n, dropped)
 
     def stats(self) -> dict:
