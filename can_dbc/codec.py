@@ -156,6 +156,14 @@ def messages(sender=None):
     return [m for m in msgs if sender in m.senders]
 
 
+def signal_bits(signal):
+    """The frame bits (8 * byte + bit) a cantools signal occupies, in its own order."""
+    if signal.byte_order == "little_endian":
+        return list(range(signal.start, signal.start + signal.length))
+    msb = 8 * (signal.start // 8) + 7 - signal.start % 8       # in network order
+    return [8 * (k // 8) + 7 - k % 8 for k in range(msb, msb + signal.length)]
+
+
 def payload_signals(msg):
     """The signals of a message other than CRC and AliveCounter."""
     return [s for s in msg.signals if s.name not in E2E_SIGNALS]

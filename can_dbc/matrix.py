@@ -39,10 +39,9 @@ import xml.etree.ElementTree as ET
 from contextlib import contextmanager
 from dataclasses import replace
 
-from .codec import dbc_encoding
-from .protection import HEADER_BYTES, Protection
+from .codec import dbc_encoding, signal_bits
+from .protection import HEADER_BYTES, Protection, header_field_bits
 from .python_can import python_can
-from .table import header_field_bits, signal_bits
 
 __all__ = ["FORMATS", "file_protections", "matrix_format", "read_matrix", "select_cluster"]
 

@@ -61,7 +61,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["HEADER_BYTES", "KINDS", "P1_DATA_ID_MODES", "Protection", "ProtectionError", "parse_protection"]
+__all__ = ["HEADER_BYTES", "HEADER_FIELDS", "KINDS", "P1_DATA_ID_MODES", "Protection", "ProtectionError",
+           "header_field_bits", "parse_protection"]
 
 KINDS = ("none", "counter", "dct", "p1", "p2", "xor", "p5", "p4")
 P1_DATA_ID_MODES = ("both", "alt", "low", "nibble")
@@ -82,6 +83,21 @@ _MAX_DELTA = {"p5": 255, "p4": 255}
 _MAX_DATA_ID = {"p4": 0xFFFFFFFF}
 #: the kinds with a header at offset_bits: its length in bytes
 HEADER_BYTES = {"p5": 3, "p4": 12}
+#: the fields of the header kinds: role -> (byte within the header, bits, byte order of a
+#: multi-byte field), and the profile's number
+HEADER_FIELDS = {
+    "p5": (5, {"crc": (0, 16, "little_endian"), "counter": (2, 8, None)}),
+    "p4": (4, {"counter": (2, 16, "big_endian"), "crc": (8, 32, "big_endian")}),
+}
+
+
+def header_field_bits(prot, role):
+    """The frame bits (8 * byte + bit) of a header kind's field ``role`` (crc, counter)."""
+    first, bits, _ = HEADER_FIELDS[prot.kind][1][role]
+    b = prot.offset_bits // 8 + first
+    return set(range(8 * b, 8 * b + bits))
+
+
 _KEYS = ("kind", "crc", "counter", "data_id", "data_id_mode", "data_id_nibble", "data_id_list",
          "max_delta_counter", "offset_bits")
 

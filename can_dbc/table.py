@@ -29,7 +29,15 @@ import math
 import sys
 
 from . import codec
-from .protection import HEADER_BYTES, KINDS, P1_DATA_ID_MODES, Protection
+from .codec import signal_bits
+from .protection import (
+    HEADER_BYTES,
+    HEADER_FIELDS,
+    KINDS,
+    P1_DATA_ID_MODES,
+    Protection,
+    header_field_bits,
+)
 from .python_can import python_can
 
 __all__ = ["CodecTable", "TableError", "bench", "contract_protection", "contract_table"]
@@ -57,14 +65,6 @@ def _arithmetic(signal):
         return BaseConversion.factory(scale=conv.scale, offset=conv.offset, choices=None,
                                       is_float=conv.is_float)
     return conv
-
-
-def signal_bits(signal) -> list[int]:
-    """The frame bits (8 * byte + bit) a cantools signal occupies."""
-    if signal.byte_order == "little_endian":
-        return list(range(signal.start, signal.start + signal.length))
-    msb = 8 * (signal.start // 8) + 7 - signal.start % 8       # in network order
-    return [8 * (k // 8) + 7 - k % 8 for k in range(msb, msb + signal.length)]
 
 
 def _signal_end(signal) -> int:
@@ -478,21 +478,6 @@ def _check_protection(msg, prot):
         raise TableError(f"{msg.name}: protection 'p2' needs data_id_list (16 Data IDs)")
     if not 1 <= prot.max_delta_counter <= 14:
         raise TableError(f"{msg.name}: max_delta_counter {prot.max_delta_counter}, must be 1..14")
-
-
-#: the fields of the header kinds: role -> (byte within the header, bits, byte order of a
-#: multi-byte field), and the profile's number
-HEADER_FIELDS = {
-    "p5": (5, {"crc": (0, 16, "little_endian"), "counter": (2, 8, None)}),
-    "p4": (4, {"counter": (2, 16, "big_endian"), "crc": (8, 32, "big_endian")}),
-}
-
-
-def header_field_bits(prot, role):
-    """The frame bits (8 * byte + bit) of a header kind's field ``role`` (crc, counter)."""
-    first, bits, _ = HEADER_FIELDS[prot.kind][1][role]
-    b = prot.offset_bits // 8 + first
-    return set(range(8 * b, 8 * b + bits))
 
 
 def _check_header(msg, prot):

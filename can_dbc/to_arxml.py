@@ -43,6 +43,7 @@ import re
 import sys
 import xml.etree.ElementTree as ET
 
+from .codec import signal_bits
 from .matrix import read_matrix
 
 __all__ = ["E2E_KINDS", "arxml_text", "example_mapping_text", "main"]
@@ -213,7 +214,6 @@ class _Writer:
         sigs = {s.name: s for s in msg.signals}
         fields = {"PROFILE-NAME": E2E_KINDS[prot.kind], "MAX-DELTA-COUNTER": prot.max_delta_counter}
         if prot.kind == "p1":
-            from .table import signal_bits
             fields["CRC-OFFSET"] = min(signal_bits(sigs[prot.crc_signal]))
             fields["COUNTER-OFFSET"] = min(signal_bits(sigs[prot.counter_signal]))
             fields["DATA-ID-MODE"] = _P1_MODES[prot.data_id_mode]
