@@ -72,6 +72,8 @@ class CanPeer(ReceivingNode):
         self._counter = {m.name: 0 for m in self.tx_messages}
         self.sent = {m.name: 0 for m in self.tx_messages}
         self.send_errors = {m.name: 0 for m in self.tx_messages}
+        #: values the encoder limited to their signal's DBC range, frames sent
+        self.saturated = {m.name: 0 for m in self.tx_messages}
         self.skipped = {m.name: 0 for m in self.tx_messages}
         self.last_send_error = None
         self.injected = 0
@@ -217,7 +219,7 @@ class CanPeer(ReceivingNode):
                 received[name] = {"frame_id": m.frame_id, "cycle_ms": m.cycle_time, **st.figures()}
             sent = {name: {"frame_id": codec.message(name).frame_id, "frames": self.sent[name],
                            "errors": self.send_errors[name], "skipped": self.skipped[name],
-                           "values": dict(self._values[name])}
+                           "saturated": self.saturated[name], "values": dict(self._values[name])}
                     for name in self._values}
             return {
                 "side": self.side,
@@ -247,6 +249,7 @@ class CanPeer(ReceivingNode):
             values = dict(self._values[msg.name])
             counter = self._counter[msg.name]
         data = codec.encode(msg.name, values, counter)
+        limited = _limited(msg, values)
         try:
             self.bus.send(self._message(can, arbitration_id=msg.frame_id, data=data,
                                         is_extended_id=False))
@@ -258,6 +261,7 @@ class CanPeer(ReceivingNode):
         with self._lock:
             self._counter[msg.name] = (counter + 1) & 0x0F
             self.sent[msg.name] += 1
+            self.saturated[msg.name] += limited
         return True
 
     def _message(self, can, **kw):
@@ -421,6 +425,17 @@ class _NoBus:
 
     def shutdown(self):
         pass
+
+
+def _limited(msg, values):
+    """How many of ``values`` ``codec.encode`` limits to their signal's DBC range
+    (``codec.limit``; a choice name is never out of range)."""
+    n = 0
+    for sig in codec.payload_signals(msg):
+        v = values.get(sig.name)
+        if v is not None and not isinstance(v, str) and codec.limit(sig, v) != float(v):
+            n += 1
+    return n
 
 
 if __name__ == "__main__":

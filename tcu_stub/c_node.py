@@ -713,7 +713,8 @@ class CTcuNode:
             entry = {} if not mapped else {"bus": self._tx_messages[name].bus,
                                            "message": self._tx_messages[name].name}
             entry.update({"frame_id": self._frame_id(name), "cycle_ms": self._cycle_ms[name],
-                          "frames": int(f.sent[j]), "errors": int(f.send_errors[j])})
+                          "frames": int(f.sent[j]), "errors": int(f.send_errors[j]),
+                          "saturated": int(f.saturated[j])})
             sent[name] = entry
         last_error = None
         if f.last_send_error_tx >= 0:
@@ -763,6 +764,7 @@ class CTcuNode:
             "send_errors": (sum(s["errors"] for s in sent.values())
                             + sum(b.counters()["tx_errors"] for b in self._bridges)),
             "last_send_error": last_error,
+            "saturated": sum(s["saturated"] for s in sent.values()),
             "last_commands": self._last_commands(f, command_names()),
             "final_safe_frames": None if f.final_safe_frames < 0 else bool(f.final_safe_frames),
             "error": error,

@@ -357,6 +357,8 @@ class MappedPeer(ReceivingNode):
         self._counter = {k: 0 for k in self.tx_messages}
         self.sent = {k: 0 for k in self.tx_messages}
         self.send_errors = {k: 0 for k in self.tx_messages}
+        #: values the table codec limited to their signal's range or bit field, frames sent
+        self.saturated = {k: 0 for k in self.tx_messages}
         self.unknown = {name: 0 for name in self.buses}
         self.error_frames_by_bus = {name: 0 for name in self.buses}
         self.last_send_error = None
@@ -411,6 +413,7 @@ class MappedPeer(ReceivingNode):
             with self._lock:
                 counter = self._counter[key]
             data = table.encode(i, values, counter=counter)
+            limited = len(table.saturated(i, values))
             kw = {"arbitration_id": m.frame_id, "data": data, "is_extended_id": m.is_extended,
                   "is_fd": m.is_fd, "bitrate_switch": m.is_fd and self._fd_brs[bus_name]}
             n = None
@@ -429,6 +432,7 @@ class MappedPeer(ReceivingNode):
             with self._lock:
                 self._counter[key] = (counter + 1) & 0xFFFFFFFF
                 self.sent[key] += 1
+                self.saturated[key] += limited
         return True
 
     # -- what was received --------------------------------------------------
@@ -455,7 +459,8 @@ class MappedPeer(ReceivingNode):
                 received[k] = {"bus": m.bus, "message": m.name, "frame_id": m.frame_id,
                                "cycle_ms": m.cycle_ms, **st.figures()}
             sent = {k: {"bus": m.bus, "message": m.name, "frame_id": m.frame_id, "cycle_ms": m.cycle_ms,
-                        "frames": self.sent[k], "errors": self.send_errors[k]}
+                        "frames": self.sent[k], "errors": self.send_errors[k],
+                        "saturated": self.saturated[k]}
                     for k, m in self.tx_messages.items()}
             return {
                 "received": received,
@@ -990,7 +995,7 @@ class CanTcu:
                         for name, r in peer["received"].items()}
             sent = {name: {**{k: s[k] for k in where},
                            "frame_id": s["frame_id"], "cycle_ms": self._cycle_ms[name],
-                           "frames": s["frames"], "errors": s["errors"]}
+                           "frames": s["frames"], "errors": s["errors"], "saturated": s["saturated"]}
                     for name, s in peer["sent"].items()}
             diag = getattr(self.logic, "diag", None)
             rep = {
@@ -1027,6 +1032,7 @@ class CanTcu:
                 "sent": sent,
                 "send_errors": sum(s["errors"] for s in sent.values()),
                 "last_send_error": peer["last_send_error"],
+                "saturated": sum(s["saturated"] for s in sent.values()),
                 "last_commands": dict(self.commands),
                 "final_safe_frames": self.final_safe_frames,
                 "error": self.error,
@@ -1165,7 +1171,8 @@ def summary_lines(rep):
         lines.append(f"  rx {name:<{w}} {r['accepted']:>8} accepted of {r['received']:>8}"
                      + (f"  rejected: {rej}" if rej else ""))
     for name, s in rep["sent"].items():
-        lines.append(f"  tx {name:<{w}} {s['frames']:>8} sent" + (f"  errors {s['errors']}" if s["errors"] else ""))
+        lines.append(f"  tx {name:<{w}} {s['frames']:>8} sent" + (f"  errors {s['errors']}" if s["errors"] else "")
+                     + (f"  saturated {s['saturated']}" if s.get("saturated") else ""))
     shifts = " ".join(f"{s['from_gear']}>{s['to_gear']}@{s['t_s']:.2f}" for s in rep["shifts"][:20])
     more = f" (+{len(rep['shifts']) - 20})" if len(rep["shifts"]) > 20 else ""
     lines.append(f"  shifts: {len(rep['shifts'])} {shifts}{more}".rstrip())

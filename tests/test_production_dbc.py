@@ -292,3 +292,92 @@ def test_a_gear_held_exactly_the_hold_counts_the_same_in_the_run_and_its_csv():
     # a gear held one sample less is no shift
     gear_short = np.where(t < 0.3, 1, np.where(t < 0.3 + SHIFT_MIN_HOLD_S - 0.005, 2, 3))
     assert [(a, b) for _, a, b in gear_shifts(t, gear_short)] == [(1, 3)]
+
+
+# ------------------------------------------------------------ saturation counted on every path
+
+def test_the_c_codec_counts_what_it_limits_as_the_python_check_names_it():
+    """ct_encode_counted (the loop's and the C node's encoder) counts the values
+    CodecTable.saturated names, for random values in and out of every signal's
+    range and bit field, on both shipped matrices and the production one."""
+    import random
+
+    from can_dbc.table import CodecTable
+
+    rnd = random.Random(27)
+    checked = 0
+    for path in (M.find_mapping("vehicle"), M.find_mapping("dct_hil"), PT_TOML):
+        m = M.load(path)
+        for bus in m.buses:
+            table = CodecTable([(x.message, x.protection) for x in m.codec_order(bus.name)])
+            for i, msg in enumerate(table.messages):
+                sigs = msg.signals
+                for _ in range(40):
+                    values = {}
+                    for s in sigs:
+                        lo = s.minimum if s.minimum is not None else -1000.0
+                        hi = s.maximum if s.maximum is not None else 1000.0
+                        span = max(hi - lo, 1.0)
+                        values[s.name] = rnd.choice([lo, hi, rnd.uniform(lo, hi), lo - rnd.uniform(0, span),
+                                                     hi + rnd.uniform(0, span), -abs(rnd.uniform(1, 1e6)),
+                                                     float("nan")])
+                    arr = table.ffi.new("double[]", len(sigs))
+                    for k, s in enumerate(sigs):
+                        arr[k] = values[s.name]
+                    data = table.ffi.new("uint8_t[]", 64)
+                    count = table.ffi.new("uint32_t *", 0)
+                    table.lib.ct_encode_counted(table.table, i, arr, data, count)
+                    expected = table.saturated(i, values)
+                    assert count[0] == len(expected), (msg.name, values, expected)
+                    checked += bool(expected)
+    assert checked > 100
+
+
+@pytest.fixture
+def narrow_torque_request(tmp_path):
+    """The vehicle matrix with TCU_TorqueReq.TrqReqValue limited to 10..204.7 %: the
+    reference TCU's 0 % (no request, at the start and while it has no plant) is out of range."""
+    root = os.path.dirname(M.find_mapping("vehicle"))
+    (tmp_path / "mappings").mkdir()
+    (tmp_path / "matrices").mkdir()
+    shutil.copy(os.path.join(root, "vehicle.toml"), tmp_path / "mappings" / "vehicle.toml")
+    for name in ("vehicle_pt.dbc", "vehicle_io.dbc"):
+        shutil.copy(os.path.join(root, "..", "matrices", name), tmp_path / "matrices" / name)
+    dbc = tmp_path / "matrices" / "vehicle_pt.dbc"
+    text = dbc.read_text()
+    old = 'SG_ TrqReqValue : 12|12@1- (0.1,0) [-204.8|204.7] "%"'
+    assert old in text
+    dbc.write_text(text.replace(old, 'SG_ TrqReqValue : 12|12@1- (0.1,0) [10|204.7] "%"'))
+    return M.load(str(tmp_path / "mappings" / "vehicle.toml"))
+
+
+@pytest.mark.parametrize("impl", ["python", "c"])
+def test_the_tcu_nodes_count_the_values_their_codec_limits(impl, narrow_torque_request):
+    import time
+
+    from tcu_stub.c_node import CTcuNode
+    from tcu_stub.can_tcu import CanTcu
+
+    opener = CanTcu.open if impl == "python" else CTcuNode.open
+    kw = {} if impl == "python" else {"priority": 0}
+    with opener("virtual", f"saturated-{impl}", mapping=narrow_torque_request, **kw) as tcu:
+        deadline = time.monotonic() + 10
+        while tcu.report()["sent"]["pt:TCU_TorqueReq"]["frames"] < 20 and time.monotonic() < deadline:
+            time.sleep(0.02)
+    rep = tcu.report()
+    req = rep["sent"]["pt:TCU_TorqueReq"]
+    assert req["frames"] >= 20
+    assert req["saturated"] == req["frames"]                 # its 0 % went out as 10 % in every frame
+    assert rep["saturated"] == sum(s["saturated"] for s in rep["sent"].values()) == req["frames"]
+
+
+def test_the_contract_peer_counts_the_values_its_encoder_limits():
+    from can_dbc.peer import CanPeer
+
+    with CanPeer.open(side="tcu", interface="virtual", channel="saturated-peer", send_thread=False) as peer:
+        assert peer.send_now("TCU_ClutchCmd", {"SolenoidCurrent1": 0.5})
+        assert peer.report()["sent"]["TCU_ClutchCmd"]["saturated"] == 0
+        assert peer.send_now("TCU_ClutchCmd", {"SolenoidCurrent1": 99.0, "SolenoidCurrent2": -5.0})
+        assert peer.send_now("TCU_ClutchCmd")
+        rep = peer.report()["sent"]["TCU_ClutchCmd"]
+    assert rep["frames"] == 3 and rep["saturated"] == 4

@@ -422,16 +422,26 @@ CT_INLINE double decode_bits(const ct_signal *s, uint64_t u)
 
 /* the raw bits cantools would pack for physical value v, limited as
  * can_table.h says */
-CT_INLINE uint64_t encode_bits(const ct_signal *s, double v)
+/* the raw bits of physical value v; *limited (if not NULL) counts a value
+ * limited to the signal's [minimum, maximum] or bit field (NaN, sent as 0,
+ * is not counted: the same rule as can_dbc.table.CodecTable.saturated) */
+CT_INLINE uint64_t encode_bits_counted(const ct_signal *s, double v, uint32_t *limited)
 {
-    if (isnan(v)) {
+    int nan = isnan(v);
+    if (nan) {
         v = 0.0;
     }
     if (s->limited) {
         if (v < s->minimum) {
             v = s->minimum;
+            if (limited != NULL && !nan)
+                (*limited)++;
+            limited = NULL;           /* counted once */
         } else if (v > s->maximum) {
             v = s->maximum;
+            if (limited != NULL)
+                (*limited)++;
+            limited = NULL;
         }
     }
     double x = (v - s->offset) / s->factor;
@@ -449,8 +459,12 @@ CT_INLINE uint64_t encode_bits(const ct_signal *s, double v)
     double r = rint(x);
     if (!(r >= s->raw_min)) {         /* also NaN, which a finite offset and factor never give */
         r = s->raw_min;
+        if (limited != NULL && !nan)
+            (*limited)++;
     }
     if (r >= s->raw_end) {
+        if (limited != NULL)
+            (*limited)++;
         return s->is_signed ? field_mask(s->length) >> 1 : field_mask(s->length);
     }
     if (r < 0.0) {                    /* signed field: two's complement */
@@ -458,6 +472,11 @@ CT_INLINE uint64_t encode_bits(const ct_signal *s, double v)
         return ((~mag) + 1u) & field_mask(s->length);
     }
     return (uint64_t)r;
+}
+
+CT_INLINE uint64_t encode_bits(const ct_signal *s, double v)
+{
+    return encode_bits_counted(s, v, NULL);
 }
 
 /* ------------------------------------------------------------------ */
@@ -526,7 +545,8 @@ int ct_find(const ct_table *t, uint32_t id, int extended)
     return -1;
 }
 
-int ct_encode(const ct_table *t, int msg, const double *values, uint8_t *data)
+int ct_encode_counted(const ct_table *t, int msg, const double *values, uint8_t *data,
+                      uint32_t *saturated)
 {
     const ct_message *m = message(t, msg);
     if (m == NULL) {
@@ -538,9 +558,14 @@ int ct_encode(const ct_table *t, int msg, const double *values, uint8_t *data)
         if (sig[i].mux_signal >= 0 && !selected(t, m, (int)i, NULL, values)) {
             continue;
         }
-        put_bits(data, &sig[i], encode_bits(&sig[i], values[i]));
+        put_bits(data, &sig[i], encode_bits_counted(&sig[i], values[i], saturated));
     }
     return m->length;
+}
+
+int ct_encode(const ct_table *t, int msg, const double *values, uint8_t *data)
+{
+    return ct_encode_counted(t, msg, values, data, NULL);
 }
 
 int ct_put_raw(const ct_table *t, int msg, int signal, int64_t raw, uint8_t *data)

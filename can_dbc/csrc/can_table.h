@@ -160,6 +160,12 @@ int ct_find(const ct_table *t, uint32_t id, int extended);
  * them. Returns the length, -1 for a bad msg. */
 int ct_encode(const ct_table *t, int msg, const double *values, uint8_t *data);
 
+/* ct_encode, adding to *saturated (if not NULL) the number of values it
+ * limited to their signal's [minimum, maximum] or bit field (NaN, sent as 0,
+ * not counted; signals of branches the frame does not carry not counted) */
+int ct_encode_counted(const ct_table *t, int msg, const double *values, uint8_t *data,
+                      uint32_t *saturated);
+
 /* Unpacks data (len bytes) into values (one per signal, physical).
  * Multiplexed signals whose branch the frame does not select are left
  * untouched; written (if not NULL, one byte per signal) is set to 1 for

@@ -221,7 +221,8 @@ static int send_message(tcu_node *n, int j, const double *values)
     f.id = m->id | (m->extended ? TCU_FRAME_EFF : 0);
     f.flags = m->fd ? TCU_FRAME_FD : 0;
     f.channel = (uint8_t)t->bus;
-    int len = ct_encode(table, t->msg, values, f.data);
+    uint32_t saturated = 0;
+    int len = ct_encode_counted(table, t->msg, values, f.data, &saturated);
     ct_protect(table, t->msg, f.data, n->counter[j]);
     f.len = (uint8_t)len;
     tcu_node_figures *g = &n->fig;
@@ -234,6 +235,7 @@ static int send_message(tcu_node *n, int j, const double *values)
     }
     n->counter[j]++;
     g->sent[j]++;
+    g->saturated[j] += saturated;
     return 0;
 }
 

@@ -176,6 +176,8 @@ typedef struct {
     tcu_node_rx_counts rx[TCU_NODE_MAX_RX];
     uint64_t sent[TCU_NODE_MAX_TX];
     uint64_t send_errors[TCU_NODE_MAX_TX];
+    uint64_t saturated[TCU_NODE_MAX_TX];  /* values the codec limited to their signal's range
+                                             or bit field (ct_encode_counted), frames sent */
     int32_t last_send_error_tx;       /* the message of the last failed send (-1: none) */
     int32_t last_send_errno;
     uint64_t unknown[TCU_NODE_MAX_BUSES];
