@@ -58,7 +58,7 @@
 #define RT_XCP_UDP_PAYLOAD 1472       /* an Ethernet payload less IPv4 and UDP headers */
 #define RT_XCP_TCP_QUEUE_BYTES 1048576
 #define RT_XCP_BATCH 64               /* DTOs popped from the ring at once */
-#define RT_XCP_DELAY_BINS 20000       /* 1 us bins, 0 .. 19.999 ms; the last holds all above */
+#define RT_XCP_DELAY_BINS 100000      /* 1 us bins, 0 .. 99.999 ms; the last holds all above */
 #define RT_XCP_ERRNO_SLOTS 160        /* send errors by errno (0: any errno beyond) */
 #define RT_XCP_POLL_US 200            /* the sender's pause when the ring ran dry, lists running */
 #define RT_XCP_IDLE_US 5000           /* ... and when no list runs */
