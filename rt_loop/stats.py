@@ -157,7 +157,8 @@ class StatsReader:
                          "bad_crc": int(m.bad_crc), "bad_counter": int(m.bad_counter),
                          "timeouts": int(m.timeouts), "timed_out": bool(m.timed_out),
                          "optional": name in self.optional}
-        plant = {name: {"sent": int(s.msgs[i].frames), "dropped": int(s.msgs[i].dropped)}
+        plant = {name: {"sent": int(s.msgs[i].frames), "dropped": int(s.msgs[i].dropped),
+                        "saturated": int(s.msgs[i].saturated)}
                  for i, name in self.tx_messages}
         channels = {}
         for k, bus in enumerate(self.buses):
@@ -172,7 +173,8 @@ class StatsReader:
             "overruns": int(s.overruns),
             "skipped_ticks": int(s.skipped_ticks),
             "rx": rx,
-            "tx": {key: int(getattr(s, field)) for key, field in _TX_COUNTS},
+            "tx": {**{key: int(getattr(s, field)) for key, field in _TX_COUNTS},
+                   "saturated": sum(m["saturated"] for m in plant.values())},
             "tcu_messages": tcu,
             "plant_messages": plant,
             "channels": channels,

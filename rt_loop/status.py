@@ -307,7 +307,10 @@ def summary_lines(report: dict, stats_path: str) -> list[str]:
         f"received          {rx['frames']} frames: {rx['accepted']} accepted, {rx['rejected']} "
         f"rejected (unknown id {rx['unknown_id']}, length {rx['bad_length']}, CRC "
         f"{rx['bad_crc']}, counter {rx['bad_counter']}), {_lost(rx)}",
-        f"sent              {tx['frames']} frames, {tx['dropped']} dropped",
+        f"sent              {tx['frames']} frames, {tx['dropped']} dropped"
+        + (f", {tx['saturated']} values saturated (limited to their signal's range: "
+           + ", ".join(f"{n} {m['saturated']}" for n, m in c["plant_messages"].items() if m.get("saturated"))
+           + ")" if tx.get("saturated") else ""),
         f"TCU timeouts      {tcu}",
     ]
     if c.get("bridge"):

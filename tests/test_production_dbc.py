@@ -333,10 +333,8 @@ def test_the_c_codec_counts_what_it_limits_as_the_python_check_names_it():
     assert checked > 100
 
 
-@pytest.fixture
-def narrow_torque_request(tmp_path):
-    """The vehicle matrix with TCU_TorqueReq.TrqReqValue limited to 10..204.7 %: the
-    reference TCU's 0 % (no request, at the start and while it has no plant) is out of range."""
+def _vehicle_narrowed(tmp_path, old, new):
+    """The vehicle matrix (a copy in tmp_path) with one signal line of vehicle_pt.dbc replaced."""
     root = os.path.dirname(M.find_mapping("vehicle"))
     (tmp_path / "mappings").mkdir()
     (tmp_path / "matrices").mkdir()
@@ -345,10 +343,17 @@ def narrow_torque_request(tmp_path):
         shutil.copy(os.path.join(root, "..", "matrices", name), tmp_path / "matrices" / name)
     dbc = tmp_path / "matrices" / "vehicle_pt.dbc"
     text = dbc.read_text()
-    old = 'SG_ TrqReqValue : 12|12@1- (0.1,0) [-204.8|204.7] "%"'
     assert old in text
-    dbc.write_text(text.replace(old, 'SG_ TrqReqValue : 12|12@1- (0.1,0) [10|204.7] "%"'))
+    dbc.write_text(text.replace(old, new))
     return M.load(str(tmp_path / "mappings" / "vehicle.toml"))
+
+
+@pytest.fixture
+def narrow_torque_request(tmp_path):
+    """TCU_TorqueReq.TrqReqValue limited to 10..204.7 %: the reference TCU's 0 % (no
+    request, at the start and while it has no plant) is out of range."""
+    return _vehicle_narrowed(tmp_path, 'SG_ TrqReqValue : 12|12@1- (0.1,0) [-204.8|204.7] "%"',
+                             'SG_ TrqReqValue : 12|12@1- (0.1,0) [10|204.7] "%"')
 
 
 @pytest.mark.parametrize("impl", ["python", "c"])
@@ -381,3 +386,33 @@ def test_the_contract_peer_counts_the_values_its_encoder_limits():
         assert peer.send_now("TCU_ClutchCmd")
         rep = peer.report()["sent"]["TCU_ClutchCmd"]
     assert rep["frames"] == 3 and rep["saturated"] == 4
+
+
+def test_the_loop_counts_the_values_its_codec_limits(tmp_path):
+    """ECM_Speed.EngineSpeed limited to 1000..16383.75 rpm: the idling engine's 750 rpm
+    goes out as 1000 rpm in every frame the loop makes, each counted."""
+    import time
+
+    from rt_loop.server import Server
+    from rt_loop.status import summary_lines
+
+    m = _vehicle_narrowed(tmp_path, 'SG_ EngineSpeed : 0|16@1+ (0.25,0) [0|16383.75] "rpm"',
+                          'SG_ EngineSpeed : 0|16@1+ (0.25,0) [1000|16383.75] "rpm"')
+    srv = Server("saturated-loop", interface="virtual", priority=0, mapping=m)
+    try:
+        srv.start()
+        deadline = time.monotonic() + 10
+        while srv.snapshot()["counts"]["plant_messages"]["pt:ECM_Speed"]["sent"] < 20 \
+                and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        srv.stop()
+    report = srv.report(histograms=False)
+    c = report["counts"]
+    speed = c["plant_messages"]["pt:ECM_Speed"]
+    assert speed["sent"] >= 20 and speed["dropped"] == 0
+    assert speed["saturated"] == speed["sent"]
+    assert c["tx"]["saturated"] == speed["saturated"]           # nothing else out of range
+    assert all(x["saturated"] == 0 for n, x in c["plant_messages"].items() if n != "pt:ECM_Speed")
+    line = next(x for x in summary_lines(report, "stats.json") if x.startswith("sent"))
+    assert f"{speed['saturated']} values saturated" in line and "pt:ECM_Speed" in line

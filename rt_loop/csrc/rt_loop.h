@@ -573,6 +573,8 @@ typedef struct {
     uint64_t bad_counter;
     uint64_t timeouts;                /* received: times it timed out */
     uint64_t dropped;                 /* sent: refused by a full socket buffer or ring */
+    uint64_t saturated;               /* sent: values the codec limited to their signal's
+                                         range or bit field, in the frames made (ct_encode_counted) */
     int32_t timed_out;                /* received: 1 while timed out (all are at start) */
     int32_t reserved;
 } rt_msg_stats;

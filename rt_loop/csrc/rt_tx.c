@@ -220,7 +220,9 @@ static void make_frame(rt_run *r, int c, int m, int nf)
     f->channel = (uint8_t)c;
     f->reserved = 0;
     f->len = cm->length;
-    (void)ct_encode(&ch->table, m, r->values, f->data);
+    uint32_t saturated = 0;
+    (void)ct_encode_counted(&ch->table, m, r->values, f->data, &saturated);
+    r->c.msgs[g].saturated += saturated;
     if (r->f.msg_signal_faults[g])
         rtf_raw(&r->f, &ch->table, m, g, f->data);
     /* the counter in 64 bits first: it wraps at its own modulus, never at 2^32 */

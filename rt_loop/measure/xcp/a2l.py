@@ -163,7 +163,7 @@ _EVENTS = (("tick", "RT_EVENT_TICK", 0.0), ("10ms", "RT_EVENT_10MS", 0.010),
 
 # rt_msg_stats fields that do not apply to a sent / a received message
 _SENT_SKIP = frozenset({"bad_length", "bad_crc", "bad_counter", "timeouts", "timed_out", "reserved"})
-_RECEIVED_SKIP = frozenset({"dropped", "reserved"})
+_RECEIVED_SKIP = frozenset({"dropped", "saturated", "reserved"})
 
 _WIDE = 1e12                       # limits of a double without a better bound
 _UNIT_LIMITS = {"rpm": 30000.0, "km/h": 600.0, "%": 1000.0, "bar": 1000.0, "A": 100.0}
