@@ -87,9 +87,9 @@ Rules:
   (overlapping signals, lengths, cycle times, identifiers): see ``load``.
 - A bus's matrix may be an ARXML, KCD or SYM file (by its suffix;
   ``can_dbc.matrix``). A message an ARXML protects end to end (an E2E
-  transformer or protection set: profile 1, 2, 4 or 5, its Data IDs, where
-  its CRC and counter are) has that protection unless its entry gives
-  ``protection`` (``"none"`` too); a profile the codec lacks (7 on CAN FD,
+  transformer or protection set: profile 1, 2, 4, 5 or 7, its Data IDs,
+  where its CRC and counter are) has that protection unless its entry gives
+  ``protection`` (``"none"`` too); a profile the codec lacks (6, 11, 22,
   ...) is an error naming it for a used message without one.
 """
 
@@ -1695,7 +1695,7 @@ def template(dbc_path, *, tcu_nodes=(), tcu_messages=(), plant_nodes=(), bitrate
                                           f"counter = \"{cnt[0]}\"" if cnt else "") if x)
             w(f"# protection = {{ kind = \"?\", {parts} }}")
             w("#   (a checksum or counter by its name; the DBC does not say how it is computed: kind is")
-            w("#    none, counter, dct, p1 (data_id), p2 (data_id_list), xor, p5 or p4 (data_id);")
+            w("#    none, counter, dct, p1 (data_id), p2 (data_id_list), xor, p5, p4 or p7 (data_id);")
             w("#    see can_dbc/protection.py)")
 
     def signals(m, direction):

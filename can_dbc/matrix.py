@@ -13,7 +13,8 @@ E2E transformer (an I-signal group's END-TO-END-TRANSFORMATION-I-SIGNAL-PROPS
 and the END-TO-END-TRANSFORMATION-DESCRIPTION of its transformer) or from an
 END-TO-END-PROTECTION-SET (END-TO-END-PROFILE, the PDUs it protects). The
 profile names the kind (``PROFILE_01`` p1, ``PROFILE_02`` p2, ``PROFILE_04``
-p4, ``PROFILE_05`` p5); DATA-IDS the Data ID (P1, P4, P5) or the 16 of P2; DATA-ID-MODE P1's mode
+p4, ``PROFILE_05`` p5, ``PROFILE_07`` p7); DATA-IDS the Data ID (P1, P4, P5,
+P7) or the 16 of P2; DATA-ID-MODE P1's mode
 (ALL_16_BIT both, ALTERNATING_8_BIT alt, LOWER_8_BIT low, LOWER_12_BIT
 nibble); MAX-DELTA-COUNTER (or MAX-DELTA-COUNTER-INIT) the counter's
 largest step. The CRC and counter signals are the message's signals where
@@ -22,10 +23,10 @@ the profile puts them: P1 the CRC byte at CRC-OFFSET (bits, default 0), the
 DATA-ID-NIBBLE-OFFSET (default 12); P2 the CRC in byte 0, the counter in
 the low nibble of byte 1; P5 the 16-bit CRC at OFFSET (bits, default 0),
 low byte first, and the counter byte after it; P4 the 16-bit counter 2
-bytes after OFFSET and the 32-bit CRC 8 bytes after it, big endian (named
-when the message has signals there; the codec writes the header either way).
-A profile the codec does not have (P7: CAN FD, CRC-64, a 32-bit counter;
-P6, P11, P22, ...) or a field
+bytes after OFFSET and the 32-bit CRC 8 bytes after it, big endian; P7 the
+64-bit CRC at OFFSET and the 32-bit counter 12 bytes after it, big endian
+(named when the message has signals there; the codec writes the header
+either way). A profile the codec does not have (P6, P11, P22, ...) or a field
 the message lacks is kept as the cause of a one-line error, raised only when
 the message is used without a ``protection`` in the mapping.
 """
@@ -48,7 +49,7 @@ __all__ = ["FORMATS", "file_protections", "matrix_format", "read_matrix", "selec
 #: file suffix -> cantools database format
 FORMATS = {".dbc": "dbc", ".arxml": "arxml", ".kcd": "kcd", ".sym": "sym"}
 #: the ARXML profile numbers the codec has, as protection kinds
-_PROFILES = {1: "p1", 2: "p2", 4: "p4", 5: "p5"}
+_PROFILES = {1: "p1", 2: "p2", 4: "p4", 5: "p5", 7: "p7"}
 _P1_MODES = {"ALL_16_BIT": "both", "ALTERNATING_8_BIT": "alt", "LOWER_8_BIT": "low",
              "LOWER_12_BIT": "nibble"}
 
@@ -248,9 +249,7 @@ def _protection(msg, profile, fields, data_ids):
     kind = _PROFILES.get(number)
     if kind is None:
         what = f"E2E profile {profile or '(unnamed)'}"
-        if number == 7:
-            what += " (CAN FD, CRC-64, a 32-bit counter)"
-        return f"{what} is not supported: the codec has profiles 1, 2, 4 and 5; give the message's protection"
+        return f"{what} is not supported: the codec has profiles 1, 2, 4, 5 and 7; give the message's protection"
     delta = fields.get("MAX-DELTA-COUNTER", fields.get("MAX-DELTA-COUNTER-INIT"))
     extra = {} if delta is None else {"max_delta_counter": delta}
     if kind in HEADER_BYTES:
@@ -260,7 +259,7 @@ def _protection(msg, profile, fields, data_ids):
         if offset % 8 or offset // 8 + HEADER_BYTES[kind] > msg.length:
             return (f"E2E profile {number} header ({HEADER_BYTES[kind]} bytes) at bit {offset} does not fit "
                     f"the {msg.length}-byte frame")
-        if not 0 <= data_ids[0] < 2 ** (32 if kind == "p4" else 16):
+        if not 0 <= data_ids[0] < 2 ** (16 if kind == "p5" else 32):
             return f"E2E profile {number}'s Data ID {data_ids[0]} is out of range"
         prot = Protection(kind=kind, data_id=data_ids[0], offset_bits=offset, **extra)
         return replace(prot, crc_signal=_signal_at(msg, header_field_bits(prot, "crc")),

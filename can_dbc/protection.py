@@ -51,6 +51,17 @@ Kinds:
     Motorola signal on the counter) name the message's signals there when it
     has them. A receiver also rejects a frame whose length or Data ID field
     is not the message's (as a bad CRC). ``max_delta_counter`` 1..255.
+``p7``
+    AUTOSAR E2E Profile 7 (CAN FD frames: its header takes 20 bytes): at bit
+    ``offset_bits``, each field big endian, the CRC-64 (ECMA-182 poly
+    0x42F0E1EBA9EA3693, reflected, init and final XOR all ones; CRC-64/XZ)
+    over every byte but the CRC's, the frame's length (32 bits), the counter
+    (32 bits) and the Data ID (``data_id``, 32 bits); ``crc`` (a 64-bit
+    Motorola signal) and ``counter`` (a 32-bit Motorola signal) name the
+    message's signals there. As P4's, a frame with another length or Data ID
+    is rejected as a bad CRC. The loop's counter runs 0 .. 2^32 - 2 (its
+    counter modulus is 32 bits); a receiver that accepted 0xFFFFFFFF takes
+    the next frame as its first. ``max_delta_counter`` 1..255.
 
 A receiver rejects a frame whose checksum is wrong or whose counter repeats
 or advances by more than ``max_delta_counter``.
@@ -64,7 +75,7 @@ from typing import Any
 __all__ = ["HEADER_BYTES", "HEADER_FIELDS", "KINDS", "P1_DATA_ID_MODES", "Protection", "ProtectionError",
            "header_field_bits", "parse_protection"]
 
-KINDS = ("none", "counter", "dct", "p1", "p2", "xor", "p5", "p4")
+KINDS = ("none", "counter", "dct", "p1", "p2", "xor", "p5", "p4", "p7")
 P1_DATA_ID_MODES = ("both", "alt", "low", "nibble")
 #: which fields each kind needs
 _NEEDS = {
@@ -76,18 +87,20 @@ _NEEDS = {
     "xor": ("crc_signal",),
     "p5": ("data_id",),
     "p4": ("data_id",),
+    "p7": ("data_id",),
 }
 #: the largest max_delta_counter per kind (the counter's range less one; 14 for the 4-bit ones)
-_MAX_DELTA = {"p5": 255, "p4": 255}
+_MAX_DELTA = {"p5": 255, "p4": 255, "p7": 255}
 #: the Data ID's largest value per kind (16 bits unless named here)
-_MAX_DATA_ID = {"p4": 0xFFFFFFFF}
+_MAX_DATA_ID = {"p4": 0xFFFFFFFF, "p7": 0xFFFFFFFF}
 #: the kinds with a header at offset_bits: its length in bytes
-HEADER_BYTES = {"p5": 3, "p4": 12}
+HEADER_BYTES = {"p5": 3, "p4": 12, "p7": 20}
 #: the fields of the header kinds: role -> (byte within the header, bits, byte order of a
 #: multi-byte field), and the profile's number
 HEADER_FIELDS = {
     "p5": (5, {"crc": (0, 16, "little_endian"), "counter": (2, 8, None)}),
     "p4": (4, {"counter": (2, 16, "big_endian"), "crc": (8, 32, "big_endian")}),
+    "p7": (7, {"crc": (0, 64, "big_endian"), "counter": (12, 32, "big_endian")}),
 }
 
 
@@ -111,12 +124,12 @@ class Protection:
     kind: str = "none"
     crc_signal: str | None = None           # the checksum signal (dct, p1, p2, xor)
     counter_signal: str | None = None       # the counter signal
-    data_id: int | None = None              # p1, p5: 16-bit Data ID; p4: 32 bits
+    data_id: int | None = None              # p1, p5: 16-bit Data ID; p4, p7: 32 bits
     data_id_mode: str = "both"              # p1: P1_DATA_ID_MODES
     data_id_nibble_signal: str | None = None  # p1 "nibble": where the high nibble goes
     data_id_list: tuple[int, ...] | None = None  # p2: 16 Data IDs (8 bits), one per counter value
     max_delta_counter: int = 2              # a counter may advance by 1..this
-    offset_bits: int = 0                    # p5, p4: where the header starts, a multiple of 8
+    offset_bits: int = 0                    # p5, p4, p7: where the header starts, a multiple of 8
     extra: dict = field(default_factory=dict, compare=False, repr=False)
 
     def signals(self) -> tuple[str, ...]:
@@ -172,8 +185,8 @@ def parse_protection(spec: Any, where: str) -> Protection:
         raise ProtectionError(f"{where}.max_delta_counter: must be 1..{most}, got {delta!r}")
     offset = spec.get("offset_bits", 0)
     if "offset_bits" in spec and kind not in HEADER_BYTES:
-        raise ProtectionError(f"{where}.offset_bits: only protections p4 and p5 have an offset (their "
-                              "header's first bit)")
+        raise ProtectionError(f"{where}.offset_bits: only protections p4, p5 and p7 have an offset "
+                              "(their header's first bit)")
     last = 8 * (64 - HEADER_BYTES.get(kind, 3))
     if isinstance(offset, bool) or not isinstance(offset, int) or not 0 <= offset <= last or offset % 8:
         raise ProtectionError(f"{where}.offset_bits: must be the header's first bit, a multiple of 8 "

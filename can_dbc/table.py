@@ -481,12 +481,12 @@ def _check_protection(msg, prot):
 
 
 def _check_header(msg, prot):
-    """Profiles 5 and 4: the Data ID, the header inside the frame, the named
+    """Profiles 5, 4 and 7: the Data ID, the header inside the frame, the named
     CRC and counter signals on the header's fields, no other signal on the
     header (the codec writes it)."""
     number, fields = HEADER_FIELDS[prot.kind]
     size = HEADER_BYTES[prot.kind]
-    id_bits = 32 if prot.kind == "p4" else 16
+    id_bits = 32 if prot.kind in ("p4", "p7") else 16
     what = f"E2E Profile {number}"
     if prot.data_id is None or not 0 <= prot.data_id < 2 ** id_bits:
         raise TableError(f"{msg.name}: protection {prot.kind!r} needs data_id ({id_bits} bits)")
@@ -533,8 +533,8 @@ def _fill_protection(cm, msg, prot, index):
         if kind == "p5":
             cm.counter_modulus = 256
             cm.data_id = prot.data_id
-        else:                                    # p4: the 32-bit Data ID in data_id_list[0..3]
-            cm.counter_modulus = 65536
+        else:                                    # p4, p7: the 32-bit Data ID in data_id_list[0..3]
+            cm.counter_modulus = 65536 if kind == "p4" else 0xFFFFFFFF
             for k in range(4):
                 cm.data_id_list[k] = (prot.data_id >> (8 * k)) & 0xFF
         if prot.crc_signal:

@@ -2,7 +2,7 @@
 
 ``arxml_text(mapping, bus)`` writes the bus's matrix (its DBC, as cantools
 reads it) in AUTOSAR R4 form, with the mapping's end-to-end protection where
-AUTOSAR has it (Profiles 1, 2, 4 and 5 as E2E transformers):
+AUTOSAR has it (Profiles 1, 2, 4, 5 and 7 as E2E transformers):
 
 * ``<package>/Units``, ``CompuMethods`` (factor and offset as a LINEAR scale
   over the raw range, value names as TEXTTABLE scales beside it), ``BaseTypes``
@@ -12,8 +12,8 @@ AUTOSAR has it (Profiles 1, 2, 4 and 5 as E2E transformers):
   END-TO-END-TRANSFORMATION-I-SIGNAL-PROPS: transformer and Data IDs) and
   ``Transformers`` (a DATA-TRANSFORMATION-SET: one E2E transformation
   technology per profile configuration: CRC, counter and Data ID nibble
-  offsets, Data ID mode, max delta counter; Profiles 4 and 5 their header's
-  OFFSET);
+  offsets, Data ID mode, max delta counter; Profiles 4, 5 and 7 their
+  header's OFFSET);
 * ``Pdus``: an I-SIGNAL-I-PDU per message (length, cycle time, unused bits 0,
   I-signal-to-PDU mappings with start position and packing byte order), a
   MULTIPLEXED-I-PDU with one alternative I-SIGNAL-I-PDU per branch for a
@@ -51,7 +51,8 @@ __all__ = ["E2E_KINDS", "arxml_text", "example_mapping_text", "main"]
 NS = "http://autosar.org/schema/r4.0"
 SCHEMA = "http://autosar.org/schema/r4.0 AUTOSAR_4-2-2.xsd"
 #: the protection kinds an ARXML can carry, as AUTOSAR profile names
-E2E_KINDS = {"p1": "PROFILE_01", "p2": "PROFILE_02", "p4": "PROFILE_04", "p5": "PROFILE_05"}
+E2E_KINDS = {"p1": "PROFILE_01", "p2": "PROFILE_02", "p4": "PROFILE_04", "p5": "PROFILE_05",
+             "p7": "PROFILE_07"}
 _P1_MODES = {"both": "ALL_16_BIT", "alt": "ALTERNATING_8_BIT", "low": "LOWER_8_BIT",
              "nibble": "LOWER_12_BIT"}
 
@@ -219,7 +220,7 @@ class _Writer:
             fields["DATA-ID-MODE"] = _P1_MODES[prot.data_id_mode]
             if prot.data_id_mode == "nibble":
                 fields["DATA-ID-NIBBLE-OFFSET"] = min(signal_bits(sigs[prot.data_id_nibble_signal]))
-        if prot.kind in ("p4", "p5"):
+        if prot.kind in ("p4", "p5", "p7"):
             fields["OFFSET"] = prot.offset_bits
         key = tuple(sorted(fields.items()))
         if key not in self.transformers:

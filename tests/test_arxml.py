@@ -315,9 +315,10 @@ def test_the_mapping_overrides_the_files_protection(tmp_path):
 
 
 @pytest.mark.parametrize("profile, fields, ids, words", [
-    ("PROFILE_07", "", (1,), ["PROFILE_07", "CAN FD, CRC-64, a 32-bit counter", "not supported",
-                              "profiles 1, 2, 4 and 5"]),
-    ("PROFILE_11", "", (1,), ["PROFILE_11", "not supported"]),
+    ("PROFILE_11", "", (1,), ["PROFILE_11", "not supported", "profiles 1, 2, 4, 5 and 7",
+                              "give the message's protection"]),
+    ("PROFILE_06", "", (1,), ["PROFILE_06", "not supported"]),
+    ("PROFILE_07", "", (1,), ["profile 7 header (20 bytes) at bit 0", "8-byte frame"]),
     ("PROFILE_04", "", (1,), ["profile 4 header (12 bytes) at bit 0", "8-byte frame"]),
     ("PROFILE_05", "", (1, 2), ["profile 5 needs one Data ID", "gives 2"]),
     ("PROFILE_05", "<OFFSET>48</OFFSET>", (1,), ["header (3 bytes) at bit 48", "8-byte"]),
@@ -337,26 +338,35 @@ def test_a_protection_from_the_file_the_codec_cannot_take_is_one_line(tmp_path, 
 
 
 @pytest.mark.parametrize("style", ["set", "transformer"])
-def test_a_profile_4_can_fd_message_of_an_arxml_is_protected_as_the_file_says(tmp_path, style):
-    msgs = [("Fd", 0x300, [("Fd_Ctr", 23, 16), ("Fd_Crc", 71, 32), ("Fd_Value", 96, 32)], 16)]
-    text = _arxml(msgs, style, "PROFILE_04", (0xDEADBEEF,), "<MAX-DELTA-COUNTER>5</MAX-DELTA-COUNTER>")
-    text = text.replace("MOST-SIGNIFICANT-BYTE-LAST</PACKING-BYTE-ORDER><START-POSITION>23",
-                        "MOST-SIGNIFICANT-BYTE-FIRST</PACKING-BYTE-ORDER><START-POSITION>23")
-    text = text.replace("MOST-SIGNIFICANT-BYTE-LAST</PACKING-BYTE-ORDER><START-POSITION>71",
-                        "MOST-SIGNIFICANT-BYTE-FIRST</PACKING-BYTE-ORDER><START-POSITION>71")
+@pytest.mark.parametrize("profile", ["PROFILE_04", "PROFILE_07"])
+def test_a_profile_4_or_7_can_fd_message_of_an_arxml_is_protected_as_the_file_says(tmp_path, style, profile):
+    if profile == "PROFILE_04":     # counter 16 bits at byte 2, CRC 32 bits at byte 8, Motorola
+        msgs = [("Fd", 0x300, [("Fd_Ctr", 23, 16), ("Fd_Crc", 71, 32), ("Fd_Value", 96, 32)], 16)]
+    else:                           # CRC 64 bits at byte 0, counter 32 bits at byte 12
+        msgs = [("Fd", 0x300, [("Fd_Crc", 7, 64), ("Fd_Ctr", 103, 32), ("Fd_Value", 160, 32)], 24)]
+    text = _arxml(msgs, style, profile, (0xDEADBEEF,), "<MAX-DELTA-COUNTER>5</MAX-DELTA-COUNTER>")
+    for _, start, _ in msgs[0][2][:2]:
+        text = text.replace(f"MOST-SIGNIFICANT-BYTE-LAST</PACKING-BYTE-ORDER><START-POSITION>{start}<",
+                            f"MOST-SIGNIFICANT-BYTE-FIRST</PACKING-BYTE-ORDER><START-POSITION>{start}<")
     path = _mapping(tmp_path, text)
     toml = Path(path).read_text().replace('tcu_nodes = ["T"]', 'tcu_nodes = ["T"]\nfd = true')
     Path(path).write_text(toml)
     m = mapping.load(path)
     msg = m.message("Fd")
     p = msg.protection
+    kind = "p4" if profile == "PROFILE_04" else "p7"
     assert (p.kind, p.data_id, p.offset_bits, p.max_delta_counter, p.crc_signal, p.counter_signal) == \
-        ("p4", 0xDEADBEEF, 0, 5, "Fd_Crc", "Fd_Ctr")
-    assert msg.is_fd and msg.length == 16
-    e2e_p04 = requires.module("e2e.p04")
+        (kind, 0xDEADBEEF, 0, 5, "Fd_Crc", "Fd_Ctr")
+    assert msg.is_fd and msg.length == (16 if kind == "p4" else 24)
     t = CodecTable([(msg.message, p)])
     frame = t.encode(0, {"Fd_Value": 123456}, counter=300)
-    assert e2e_p04.e2e_p04_check(frame, 0xDEADBEEF) and int.from_bytes(frame[2:4], "big") == 300
+    if kind == "p4":
+        assert requires.module("e2e.p04").e2e_p04_check(frame, 0xDEADBEEF)
+        assert int.from_bytes(frame[2:4], "big") == 300
+    else:
+        assert requires.module("e2e.p07").e2e_p07_check(frame, 0xDEADBEEF)
+        assert int.from_bytes(frame[12:16], "big") == 300
+    assert t.decode(0, frame)["Fd_Value"] == 123456
 
 
 def test_a_profile_1_transformer_gives_its_mode_and_offsets(tmp_path):
@@ -457,8 +467,8 @@ def test_the_demo_serves_the_arxml_mapping_and_its_frames_decode(tmp_path):
         assert r["accepted"] > 0 and not any(r["rejected"].values()), (name, r)
 
 
-def test_the_generator_writes_profiles_4_and_5_that_read_back_as_the_mapping_gave_them(tmp_path):
-    """A CAN FD bus whose mapping protects one message with P5 and one with P4:
+def test_the_generator_writes_profiles_4_5_and_7_that_read_back_as_the_mapping_gave_them(tmp_path):
+    """A CAN FD bus whose mapping protects a message with P5, one with P4, one with P7:
     written as ARXML by can_dbc.to_arxml and read back without the mapping's
     protection, the messages have the same protection and give the same frames."""
     from cantools.database.can import Database, Message, Node, Signal
@@ -471,12 +481,18 @@ def test_the_generator_writes_profiles_4_and_5_that_read_back_as_the_mapping_gav
             Message(frame_id=0x130, name="P4_Msg", length=24, senders=["E"], cycle_time=20, is_fd=True, signals=[
                 Signal("P4_Ctr", start=23, length=16, byte_order="big_endian"),
                 Signal("P4_Crc", start=71, length=32, byte_order="big_endian"),
-                Signal("P4_Value", start=96, length=32, is_signed=True)])]
+                Signal("P4_Value", start=96, length=32, is_signed=True)]),
+            Message(frame_id=0x140, name="P7_Msg", length=32, senders=["E"], cycle_time=20, is_fd=True, signals=[
+                Signal("P7_Crc", start=71, length=64, byte_order="big_endian"),
+                Signal("P7_Ctr", start=167, length=32, byte_order="big_endian"),
+                Signal("P7_Value", start=0, length=64)])]
     db = Database(messages=msgs, nodes=[Node("E"), Node("T")], strict=False)
     (tmp_path / "fd.dbc").write_text(db.as_dbc_string(), encoding="utf-8")
     prots = ('[message.P5_Msg]\nprotection = { kind = "p5", data_id = 0x0456, offset_bits = 16, crc = "P5_Crc", '
              'counter = "P5_Ctr", max_delta_counter = 4 }\n'
-             '[message.P4_Msg]\nprotection = { kind = "p4", data_id = 0x12345678, crc = "P4_Crc", counter = "P4_Ctr" }\n')
+             '[message.P4_Msg]\nprotection = { kind = "p4", data_id = 0x12345678, crc = "P4_Crc", counter = "P4_Ctr" }\n'
+             '[message.P7_Msg]\nprotection = { kind = "p7", data_id = 0x9ABCDEF0, offset_bits = 64, crc = "P7_Crc", '
+             'counter = "P7_Ctr", max_delta_counter = 9 }\n')
     head = '[[bus]]\nname = "fd"\ndbc = "{}"\nbitrate = 500000\ndata_bitrate = 2000000\nfd = true\n' \
            'plant_nodes = ["E"]\ntcu_nodes = ["T"]\n'
     (tmp_path / "dbc.toml").write_text(head.format("fd.dbc") + prots, encoding="utf-8")

@@ -27,7 +27,11 @@
  *        (bytes, 16 bit), the counter (0..65535), the Data ID (32 bit, in
  *        data_id_list[0..3] low byte first), the CRC-32P4 (0xF4ACFB13,
  *        reflected, init and final XOR 0xFFFFFFFF) over bytes 0 .. h+7 and
- *        h+12 .. len-1.
+ *        h+12 .. len-1;
+ *   P7   a 20-byte header at byte h, each field big endian: the CRC-64
+ *        (ECMA-182 0x42F0E1EBA9EA3693, reflected, init and final XOR all
+ *        ones) over bytes 0 .. h-1 and h+8 .. len-1, the length (32 bit),
+ *        the counter (32 bit), the Data ID (32 bit, as P4's).
  *
  * Floating point: every double converted to an integer has been limited to
  * the integer's range first; rint() rounds half to even in the default
@@ -186,6 +190,98 @@ static const uint32_t crc_p4[256] = {
     0xCE99CC86u, 0xFE1CC373u, 0xAF93D36Cu, 0x9F16DC99u
 };
 
+/* the next CRC-64 register after one byte (ECMA-182 polynomial
+ * 0x42F0E1EBA9EA3693 reflected, E2E Profile 7): crc = (crc >> 8) ^
+ * crc_64[(crc ^ byte) & 0xFF] */
+static const uint64_t crc_64[256] = {
+    0x0000000000000000u, 0xB32E4CBE03A75F6Fu, 0xF4843657A840A05Bu,
+    0x47AA7AE9ABE7FF34u, 0x7BD0C384FF8F5E33u, 0xC8FE8F3AFC28015Cu,
+    0x8F54F5D357CFFE68u, 0x3C7AB96D5468A107u, 0xF7A18709FF1EBC66u,
+    0x448FCBB7FCB9E309u, 0x0325B15E575E1C3Du, 0xB00BFDE054F94352u,
+    0x8C71448D0091E255u, 0x3F5F08330336BD3Au, 0x78F572DAA8D1420Eu,
+    0xCBDB3E64AB761D61u, 0x7D9BA13851336649u, 0xCEB5ED8652943926u,
+    0x891F976FF973C612u, 0x3A31DBD1FAD4997Du, 0x064B62BCAEBC387Au,
+    0xB5652E02AD1B6715u, 0xF2CF54EB06FC9821u, 0x41E11855055BC74Eu,
+    0x8A3A2631AE2DDA2Fu, 0x39146A8FAD8A8540u, 0x7EBE1066066D7A74u,
+    0xCD905CD805CA251Bu, 0xF1EAE5B551A2841Cu, 0x42C4A90B5205DB73u,
+    0x056ED3E2F9E22447u, 0xB6409F5CFA457B28u, 0xFB374270A266CC92u,
+    0x48190ECEA1C193FDu, 0x0FB374270A266CC9u, 0xBC9D3899098133A6u,
+    0x80E781F45DE992A1u, 0x33C9CD4A5E4ECDCEu, 0x7463B7A3F5A932FAu,
+    0xC74DFB1DF60E6D95u, 0x0C96C5795D7870F4u, 0xBFB889C75EDF2F9Bu,
+    0xF812F32EF538D0AFu, 0x4B3CBF90F69F8FC0u, 0x774606FDA2F72EC7u,
+    0xC4684A43A15071A8u, 0x83C230AA0AB78E9Cu, 0x30EC7C140910D1F3u,
+    0x86ACE348F355AADBu, 0x3582AFF6F0F2F5B4u, 0x7228D51F5B150A80u,
+    0xC10699A158B255EFu, 0xFD7C20CC0CDAF4E8u, 0x4E526C720F7DAB87u,
+    0x09F8169BA49A54B3u, 0xBAD65A25A73D0BDCu, 0x710D64410C4B16BDu,
+    0xC22328FF0FEC49D2u, 0x85895216A40BB6E6u, 0x36A71EA8A7ACE989u,
+    0x0ADDA7C5F3C4488Eu, 0xB9F3EB7BF06317E1u, 0xFE5991925B84E8D5u,
+    0x4D77DD2C5823B7BAu, 0x64B62BCAEBC387A1u, 0xD7986774E864D8CEu,
+    0x90321D9D438327FAu, 0x231C512340247895u, 0x1F66E84E144CD992u,
+    0xAC48A4F017EB86FDu, 0xEBE2DE19BC0C79C9u, 0x58CC92A7BFAB26A6u,
+    0x9317ACC314DD3BC7u, 0x2039E07D177A64A8u, 0x67939A94BC9D9B9Cu,
+    0xD4BDD62ABF3AC4F3u, 0xE8C76F47EB5265F4u, 0x5BE923F9E8F53A9Bu,
+    0x1C4359104312C5AFu, 0xAF6D15AE40B59AC0u, 0x192D8AF2BAF0E1E8u,
+    0xAA03C64CB957BE87u, 0xEDA9BCA512B041B3u, 0x5E87F01B11171EDCu,
+    0x62FD4976457FBFDBu, 0xD1D305C846D8E0B4u, 0x96797F21ED3F1F80u,
+    0x2557339FEE9840EFu, 0xEE8C0DFB45EE5D8Eu, 0x5DA24145464902E1u,
+    0x1A083BACEDAEFDD5u, 0xA9267712EE09A2BAu, 0x955CCE7FBA6103BDu,
+    0x267282C1B9C65CD2u, 0x61D8F8281221A3E6u, 0xD2F6B4961186FC89u,
+    0x9F8169BA49A54B33u, 0x2CAF25044A02145Cu, 0x6B055FEDE1E5EB68u,
+    0xD82B1353E242B407u, 0xE451AA3EB62A1500u, 0x577FE680B58D4A6Fu,
+    0x10D59C691E6AB55Bu, 0xA3FBD0D71DCDEA34u, 0x6820EEB3B6BBF755u,
+    0xDB0EA20DB51CA83Au, 0x9CA4D8E41EFB570Eu, 0x2F8A945A1D5C0861u,
+    0x13F02D374934A966u, 0xA0DE61894A93F609u, 0xE7741B60E174093Du,
+    0x545A57DEE2D35652u, 0xE21AC88218962D7Au, 0x5134843C1B317215u,
+    0x169EFED5B0D68D21u, 0xA5B0B26BB371D24Eu, 0x99CA0B06E7197349u,
+    0x2AE447B8E4BE2C26u, 0x6D4E3D514F59D312u, 0xDE6071EF4CFE8C7Du,
+    0x15BB4F8BE788911Cu, 0xA6950335E42FCE73u, 0xE13F79DC4FC83147u,
+    0x521135624C6F6E28u, 0x6E6B8C0F1807CF2Fu, 0xDD45C0B11BA09040u,
+    0x9AEFBA58B0476F74u, 0x29C1F6E6B3E0301Bu, 0xC96C5795D7870F42u,
+    0x7A421B2BD420502Du, 0x3DE861C27FC7AF19u, 0x8EC62D7C7C60F076u,
+    0xB2BC941128085171u, 0x0192D8AF2BAF0E1Eu, 0x4638A2468048F12Au,
+    0xF516EEF883EFAE45u, 0x3ECDD09C2899B324u, 0x8DE39C222B3EEC4Bu,
+    0xCA49E6CB80D9137Fu, 0x7967AA75837E4C10u, 0x451D1318D716ED17u,
+    0xF6335FA6D4B1B278u, 0xB199254F7F564D4Cu, 0x02B769F17CF11223u,
+    0xB4F7F6AD86B4690Bu, 0x07D9BA1385133664u, 0x4073C0FA2EF4C950u,
+    0xF35D8C442D53963Fu, 0xCF273529793B3738u, 0x7C0979977A9C6857u,
+    0x3BA3037ED17B9763u, 0x888D4FC0D2DCC80Cu, 0x435671A479AAD56Du,
+    0xF0783D1A7A0D8A02u, 0xB7D247F3D1EA7536u, 0x04FC0B4DD24D2A59u,
+    0x3886B22086258B5Eu, 0x8BA8FE9E8582D431u, 0xCC0284772E652B05u,
+    0x7F2CC8C92DC2746Au, 0x325B15E575E1C3D0u, 0x8175595B76469CBFu,
+    0xC6DF23B2DDA1638Bu, 0x75F16F0CDE063CE4u, 0x498BD6618A6E9DE3u,
+    0xFAA59ADF89C9C28Cu, 0xBD0FE036222E3DB8u, 0x0E21AC88218962D7u,
+    0xC5FA92EC8AFF7FB6u, 0x76D4DE52895820D9u, 0x317EA4BB22BFDFEDu,
+    0x8250E80521188082u, 0xBE2A516875702185u, 0x0D041DD676D77EEAu,
+    0x4AAE673FDD3081DEu, 0xF9802B81DE97DEB1u, 0x4FC0B4DD24D2A599u,
+    0xFCEEF8632775FAF6u, 0xBB44828A8C9205C2u, 0x086ACE348F355AADu,
+    0x34107759DB5DFBAAu, 0x873E3BE7D8FAA4C5u, 0xC094410E731D5BF1u,
+    0x73BA0DB070BA049Eu, 0xB86133D4DBCC19FFu, 0x0B4F7F6AD86B4690u,
+    0x4CE50583738CB9A4u, 0xFFCB493D702BE6CBu, 0xC3B1F050244347CCu,
+    0x709FBCEE27E418A3u, 0x3735C6078C03E797u, 0x841B8AB98FA4B8F8u,
+    0xADDA7C5F3C4488E3u, 0x1EF430E13FE3D78Cu, 0x595E4A08940428B8u,
+    0xEA7006B697A377D7u, 0xD60ABFDBC3CBD6D0u, 0x6524F365C06C89BFu,
+    0x228E898C6B8B768Bu, 0x91A0C532682C29E4u, 0x5A7BFB56C35A3485u,
+    0xE955B7E8C0FD6BEAu, 0xAEFFCD016B1A94DEu, 0x1DD181BF68BDCBB1u,
+    0x21AB38D23CD56AB6u, 0x9285746C3F7235D9u, 0xD52F0E859495CAEDu,
+    0x6601423B97329582u, 0xD041DD676D77EEAAu, 0x636F91D96ED0B1C5u,
+    0x24C5EB30C5374EF1u, 0x97EBA78EC690119Eu, 0xAB911EE392F8B099u,
+    0x18BF525D915FEFF6u, 0x5F1528B43AB810C2u, 0xEC3B640A391F4FADu,
+    0x27E05A6E926952CCu, 0x94CE16D091CE0DA3u, 0xD3646C393A29F297u,
+    0x604A2087398EADF8u, 0x5C3099EA6DE60CFFu, 0xEF1ED5546E415390u,
+    0xA8B4AFBDC5A6ACA4u, 0x1B9AE303C601F3CBu, 0x56ED3E2F9E224471u,
+    0xE5C372919D851B1Eu, 0xA26908783662E42Au, 0x114744C635C5BB45u,
+    0x2D3DFDAB61AD1A42u, 0x9E13B115620A452Du, 0xD9B9CBFCC9EDBA19u,
+    0x6A978742CA4AE576u, 0xA14CB926613CF817u, 0x1262F598629BA778u,
+    0x55C88F71C97C584Cu, 0xE6E6C3CFCADB0723u, 0xDA9C7AA29EB3A624u,
+    0x69B2361C9D14F94Bu, 0x2E184CF536F3067Fu, 0x9D36004B35545910u,
+    0x2B769F17CF112238u, 0x9858D3A9CCB67D57u, 0xDFF2A94067518263u,
+    0x6CDCE5FE64F6DD0Cu, 0x50A65C93309E7C0Bu, 0xE388102D33392364u,
+    0xA4226AC498DEDC50u, 0x170C267A9B79833Fu, 0xDCD7181E300F9E5Eu,
+    0x6FF954A033A8C131u, 0x28532E49984F3E05u, 0x9B7D62F79BE8616Au,
+    0xA707DB9ACF80C06Du, 0x14299724CC279F02u, 0x5383EDCD67C06036u,
+    0xE0ADA17364673F59u
+};
+
 /* ------------------------------------------------------------------ */
 /* CRC                                                                 */
 /* ------------------------------------------------------------------ */
@@ -224,6 +320,15 @@ uint32_t ct_crc32_p4(const uint8_t *bytes, size_t n)
         crc = (crc >> 8) ^ crc_p4[(crc ^ bytes[i]) & 0xFFu];
     }
     return crc ^ 0xFFFFFFFFu;
+}
+
+uint64_t ct_crc64(const uint8_t *bytes, size_t n)
+{
+    uint64_t crc = ~(uint64_t)0;
+    for (size_t i = 0; i < n; i++) {
+        crc = (crc >> 8) ^ crc_64[(crc ^ bytes[i]) & 0xFFu];
+    }
+    return ~crc;
 }
 
 /* crc register run over data[0 .. len-1] without data[skip] */
@@ -677,6 +782,12 @@ static int is_p4(const ct_message *m)
     return m->protection == CT_PROT_P4 && m->crc_byte >= 0 && m->crc_byte + 12 <= (int)m->length;
 }
 
+/* 1 if message m is protected by Profile 7 and its header fits the frame */
+static int is_p7(const ct_message *m)
+{
+    return m->protection == CT_PROT_P7 && m->crc_byte >= 0 && m->crc_byte + 20 <= (int)m->length;
+}
+
 static uint32_t p4_data_id(const ct_message *m)
 {
     return (uint32_t)m->data_id_list[0] | ((uint32_t)m->data_id_list[1] << 8)
@@ -698,6 +809,20 @@ static uint32_t get_be(const uint8_t *p, int n)
         v = (v << 8) | p[i];
     }
     return v;
+}
+
+/* Profile 7's CRC of a frame of message m (its header at crc_byte): every
+ * byte but the CRC's eight */
+static uint64_t p7_crc(const ct_message *m, const uint8_t *data)
+{
+    int h = m->crc_byte;
+    uint64_t crc = ~(uint64_t)0;
+    for (int i = 0; i < (int)m->length; i++) {
+        if (i < h || i >= h + 8) {
+            crc = (crc >> 8) ^ crc_64[(crc ^ data[i]) & 0xFFu];
+        }
+    }
+    return ~crc;
 }
 
 /* Profile 4's CRC of a frame of message m (its header at crc_byte): every
@@ -729,6 +854,16 @@ int ct_protect(const ct_table *t, int msg, uint8_t *data, uint32_t counter)
     }
     const ct_signal *sig = t->signals + m->first_signal;
     int c = 0;
+    if (is_p7(m)) {
+        uint8_t *h = data + m->crc_byte;
+        put_be(h + 8, m->length, 4);
+        put_be(h + 12, counter, 4);
+        put_be(h + 16, p4_data_id(m), 4);
+        uint64_t crc = p7_crc(m, data);
+        put_be(h, (uint32_t)(crc >> 32), 4);
+        put_be(h + 4, (uint32_t)(crc & 0xFFFFFFFFu), 4);
+        return (int)(counter & 0x7FFFFFFFu);
+    }
     if (is_p4(m)) {
         uint8_t *h = data + m->crc_byte;
         c = (int)(counter & 0xFFFFu);
@@ -770,6 +905,27 @@ int ct_check(const ct_table *t, int msg, const uint8_t *data, int len, ct_rx_sta
     }
     const ct_signal *sig = t->signals + m->first_signal;
     int c = -1;
+    if (is_p7(m)) {
+        const uint8_t *h = data + m->crc_byte;
+        uint64_t crc = p7_crc(m, data);
+        if (get_be(h + 8, 4) != m->length || get_be(h + 16, 4) != p4_data_id(m)
+            || get_be(h, 4) != (uint32_t)(crc >> 32) || get_be(h + 4, 4) != (uint32_t)(crc & 0xFFFFFFFFu)) {
+            return CT_RX_BAD_CRC;
+        }
+        /* a 32-bit counter: compared modulo 2^32; the state holds its bits
+         * (0xFFFFFFFF reads as -1, "no frame yet": the next one starts afresh) */
+        uint32_t c32 = get_be(h + 12, 4);
+        if (state != NULL) {
+            if (state->last_counter != -1) {
+                uint32_t step = c32 - (uint32_t)state->last_counter;
+                if (step == 0u || step > m->max_delta_counter) {
+                    return CT_RX_BAD_COUNTER;
+                }
+            }
+            state->last_counter = (int32_t)c32;
+        }
+        return CT_RX_OK;
+    }
     if (is_p4(m)) {
         const uint8_t *h = data + m->crc_byte;
         if (get_be(h, 2) != m->length || get_be(h + 4, 4) != p4_data_id(m)

@@ -57,6 +57,7 @@
 #define CT_PROT_XOR 5
 #define CT_PROT_P5 6
 #define CT_PROT_P4 7
+#define CT_PROT_P7 8
 
 /* AUTOSAR E2E Profile 1 Data ID modes, in the order of P1_DATA_ID_MODES */
 #define CT_P1_BOTH 0
@@ -114,17 +115,18 @@ typedef struct {
     int32_t counter_signal;
     int32_t nibble_signal;    /* P1 nibble mode: carries the Data ID's high nibble */
     int32_t crc_byte;         /* the byte the checksum fills (crc_signal's), -1: none;
-                                 P5 and P4: the first byte of their header (P5: CRC
+                                 P5, P4, P7: the first byte of their header (P5: CRC
                                  low, CRC high, counter; P4: length, counter, Data ID,
-                                 CRC) */
+                                 CRC; P7: CRC, length, counter, Data ID) */
     uint32_t counter_modulus; /* counter values 0 .. modulus-1 (P1 15, dct and P2 16,
-                                 counter and xor 2^length, P5 256, P4 65536), 0: no
-                                 counter */
+                                 counter and xor 2^length, P5 256, P4 65536; P7
+                                 0xFFFFFFFF: its 32-bit counter, written as given),
+                                 0: no counter */
     uint16_t data_id;         /* P1, P5 */
     uint8_t data_id_mode;     /* P1: CT_P1_* */
     uint8_t max_delta_counter;/* a received counter may advance by 1 .. this */
-    uint8_t data_id_list[16]; /* P2: the Data ID of each counter value; P4: [0..3] its
-                                 32-bit Data ID, low byte first */
+    uint8_t data_id_list[16]; /* P2: the Data ID of each counter value; P4, P7: [0..3]
+                                 the 32-bit Data ID, low byte first */
 } ct_message;
 
 typedef struct {
@@ -150,6 +152,9 @@ uint16_t ct_crc16_ccitt_false(const uint8_t *bytes, size_t n);
 /* CRC-32P4 (poly 0xF4ACFB13, reflected, init and xorout 0xFFFFFFFF;
  * "123456789" -> 0x1697D06A), the CRC of AUTOSAR E2E Profile 4 */
 uint32_t ct_crc32_p4(const uint8_t *bytes, size_t n);
+/* CRC-64/XZ (ECMA-182 poly 0x42F0E1EBA9EA3693, reflected, init and xorout
+ * all ones; "123456789" -> 0x995DC9BBDF1939FA), the CRC of E2E Profile 7 */
+uint64_t ct_crc64(const uint8_t *bytes, size_t n);
 
 /* index of the message with this identifier, -1 if none */
 int ct_find(const ct_table *t, uint32_t id, int extended);
@@ -182,13 +187,15 @@ int ct_decode(const ct_table *t, int msg, const uint8_t *data, int len, double *
 /* Writes the counter (counter modulo counter_modulus), for P1 nibble mode
  * the Data ID nibble, then the checksum, as the message's protection says
  * (P5: counter byte, then the CRC's two bytes; P4: length, counter, Data ID,
- * then the CRC; whatever signals lie there).
+ * then the CRC; P7 as P4, its 32-bit counter as given; whatever signals lie
+ * there). P7 returns its counter's low 31 bits.
  * Returns the counter value written (0 without a counter), -1 for a bad msg. */
 int ct_protect(const ct_table *t, int msg, uint8_t *data, uint32_t counter);
 
 /* Checks a received frame of message msg (P5: the counter is its header's
- * byte, 0..255; P4: its 16-bit field, and a length or Data ID field other
- * than the message's is CT_RX_BAD_CRC): CT_RX_BAD_LENGTH when len is not
+ * byte, 0..255; P4: its 16-bit field, P7: its 32-bit field, compared modulo
+ * 2^32, and a length or Data ID field other than the message's is
+ * CT_RX_BAD_CRC): CT_RX_BAD_LENGTH when len is not
  * the message's length, CT_RX_BAD_CRC when the checksum (or P1's Data ID
  * nibble) is wrong, CT_RX_BAD_COUNTER when the counter is out of its range
  * (P1: 15), repeats, or advances by more than max_delta_counter; else
