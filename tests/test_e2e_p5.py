@@ -214,3 +214,49 @@ def test_the_codec_benchmark_takes_a_p5_message_as_it_takes_the_others():
     call = table_mod._bench_calls(t, [0], [0])[0]
     table_mod._bench_call(t, call, 1000)          # raises when a frame is rejected
     assert call["accepted"][0] == 1000
+
+
+@pytest.mark.slow
+def test_the_loop_and_the_tcu_node_speak_p5_on_the_embedded_transport(tmp_path):
+    """The example matrix with three messages on Profile 5 (their headers in
+    bytes 5..7, which no signal takes): one the TCU sends (TCU_TorqueReq,
+    instead of its P1) and two the plant sends (GW_Terminal, IC_Status). The
+    demo runs the loop and the TCU stub on it: every frame of theirs is
+    accepted on both sides, none rejected."""
+    import json
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from can_dbc import mapping
+
+    src = mapping.find_mapping("vehicle")
+    here = os.path.dirname(src)
+    text = open(src, encoding="utf-8").read()
+    text = re.sub(r'dbc = "([^"]+)"', lambda m: f'dbc = "{os.path.normpath(os.path.join(here, m.group(1)))}"',
+                  text)
+    text = re.sub(r'\[message\.TCU_TorqueReq\]\nprotection = [^\n]+\n',
+                  '[message.TCU_TorqueReq]\nprotection = { kind = "p5", data_id = 0x2E70, offset_bits = 40 }\n', text)
+    text += ('\n[message.GW_Terminal]\nprotection = { kind = "p5", data_id = 0x3B00, offset_bits = 40 }\n'
+             '\n[message.IC_Status]\nprotection = { kind = "p5", data_id = 0x3C00, offset_bits = 40, '
+             'max_delta_counter = 3 }\n')
+    path = tmp_path / "vehicle_p5.toml"
+    path.write_text(text, encoding="utf-8")
+    m = mapping.load(str(path))
+    assert [x.name for x in m.messages if x.protection.kind == "p5"] == ["GW_Terminal", "IC_Status", "TCU_TorqueReq"]
+    proc = subprocess.run([sys.executable, "-m", "dct_hil.cli", "demo", "--mapping", str(path), "--duration", "3",
+                           "--out", str(tmp_path / "out"), "--priority", "0", "--quiet"],
+                          capture_output=True, text=True, timeout=180, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr
+    stats = json.loads((tmp_path / "out" / "serve-stats.json").read_text())
+    counts = stats["counts"]
+    c = counts["tcu_messages"]["pt:TCU_TorqueReq"]
+    assert c["accepted"] > 0 and c["bad_crc"] == c["bad_counter"] == c["bad_length"] == 0, c
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    received = summary["tcu"]["received"]
+    for name in ("pt:GW_Terminal", "pt:IC_Status"):
+        assert counts["plant_messages"][name]["sent"] > 0
+        r = received[name]
+        assert r["accepted"] > 0 and not any(r["rejected"].values()), (name, r)
