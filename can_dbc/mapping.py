@@ -1434,7 +1434,7 @@ def _describe_protection(p):
              (f"data id 0x{p.data_id:04X} ({p.data_id_mode})" if p.kind == "p1" else
               f"data id 0x{p.data_id:04X}") if p.data_id is not None else None,
              "data id list" if p.data_id_list else None,
-             f"header at byte {p.offset_bits // 8}" if p.kind == "p5" else None]
+             f"header at byte {p.offset_bits // 8}" if p.kind in ("p4", "p5", "p7") else None]
     return f"protection {p.kind} (" + ", ".join(x for x in parts if x) + ")"
 
 

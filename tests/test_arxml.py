@@ -357,6 +357,8 @@ def test_a_profile_4_or_7_can_fd_message_of_an_arxml_is_protected_as_the_file_sa
     kind = "p4" if profile == "PROFILE_04" else "p7"
     assert (p.kind, p.data_id, p.offset_bits, p.max_delta_counter, p.crc_signal, p.counter_signal) == \
         (kind, 0xDEADBEEF, 0, 5, "Fd_Crc", "Fd_Ctr")
+    assert f"protection {kind} (crc Fd_Crc, counter Fd_Ctr, data id 0xDEADBEEF, header at byte 0) from m.arxml" \
+        in mapping.show(m)
     assert msg.is_fd and msg.length == (16 if kind == "p4" else 24)
     t = CodecTable([(msg.message, p)])
     frame = t.encode(0, {"Fd_Value": 123456}, counter=300)
