@@ -13,6 +13,10 @@ import time
 
 from . import codec
 
+#: at most this many queued frames discarded per bus at a node's start (a bus
+#: busier than the drain would never end)
+DRAIN_MAX_FRAMES = 100_000
+
 
 class RxStats:
     """Reception of one message: counts, intervals, the last accepted values."""
@@ -83,6 +87,23 @@ class ReceivingNode:
     threading.Condition the receive threads notify after every frame, ``_stop``
     a threading.Event they watch, ``_threads`` the list of them, ``started_at``
     and ``stopped_at`` monotonic times (None before)."""
+
+    #: frames the buses had queued when the node started, discarded (``_drain``)
+    drained_at_start = 0
+
+    def _drain(self, *buses):
+        """Discards the frames ``buses`` queued before the node starts (a bus opened
+        long before, whose socket may have overflowed and cut the counters): they
+        are of another time, and a burst of them would be judged as traffic now.
+        Counted in ``drained_at_start``; at most DRAIN_MAX_FRAMES a bus."""
+        for bus in buses:
+            n = 0
+            try:
+                while n < DRAIN_MAX_FRAMES and bus.recv(timeout=0.0) is not None:
+                    n += 1
+            except Exception:  # a bus error: the receive thread meets and counts it
+                pass
+            self.drained_at_start += n
 
     def _start_threads(self, threads):
         """Starts ``threads`` ((target, args, name) each) as daemons; notes the start."""

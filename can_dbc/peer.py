@@ -118,6 +118,7 @@ class CanPeer(ReceivingNode):
             return
         loops = ((self._send_loop, "send"), (self._recv_loop, "recv")) if self.send_thread else \
             ((self._recv_loop, "recv"),)
+        self._drain(self.bus)
         self._start_threads((target, (), f"can-peer-{self.side}-{name}") for target, name in loops)
 
     def close(self):
@@ -231,6 +232,7 @@ class CanPeer(ReceivingNode):
                 "error_frames": self.error_frames,
                 "sent": sent,
                 "injected": self.injected,
+                "drained_at_start": self.drained_at_start,
                 "last_send_error": self.last_send_error,
             }
 

@@ -80,6 +80,8 @@ _CAUSES = {1: "missing", 2: "timeout", 3: "bad_crc", 4: "bad_counter", 5: "bad_l
 _EPISODE_CAUSES = {1: "missing", 2: "timeout"}      # else "rejected"
 _BRIDGE_POLL_S = 0.0005
 _BRIDGE_BATCH = 64
+#: at most this many frames discarded at the start (a bus busier than the drain would never end)
+_DRAIN_MAX_FRAMES = 100_000
 
 
 class NodeError(RuntimeError):
@@ -769,6 +771,8 @@ class CTcuNode:
             "final_safe_frames": None if f.final_safe_frames < 0 else bool(f.final_safe_frames),
             "error": error,
             "pauses": {"count": int(f.pauses), "total_s": round(float(f.paused_s), 6)},
+            "drained_at_start": int(f.drained_at_start)
+            + sum(b.counters()["rx_drained_at_start"] for b in self._bridges),
             "bridge": [b.counters() for b in self._bridges] or None,
         }
         if mapped:
@@ -837,7 +841,7 @@ class _Bridge:
         self._stop = threading.Event()
         self._thread = None
         self._counts = {"rx_forwarded": 0, "tx_forwarded": 0, "rx_ring_full": 0, "rx_skipped": 0,
-                        "tx_errors": 0, "rx_errors": 0}
+                        "tx_errors": 0, "rx_errors": 0, "rx_drained_at_start": 0}
         self.last_error = None
 
     def start(self):
@@ -857,12 +861,25 @@ class _Bridge:
         ffi = self._ffi
         buf = ffi.new("tcu_frame[]", _BRIDGE_BATCH)
         out = ffi.new("tcu_frame[]", _BRIDGE_BATCH)
+        self._drain()
         while True:
             stopping = self._stop.is_set()
             self._forward_tx(out)
             if stopping:
                 return
             self._forward_rx(buf)
+
+    def _drain(self):
+        """Discards (and counts) the frames the bus queued before the node started,
+        as the C thread does with its ports: they are of another time."""
+        try:
+            while self._counts["rx_drained_at_start"] < _DRAIN_MAX_FRAMES:
+                if self.bus.recv(timeout=0.0) is None:
+                    return
+                self._counts["rx_drained_at_start"] += 1
+        except Exception as e:  # a python-can backend may raise anything: counted, the bridge goes on
+            self._counts["rx_errors"] += 1
+            self.last_error = f"receive: {type(e).__name__}: {_one_line(e)}"
 
     def _forward_rx(self, buf):
         ffi, lib = self._ffi, self._lib

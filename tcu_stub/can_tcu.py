@@ -383,6 +383,7 @@ class MappedPeer(ReceivingNode):
     def start(self):
         if self._threads:
             return
+        self._drain(*self.buses.values())
         self._start_threads((self._recv_loop, (name,), f"tcu-recv-{name}") for name in self.buses)
 
     def close(self):
@@ -469,6 +470,7 @@ class MappedPeer(ReceivingNode):
                 "own_echoes_dropped": self.own_echoes,
                 "error_frames": sum(self.error_frames_by_bus.values()),
                 "sent": sent,
+                "drained_at_start": self.drained_at_start,
                 "last_send_error": self.last_send_error,
             }
 
@@ -1032,6 +1034,7 @@ class CanTcu:
                 "sent": sent,
                 "send_errors": sum(s["errors"] for s in sent.values()),
                 "last_send_error": peer["last_send_error"],
+                "drained_at_start": peer["drained_at_start"],
                 "saturated": sum(s["saturated"] for s in sent.values()),
                 "last_commands": dict(self.commands),
                 "final_safe_frames": self.final_safe_frames,

@@ -291,3 +291,35 @@ def test_a_bad_phase_is_refused_in_one_line():
         with pytest.raises(NodeError, match="lock_phase") as e:
             node.lock_phase(ref, step, offset)
         assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("impl", ["c", "python"])
+def test_frames_queued_before_the_start_are_discarded_and_counted(channel, impl):
+    """A bus that queued frames before the node started (a socket bound long before,
+    which overflowed and cut their counters): either node discards them at its
+    start, so its first period sees none of them rejected."""
+    node = CTcuNode.open("virtual", channel, start=False, priority=0) if impl == "c" else \
+        CanTcu.open("virtual", channel, start=False)
+    sender = can.Bus(interface="virtual", channel=channel)
+    try:
+        ident = codec.message("DCT_ShaftSpeeds").frame_id
+        stale = codec.encode("DCT_ShaftSpeeds", {}, 3)
+        for _ in range(300):                               # the same counter 300 times: repeats
+            sender.send(can.Message(arbitration_id=ident, data=stale, is_extended_id=False))
+        node.start()
+        # drained, and the node past its start (its first period done)
+        assert node.wait_for(lambda t: t.report()["drained_at_start"] >= 300 and t.report()["ticks"] >= 1,
+                             timeout=WAIT_S)
+        for k in range(10):                                # then fresh frames, counters running
+            sender.send(can.Message(arbitration_id=ident, data=codec.encode("DCT_ShaftSpeeds", {}, k),
+                                    is_extended_id=False))
+        assert node.wait_for(lambda t: t.report()["received"]["DCT_ShaftSpeeds"]["accepted"] >= 10,
+                             timeout=WAIT_S)
+        rep = node.report()
+    finally:
+        node.close()
+        sender.shutdown()
+    speeds = rep["received"]["DCT_ShaftSpeeds"]
+    assert rep["drained_at_start"] == 300
+    assert speeds["received"] == speeds["accepted"] == 10
+    assert speeds["rejected"] == {"bad_length": 0, "bad_crc": 0, "bad_counter": 0}

@@ -537,9 +537,27 @@ static void run_bus(tcu_node *n)
     }
 }
 
+/* the frames queued in the ports before the thread started (a socket bound long
+   before, a bridge's ring) are of another time: discarded, counted, so the first
+   period reads only frames of its own (a burst of old ones, their counters cut
+   where the socket overflowed, would be rejected and make the node stale at 0 s) */
+static void drain_ports(tcu_node *n)
+{
+    tcu_frame batch[TCU_NODE_BATCH];
+    for (int b = 0; b < n->n_buses; b++) {
+        for (int rounds = 0; rounds < 4096; rounds++) {
+            int got = tcu_port_recv(&n->ports[b], batch, TCU_NODE_BATCH);
+            n->fig.drained_at_start += (uint64_t)(got > 0 ? got : 0);
+            if (got < TCU_NODE_BATCH)
+                break;
+        }
+    }
+}
+
 static void *thread_main(void *arg)
 {
     tcu_node *n = arg;
+    drain_ports(n);
     n->fig.running = 1;
     publish(n);
     if (n->clock == TCU_CLOCK_BUS)

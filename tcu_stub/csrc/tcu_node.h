@@ -182,6 +182,7 @@ typedef struct {
     int32_t last_send_errno;
     uint64_t unknown[TCU_NODE_MAX_BUSES];
     uint64_t error_frames[TCU_NODE_MAX_BUSES];
+    uint64_t drained_at_start;        /* frames queued before the thread's start, discarded */
     int64_t pauses;
     double paused_s;
     int32_t running;                  /* the thread runs its periods */
