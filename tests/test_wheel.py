@@ -69,6 +69,9 @@ def test_the_wheel_holds_the_product_packages_only(venv):
     for ext in ("plant/_dct_plant", "can_dbc/_can_table", "rt_loop/_rt_loop", "tcu_stub/_tcu_fast"):
         assert any(n.startswith(ext) and n.endswith(".so") for n in names), ext
     assert "dct_hil/studies/examples/shift_map.toml" in names
+    shipped = {f"can_dbc/{d}/{f}" for d in ("matrices", "mappings")
+               for f in os.listdir(ROOT / "can_dbc" / d) if not f.startswith((".", "__"))}
+    assert shipped <= set(names), shipped - set(names)          # every matrix and mapping
     assert not any("/generated/" in n for n in names)
 
 
@@ -94,6 +97,9 @@ def test_simulate_serve_and_tcu_run_from_another_directory(venv):
               "--report", "tcu.json"], cwd=work)
     assert r.returncode == 0, r.stderr
     assert (work / "tcu.json").exists()
+    for mapping in ("vehicle", "vehicle_arxml"):                # the shipped DBC and ARXML matrices
+        r = _run([dct_hil, "mapping", "check", mapping], cwd=work)
+        assert r.returncode == 0, r.stdout + r.stderr
 
 
 def test_the_demo_runs_on_the_core_without_its_plots(venv):
