@@ -6,8 +6,9 @@
  * overload event; the counts and the DTO delay histogram.
  *
  * An ordinary pthread (not SCHED_FIFO), signals blocked: it polls the ring
- * every poll_us while a list runs (RT_XCP_IDLE_US otherwise), so the tick
- * makes no system call for it. Everything but the ring (single consumer:
+ * every poll_us while a list runs (RT_XCP_IDLE_US otherwise; a layout with
+ * a running list or a stop ends the pause at once), so the tick makes no
+ * system call for it. Everything but the ring (single consumer:
  * this thread) is under the sender's mutex, which only this file's
  * functions take, never across a return to Python.
  */
@@ -39,6 +40,7 @@ struct rt_xcp_sender {
     _Atomic int stop;
 
     pthread_mutex_t mu;               /* all below */
+    pthread_cond_t wake;              /* the thread's pause: ended early by a start or a stop */
     int tcp_fd;                       /* -1: no master (TCP) */
     int has_peer;                     /* UDP */
     struct sockaddr_storage peer;
@@ -286,10 +288,15 @@ static void one_round(rt_xcp_sender *s, rt_dto *batch, int k, uint64_t dropped)
     flush(s);
 }
 
-static void pause_us(int us)
+/* waits (mu held, released while waiting) for us, or until woken */
+static void pause_locked(rt_xcp_sender *s, int us)
 {
-    struct timespec t = {.tv_sec = us / 1000000, .tv_nsec = (long)(us % 1000000) * 1000};
-    clock_nanosleep(CLOCK_MONOTONIC, 0, &t, NULL);
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    t.tv_nsec += (long)(us % 1000000) * 1000;
+    t.tv_sec += us / 1000000 + t.tv_nsec / 1000000000;
+    t.tv_nsec %= 1000000000;
+    pthread_cond_timedwait(&s->wake, &s->mu, &t);
 }
 
 static void *run(void *arg)
@@ -304,10 +311,9 @@ static void *run(void *arg)
         uint64_t dropped = atomic_load_explicit(A64(&s->ring->dropped), RELAXED);
         pthread_mutex_lock(&s->mu);
         one_round(s, batch, k, dropped);
-        int running = s->any_running;
+        if (k < RT_XCP_BATCH && !atomic_load_explicit(&s->stop, ACQUIRE))
+            pause_locked(s, s->any_running ? s->poll_us : RT_XCP_IDLE_US);
         pthread_mutex_unlock(&s->mu);
-        if (k < RT_XCP_BATCH)
-            pause_us(running ? s->poll_us : RT_XCP_IDLE_US);
     }
     return NULL;
 }
@@ -342,7 +348,12 @@ rt_xcp_sender *rt_xcp_sender_new(rt_daq_ring *ring, int protocol, int fd)
     /* DTOs already in the ring and losses before the sender are not its */
     s->seen_dropped = atomic_load_explicit(A64(&ring->dropped), RELAXED);
     s->st.ring_dropped = s->seen_dropped;
+    pthread_condattr_t ca;
+    pthread_condattr_init(&ca);
+    pthread_condattr_setclock(&ca, CLOCK_MONOTONIC);
     pthread_mutex_init(&s->mu, NULL);
+    pthread_cond_init(&s->wake, &ca);
+    pthread_condattr_destroy(&ca);
     return s;
 }
 
@@ -368,7 +379,10 @@ void rt_xcp_sender_stop(rt_xcp_sender *s)
 {
     if (!s || !s->started)
         return;
+    pthread_mutex_lock(&s->mu);
     atomic_store_explicit(&s->stop, 1, RELEASE);
+    pthread_cond_signal(&s->wake);
+    pthread_mutex_unlock(&s->mu);
     pthread_join(s->thread, NULL);
     s->started = 0;
     pthread_mutex_lock(&s->mu);
@@ -381,6 +395,7 @@ void rt_xcp_sender_free(rt_xcp_sender *s)
     if (!s)
         return;
     rt_xcp_sender_stop(s);
+    pthread_cond_destroy(&s->wake);
     pthread_mutex_destroy(&s->mu);
     free(s->q);
     free(s->own_ring);
@@ -455,9 +470,12 @@ int rt_xcp_sender_set_layout(rt_xcp_sender *s, const rt_xcp_layout *layout)
     } else {
         memset(&s->layout, 0, sizeof s->layout);
     }
+    int was_running = s->any_running;
     s->any_running = 0;
     for (uint32_t i = 0; i < s->layout.n_lists; i++)
         s->any_running |= s->layout.lists[i].running;
+    if (s->any_running && !was_running)
+        pthread_cond_signal(&s->wake);    /* out of the idle pause: DTOs are coming */
     s->st.layouts++;
     pthread_mutex_unlock(&s->mu);
     return ok ? 0 : -1;

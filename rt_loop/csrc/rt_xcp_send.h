@@ -118,7 +118,7 @@ void rt_xcp_sender_free(rt_xcp_sender *s);
 /* starts the thread; poll_us: its pause when the ring ran dry (0: RT_XCP_POLL_US);
  * 0, or -errno (also kept in stats.error) */
 int rt_xcp_sender_start(rt_xcp_sender *s, int poll_us);
-/* asks the thread to stop and joins it (at most one pause: RT_XCP_IDLE_US) */
+/* asks the thread to stop (ending its pause) and joins it */
 void rt_xcp_sender_stop(rt_xcp_sender *s);
 
 /* UDP: the master's address (family AF_INET or AF_INET6, the address as
