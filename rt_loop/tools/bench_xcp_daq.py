@@ -271,7 +271,7 @@ def run(protocol: str, signals: int, window_s: float, pairs: int, priority: int)
         "rows_lost": sum(d - 1 for d in steps if d > 1),
         "rows_repeated": sum(1 for d in steps if d < 1),
         "loop": {"ticks": int(s.ticks), "overruns": int(s.overruns),
-                 "skipped_ticks": int(s.skipped_ticks)},
+                 "skipped_ticks": int(s.skipped_ticks), "sched_fifo": bool(s.rt_policy_ok)},
         "transport": (x or {}).get("transport"),
         "dto_ring_dropped": ((x or {}).get("loop") or {}).get("daq_ring_dropped"),
     }
