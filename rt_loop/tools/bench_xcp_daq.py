@@ -273,7 +273,7 @@ def run(protocol: str, signals: int, window_s: float, pairs: int, priority: int)
         "loop": {"ticks": int(s.ticks), "overruns": int(s.overruns),
                  "skipped_ticks": int(s.skipped_ticks), "sched_fifo": bool(s.rt_policy_ok)},
         "transport": (x or {}).get("transport"),
-        "dto_ring_dropped": ((x or {}).get("loop") or {}).get("daq_ring_dropped"),
+        "dto_ring_dropped": ((x or {}).get("loop") or {}).get("dto_ring_dropped"),
     }
 
 
