@@ -329,6 +329,31 @@ def test_pyxcp_gets_every_ticks_row_of_100_signals_while_python_is_busy(protocol
     assert sender_threads() == 0
 
 
+def test_the_loops_ring_overflowing_is_an_overload_event_to_the_master():
+    loop = Loop()
+    srv = XcpServer(ffi, lib, loop.c, port=0, protocol="udp")
+    loop.start()
+    try:
+        with srv:
+            raw = Raw(srv)
+            assert raw.command(xp.CONNECT, 0)[0] == xp.PID_RES
+            for packet in ((xp.FREE_DAQ,), (xp.ALLOC_DAQ, 0, 1, 0), (xp.ALLOC_ODT, 0, 0, 0, 1),
+                           (xp.ALLOC_ODT_ENTRY, 0, 0, 0, 0, 1), (xp.SET_DAQ_PTR, 0, 0, 0, 0, 0),
+                           (xp.WRITE_DAQ, 0xFF, 8, 0, *struct.pack("<I", TICKS)),
+                           (xp.START_STOP_DAQ_LIST, 1, 0, 0)):
+                assert raw.command(*packet)[0] == xp.PID_RES
+            assert raw.recv()[:4] == bytes([0, 0, 0, 0])          # DTOs of list 0 come
+            # what the tick does when the ring is full: it counts the DTOs it could not copy
+            loop.c.daq_ring.dropped += 3
+            while (packet := raw.recv())[0] != xp.PID_EV:          # DTOs may come first
+                pass
+            assert packet == bytes([xp.PID_EV, xp.EV_DAQ_OVERLOAD])
+            raw.close()
+        assert srv.counters()["protocol"]["overload_events"] == 1
+    finally:
+        loop.stop()
+
+
 @pytest.mark.slow
 def test_start_stop_and_a_vanished_master_leave_no_sender_and_serve_the_next():
     loop = Loop()
