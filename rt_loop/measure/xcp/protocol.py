@@ -588,6 +588,22 @@ class Slave:
     def daq_running(self) -> bool:
         return any(v.running for v in self._dto_views)
 
+    @property
+    def dto_layout(self) -> tuple:
+        """The DTO layout of the session (one view per DAQ list: running, timestamp,
+        its packets' headers, each ODT's size): a new tuple whenever it changes, for a
+        sender that packs the DTOs elsewhere (the transport's C sender)."""
+        return self._dto_views
+
+    def count_dtos_sent_elsewhere(self, packed: int, not_running: int, stale: int,
+                                  overload_events: int) -> None:
+        """The counts of a sender that packs the DTOs itself (totals since the
+        slave was made): they stand in ``counters()`` where ``dto_packet`` and
+        ``overload_events`` would have counted."""
+        self._counts["dtos"] = int(packed)
+        self._dto_dropped = {"not_running": int(not_running), "stale": int(stale)}
+        self._overload_events = int(overload_events)
+
     # ---- counting -------------------------------------------------------
     @staticmethod
     def _bump(d: dict[str, int], key: str, by: int = 1) -> None:

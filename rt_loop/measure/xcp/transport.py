@@ -373,11 +373,8 @@ class _Server:
     def _count_into_slave(self, st: dict) -> None:
         if not st:
             return
-        slave = self.slave
-        slave._counts["dtos"] = st["dtos_packed"]
-        slave._dto_dropped = {"not_running": st["not_running"],
-                              "stale": st["stale"] + self._fed_refused}
-        slave._overload_events = st["overload_events"]
+        self.slave.count_dtos_sent_elsewhere(st["dtos_packed"], st["not_running"],
+                                             st["stale"] + self._fed_refused, st["overload_events"])
 
     def sender_stats(self) -> dict:
         """The C sender's own counts (``rt_xcp_send_stats``) and its DTO delay
@@ -389,7 +386,7 @@ class _Server:
     # ---- the Slave's answers and the sender's layout ----------------------------------
     def _sync_layout(self) -> None:
         """Hands the Slave's DTO layout to the sender when it changed."""
-        views = self.slave._dto_views
+        views = self.slave.dto_layout
         if views is self._views or self.sender is None:
             return
         self._views = views
