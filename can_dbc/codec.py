@@ -253,17 +253,18 @@ def p5_check(data, data_id, offset_bits=0):
     return (data[h] == crc & 0xFF and data[h + 1] == crc >> 8), data[h + 2]
 
 
-def _crc32_p4_table():
+def _reflected_crc_table(poly_reflected):
+    """The byte table of a reflected CRC with this (reflected) polynomial."""
     table = []
     for byte in range(256):
         crc = byte
         for _ in range(8):
-            crc = (crc >> 1) ^ 0xC8DF352F if crc & 1 else crc >> 1
+            crc = (crc >> 1) ^ poly_reflected if crc & 1 else crc >> 1
         table.append(crc)
     return tuple(table)
 
 
-_CRC32_P4_TABLE = _crc32_p4_table()
+_CRC32_P4_TABLE = _reflected_crc_table(0xC8DF352F)
 
 
 def crc32_p4(data, crc=0xFFFFFFFF):
@@ -275,17 +276,7 @@ def crc32_p4(data, crc=0xFFFFFFFF):
     return crc
 
 
-def _crc64_table():
-    table = []
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xC96C5795D7870F42 if crc & 1 else crc >> 1
-        table.append(crc)
-    return tuple(table)
-
-
-_CRC64_TABLE = _crc64_table()
+_CRC64_TABLE = _reflected_crc_table(0xC96C5795D7870F42)
 _ONES64 = 0xFFFFFFFFFFFFFFFF
 
 
