@@ -53,13 +53,17 @@ class CanPeer(ReceivingNode):
             False: no send thread; the caller sends each frame with
             ``send_now`` when it is due (a task that computes and then
             sends, as an ECU does). Reception is the same either way.
+    drain   True: at ``start()`` the frames the bus queued before are
+            discarded and counted (``drained_at_start``), as a TCU starting
+            late does; False (a test node that accounts for every frame): kept
     """
 
-    def __init__(self, bus, side="tcu", values=None, start=True, send_thread=True):
+    def __init__(self, bus, side="tcu", values=None, start=True, send_thread=True, drain=False):
         if side not in SIDES:
             raise ValueError(f"side must be one of {', '.join(SIDES)}, got {side!r}")
         self.side = side
         self.send_thread = bool(send_thread)
+        self.drain = bool(drain)
         self.node, self.peer_node = SIDES[side]
         self.bus = bus
         self._owns_bus = False
@@ -118,7 +122,8 @@ class CanPeer(ReceivingNode):
             return
         loops = ((self._send_loop, "send"), (self._recv_loop, "recv")) if self.send_thread else \
             ((self._recv_loop, "recv"),)
-        self._drain(self.bus)
+        if self.drain:
+            self._drain(self.bus)
         self._start_threads((target, (), f"can-peer-{self.side}-{name}") for target, name in loops)
 
     def close(self):

@@ -554,7 +554,7 @@ class CanTcu:
             self.bus = bus
             self.buses = None
             self.rcvbuf_bytes = _raise_bus_rcvbuf(bus, rcvbuf_bytes)
-            self.peer = CanPeer(bus, side="tcu", start=False, send_thread=False)
+            self.peer = CanPeer(bus, side="tcu", start=False, send_thread=False, drain=True)
             self._needed = PLANT_NEEDED
             self._tx_names = TCU_MESSAGES
             self._cycle_ms = {name: codec.message(name).cycle_time for name in PLANT_NEEDED + TCU_MESSAGES}

@@ -194,9 +194,10 @@ def test_two_udp_multicast_buses_do_not_hear_each_other(udp_group):
     """The vehicle matrix's pt and io buses on udp_multicast (io derived): the
     plant and the TCU get only their own bus's frames, none of the other's as an
     unknown identifier (on one shared port every frame of one bus reached the other)."""
+    from waiting import wait_until
+
     from rt_loop.server import Server
     from tcu_stub.can_tcu import CanTcu
-    from waiting import wait_until
 
     group, port = udp_group
     channel = f"{group}:{port}"
