@@ -23,6 +23,24 @@ _HEADERS = ("dct_plant.h", "dct_bench.h")
 COMPILE_ARGS = ["-O3", "-std=c11", "-fno-math-errno", "-Wall", "-Wextra", "-flto=auto"]
 LINK_ARGS = ["-O3", "-flto=auto"]
 
+#: DCT_HIL_SANITIZE=thread|address builds every extension (this builder's options
+#: serve all four) with ThreadSanitizer, or AddressSanitizer + UndefinedBehaviorSanitizer
+#: (with float-cast-overflow: a physical value out of a raw field's range is UB in C), at
+#: -O1 with frames and no LTO, for readable reports. Only scripts/sanitize sets it, building
+#: into build/sanitize-<kind>/: never the working tree's extensions (such a build needs the
+#: sanitizer's runtime preloaded into Python, rt_loop/tools/sanitize_run.py).
+SANITIZERS = {"thread": "thread", "address": "address,undefined,float-cast-overflow"}
+SANITIZE = os.environ.get("DCT_HIL_SANITIZE", "")
+if SANITIZE:
+    if SANITIZE not in SANITIZERS:
+        raise SystemExit(f"DCT_HIL_SANITIZE must be one of {', '.join(SANITIZERS)}, "
+                         f"got {SANITIZE!r}")
+    # -fsanitize-recover=address: ASan may go on after a report (ASAN_OPTIONS=halt_on_error=0)
+    _san = ["-O1", "-g", "-fno-omit-frame-pointer", f"-fsanitize={SANITIZERS[SANITIZE]}"] + (
+        ["-fsanitize-recover=address"] if SANITIZE == "address" else [])
+    COMPILE_ARGS = [a for a in COMPILE_ARGS if a not in ("-O3", "-flto=auto")] + _san
+    LINK_ARGS = [f"-fsanitize={SANITIZERS[SANITIZE]}"]
+
 _INT_DEFINE = re.compile(
     r"^\s*#\s*define\s+[A-Za-z_]\w*\s+-?(0[xX][0-9a-fA-F]+|\d+)[uUlL]*\s*(/\*.*\*/)?\s*$"
 )
