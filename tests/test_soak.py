@@ -20,7 +20,8 @@ def _rows(minutes, rss_mb_per_h=0.0, fds_per_h=0.0, start_mb=400.0):
     for i in range(int(minutes * 6) + 1):
         t = i * 10.0
         rows.append({"t_s": t, "rss_mb": start_mb + rss_mb_per_h * t / 3600.0 + (i % 3) * 0.2,
-                     "fds": 9 + int(fds_per_h * t / 3600.0), "threads": 11, "overruns": 0})
+                     "fds": 9 + int(fds_per_h * t / 3600.0), "threads": 11, "overruns": 0,
+                     "rx_accepted": i * 8000})
     return rows
 
 
@@ -87,3 +88,76 @@ def test_bad_options_are_refused():
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 2
     assert "argument --minutes: must be above 0" in p.stderr
+
+
+def test_the_soaks_rows_are_kept_in_columns_of_machine_numbers():
+    import tracemalloc
+
+    rows = soak.Samples()
+    row = {"t_s": 0.0, "rss_mb": 400.5, "fds": 9, "threads": 11, "rx_frames": 10**9}
+    rows.append(row)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for i in range(1, 10_001):
+            rows.append({**row, "t_s": i * 10.0, "rx_frames": 10**9 + i})
+        grew = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    # 5 figures of 8 bytes a row (the arrays over-allocate by an eighth): a dict per row
+    # would hold some 500 bytes
+    assert grew < 10_000 * 5 * 8 * 1.5
+    assert len(rows) == 10_001 and bool(rows)
+    assert rows[-1] == {"t_s": 100_000.0, "rss_mb": 400.5, "fds": 9, "threads": 11,
+                        "rx_frames": 10**9 + 10_000}
+    assert type(rows[0]["fds"]) is int and type(rows[0]["rss_mb"]) is float
+    assert [r["t_s"] for r in rows][:3] == [0.0, 10.0, 20.0]
+    with pytest.raises(ValueError):
+        rows.append({"t_s": 1.0})
+    assert not soak.Samples()
+
+
+def test_slopes_of_every_figure_over_the_second_half():
+    rows = _rows(60, rss_mb_per_h=1.0)
+    for r in rows:          # the Python heap grows in the second half only; threads flat
+        r["py_heap_mb"] = 50.0 + max(0.0, r["t_s"] - 1800.0) / 3600.0 * 2.0
+    slopes = soak.second_half_slopes(rows)
+    assert abs(slopes["py_heap_mb"] - 2.0) < 1e-9
+    assert abs(slopes["rss_mb"] - 1.0) < 0.1
+    assert slopes["threads"] == 0.0 and slopes["fds"] == 0.0
+    assert "malloc_free_mb" not in slopes             # not in the rows: not reported
+    v = soak._verdict(rows, _args(), {"cycles_completed": 55})
+    assert v["slopes_second_half"] == slopes
+    assert v["rss_slope_mb_h_second_half"] == slopes["rss_mb"]
+
+
+def test_heap_figures_and_the_growth_of_allocation_sites():
+    import tracemalloc
+
+    assert "py_heap_mb" not in soak.heap_figures() or tracemalloc.is_tracing()
+    tracemalloc.start()
+    try:
+        kept = []
+        before = soak.heap_sites(tracemalloc.take_snapshot())
+        kept.append([bytearray(1000) for _ in range(200)])       # about 200 kB on this line
+        after = soak.heap_sites(tracemalloc.take_snapshot())
+        fig = soak.heap_figures()
+    finally:
+        tracemalloc.stop()
+    assert fig["py_heap_mb"] > 0.2 and fig["py_heap_peak_mb"] >= fig["py_heap_mb"]
+    top = soak.heap_growth(before, after)[0]
+    assert top["site"].startswith("tests/test_soak.py:") or "test_soak.py:" in top["site"]
+    assert 200 <= top["grew_kb"] < 260 and top["blocks_grew"] >= 200
+    assert not any("rt_loop/tools/soak.py" in s for s in after)     # its own tables left out
+    if soak._MALLINFO2 is not None:                                  # glibc
+        assert fig["malloc_used_mb"] > 0 and fig["malloc_free_mb"] >= 0
+
+
+def test_a_stalled_bridge_is_a_note_with_its_length():
+    rows = _rows(10)
+    for r in rows:      # accepted frames stop from 120 s to 300 s
+        r["rx_accepted"] = int(min(r["t_s"], 120.0) * 800 + max(0.0, r["t_s"] - 300.0) * 800)
+    assert soak.rx_stall_s(rows) == 180.0
+    v = soak._verdict(rows, _args(), {"cycles_completed": 9})
+    assert v["passed"] and v["rx_stall_max_s"] == 180.0
+    assert any(n.startswith("no TCU frame accepted for 180 s") for n in v["notes"])

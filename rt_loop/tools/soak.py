@@ -14,12 +14,25 @@ standstill) and records every plant output and both directions of CAN to
 one MF4 file (``rt_loop.measure.mdf_recorder``) for the whole run.
 
 Every ``--sample-s`` (10 s) one row: the process's resident memory (VmRSS),
-its open file descriptors and threads, how many frames wait in the loop's
+the Python heap (``tracemalloc``, started once server, recording and TCU
+are set up: what was allocated since and is alive, current and peak; its
+own tables), glibc
+malloc's bytes in use, free inside its arenas and mapped on their own
+(``mallinfo2``), its open file descriptors and threads, how many frames wait in the loop's
 rings (rx and tx of the bridge, the log and recorder rings) and what they
 dropped, overruns and skipped ticks, ticks, frames received and rejected and
 lost, frames sent, samples recorded, the MF4 file's size, cycles played.
 Rows go to ``soak.csv`` as they are taken and to ``soak.json`` (with the
-verdict) at the end and every minute; ``soak.png`` plots them.
+verdict) at the end and every minute; ``soak.png`` plots them. The slope
+of each of those memory figures, of the descriptors and the threads over
+the second half (``SLOPES``: per hour) is in the JSON and the summary, and
+so is what the Python heap's allocation sites (``--tracemalloc`` frames,
+1 by default; 0: not traced) grew by between the middle of the run and its
+end: a growth is told apart at once (Python objects, memory malloc holds
+free, or memory allocated outside Python's view). ``--no-record`` runs
+without the MF4 recording (to compare). The samples are kept in columns of
+machine numbers (``Samples``): the soak's own bookkeeping grows by a few
+hundred bytes per row, not by a dict of Python objects.
 
 Verdict (exit 1 when failed, one line per finding):
 
@@ -50,20 +63,25 @@ Verdict (exit 1 when failed, one line per finding):
 from __future__ import annotations
 
 import argparse
+import array
 import csv
+import ctypes
+import dis
 import json
 import math
 import os
 import signal
 import sys
 import time
+import tracemalloc
 from pathlib import Path
 from typing import Any
 
 from plant import argtypes
 from rt_loop.console import StopSignals
 
-__all__ = ["SoakError", "main", "proc_figures", "run_soak", "slope_per_hour"]
+__all__ = ["SLOPES", "Samples", "SoakError", "heap_figures", "heap_sites", "main",
+           "proc_figures", "run_soak", "rx_stall_s", "second_half_slopes", "slope_per_hour"]
 
 CHANNEL = "dct-hil-soak"
 MANEUVER = "paper-cycle"
@@ -72,6 +90,12 @@ RSS_NOISE_MB = 3.0
 FD_TOLERANCE = 2
 THREAD_TOLERANCE = 2
 _TCU_START_S = 30.0
+#: the figures whose slope over the second half the soak reports: (row key, unit)
+SLOPES = (("rss_mb", "MB/h"), ("py_heap_mb", "MB/h"), ("malloc_used_mb", "MB/h"),
+          ("malloc_free_mb", "MB/h"), ("malloc_mmap_mb", "MB/h"), ("fds", "/h"),
+          ("threads", "/h"))
+#: allocation sites reported with their growth between the middle and the end
+HEAP_SITES = 12
 
 
 class SoakError(RuntimeError):
@@ -90,6 +114,100 @@ def proc_figures(pid: int | str = "self") -> dict:
                 out["threads"] = int(value)
     out["fds"] = len(os.listdir(f"/proc/{pid}/fd"))
     return out
+
+
+class _Mallinfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
+                                               "usmblks", "fsmblks", "uordblks", "fordblks",
+                                               "keepcost")]
+
+
+def _mallinfo2() -> Any:
+    try:
+        f = ctypes.CDLL(None).mallinfo2
+    except (OSError, AttributeError):       # not glibc >= 2.33
+        return None
+    f.restype = _Mallinfo2
+    f.argtypes = []
+    return f
+
+
+_MALLINFO2 = _mallinfo2()
+
+
+def heap_figures() -> dict:
+    """The Python heap (tracemalloc, when tracing: current, peak and its own tables)
+    and glibc malloc's (mallinfo2: in use, free inside the arenas, mapped on their
+    own), in MB; keys absent where not known."""
+    out: dict[str, float] = {}
+    if tracemalloc.is_tracing():
+        cur, peak = tracemalloc.get_traced_memory()
+        out["py_heap_mb"] = round(cur / 1e6, 3)
+        out["py_heap_peak_mb"] = round(peak / 1e6, 3)
+        out["tracemalloc_mb"] = round(tracemalloc.get_tracemalloc_memory() / 1e6, 3)
+    if _MALLINFO2 is not None:
+        m = _MALLINFO2()
+        out["malloc_used_mb"] = round(m.uordblks / 1e6, 3)
+        out["malloc_free_mb"] = round(m.fordblks / 1e6, 3)
+        out["malloc_mmap_mb"] = round(m.hblkhd / 1e6, 3)
+    return out
+
+
+def heap_sites(snapshot: Any) -> dict[str, tuple[int, int]]:
+    """{allocation site: (bytes, blocks)} of a tracemalloc snapshot (its own
+    frames left out)."""
+    own = [tracemalloc.Filter(False, __file__, line)   # what this function keeps
+           for _, line in dis.findlinestarts(heap_sites.__code__) if line]
+    snapshot = snapshot.filter_traces([tracemalloc.Filter(False, tracemalloc.__file__),
+                                       tracemalloc.Filter(False, "<frozen importlib._bootstrap>"),
+                                       tracemalloc.Filter(False, "<unknown>"), *own])
+    cwd = os.getcwd() + os.sep
+    out = {}
+    for st in snapshot.statistics("traceback"):
+        site = " <- ".join(f"{fr.filename.removeprefix(cwd)}:{fr.lineno}" for fr in st.traceback)
+        out[site] = (st.size, st.count)
+    return out
+
+
+def heap_growth(before: dict, after: dict, top: int = HEAP_SITES) -> list[dict]:
+    """The ``top`` sites whose bytes grew most from ``before`` to ``after``
+    (``heap_sites``), largest growth first."""
+    rows = []
+    for site, (size, count) in after.items():
+        b_size, b_count = before.get(site, (0, 0))
+        rows.append({"site": site, "grew_kb": round((size - b_size) / 1e3, 1),
+                     "blocks_grew": count - b_count, "kb": round(size / 1e3, 1)})
+    rows.sort(key=lambda r: -r["grew_kb"])
+    return rows[:top]
+
+
+class Samples:
+    """The soak's rows in columns of machine numbers (8 bytes a figure, not a dict of
+    Python objects per row: the soak's bookkeeping must not be what grows). Reads as
+    a list of dicts (``rows[i]``, ``rows[-1]``, iteration, ``len``)."""
+
+    def __init__(self) -> None:
+        self._cols: dict[str, array.array] = {}
+
+    def append(self, row: dict) -> None:
+        if not self._cols:
+            self._cols = {k: array.array("q" if isinstance(v, int) else "d") for k, v in row.items()}
+        elif row.keys() != self._cols.keys():
+            raise ValueError("a row with other keys than the first")
+        for k, v in row.items():
+            self._cols[k].append(v)
+
+    def __len__(self) -> int:
+        return len(next(iter(self._cols.values()))) if self._cols else 0
+
+    def __getitem__(self, i: int) -> dict:
+        return {k: c[i] for k, c in self._cols.items()}
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def column(self, key: str) -> list:
+        return list(self._cols[key])
 
 
 def slope_per_hour(t_s: list[float], y: list[float]) -> float | None:
@@ -115,6 +233,7 @@ def _sample(server: Any, t0: float, cycles: int, mf4: Path) -> dict:
     c = snap["counts"]
     row: dict[str, Any] = {"t_s": round(time.monotonic() - t0, 3), **proc_figures()}
     row["rss_mb"] = round(row["vmrss_kb"] / 1024.0, 3)
+    row.update(heap_figures())
     n = len(server.transports)
     row["ring_rx_fill"] = max((_fill(loop.rx[i]) for i in range(n)), default=0)
     row["ring_tx_fill"] = max((_fill(loop.tx[i]) for i in range(n)), default=0)
@@ -144,11 +263,36 @@ def _sample(server: Any, t0: float, cycles: int, mf4: Path) -> dict:
     return row
 
 
-def _verdict(rows: list[dict], args: argparse.Namespace, run: dict) -> dict:
+def rx_stall_s(rows: Any) -> float:
+    """The longest time between samples in which no TCU frame was accepted (0: a
+    frame in every interval)."""
+    longest, since = 0.0, None
+    prev = None
+    for r in rows:
+        if prev is not None and r["rx_accepted"] == prev["rx_accepted"]:
+            since = prev["t_s"] if since is None else since
+            longest = max(longest, r["t_s"] - since)
+        else:
+            since = None
+        prev = r
+    return longest
+
+
+def second_half_slopes(rows: Any) -> dict:
+    """{key: slope per hour over the second half} of each of ``SLOPES`` the rows hold."""
+    t_end = rows[-1]["t_s"] if len(rows) else 0.0
+    half = [r for r in rows if r["t_s"] >= t_end / 2.0]
+    t = [r["t_s"] for r in half]
+    return {key: slope_per_hour(t, [r[key] for r in half])
+            for key, _unit in SLOPES if half and key in half[0]}
+
+
+def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
     findings: list[str] = []
     t = [r["t_s"] for r in rows]
     half = [r for r in rows if r["t_s"] >= t[-1] / 2.0] if rows else []
-    rss_slope = slope_per_hour([r["t_s"] for r in half], [r["rss_mb"] for r in half])
+    slopes = second_half_slopes(rows) if rows else {}
+    rss_slope = slopes.get("rss_mb")
     growth = (half[-1]["rss_mb"] - half[0]["rss_mb"]) if len(half) >= 2 else 0.0
     if rss_slope is not None and rss_slope > args.rss_slope_mb_h and growth > args.rss_noise_mb:
         findings.append(f"memory grows: RSS slope {rss_slope:.2f} MB/h over the second half "
@@ -180,6 +324,10 @@ def _verdict(rows: list[dict], args: argparse.Namespace, run: dict) -> dict:
         findings.append("no paper-cycle completed")
     if run.get("cycles_incomplete"):
         notes.append(f"{run['cycles_incomplete']} paper-cycles did not complete")
+    stall = rx_stall_s(rows)
+    if stall > 10.0:
+        notes.append(f"no TCU frame accepted for {stall:.0f} s at a time (the bridge fell "
+                     "behind: python-can's virtual bus queues what it has not read, in memory)")
     hours = (t[-1] / 3600.0) if rows else 0.0
     return {
         "passed": not findings and not run.get("interrupted"),
@@ -191,6 +339,10 @@ def _verdict(rows: list[dict], args: argparse.Namespace, run: dict) -> dict:
         "rss_slope_mb_h_second_half": rss_slope,
         "rss_slope_mb_h_all": slope_per_hour(t, [r["rss_mb"] for r in rows]),
         "rss_growth_second_half_mb": growth,
+        "rx_stall_max_s": stall,
+        "slopes_second_half": slopes,
+        "slope_units": dict(SLOPES),
+        "py_heap_peak_mb": max((r.get("py_heap_peak_mb", 0.0) for r in rows), default=None),
         "fds_start": rows[0]["fds"] if rows else None, "fds_end": last.get("fds"),
         "fds_max": max((r["fds"] for r in rows), default=None),
         "threads_start": rows[0]["threads"] if rows else None,
@@ -225,9 +377,17 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
 
     t = [r["t_s"] / 60.0 for r in rows]
     fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
-    axes[0].plot(t, [r["rss_mb"] for r in rows], label="RSS")
-    axes[0].set_ylabel("RSS (MB)")
-    axes[0].set_title(title)
+    ax = axes[0]
+    rss0 = rows[0]["rss_mb"]
+    ax.plot(t, [r["rss_mb"] - rss0 for r in rows], label=f"RSS - {rss0:.0f} MB")
+    for key, what in (("py_heap_mb", "Python heap (tracemalloc)"),
+                      ("malloc_used_mb", "malloc in use"), ("malloc_free_mb", "malloc free")):
+        if key in rows[0]:
+            v0 = rows[0][key]
+            ax.plot(t, [r[key] - v0 for r in rows], label=f"{what} - {v0:.0f} MB")
+    ax.set_ylabel("growth (MB)")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize="small")
     ax = axes[1]
     ax.plot(t, [r["fds"] for r in rows], label="open file descriptors")
     ax.plot(t, [r["threads"] for r in rows], label="threads")
@@ -272,9 +432,11 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
     cycle_s = get_maneuver(MANEUVER).duration_s
     signals = StopSignals().__enter__()    # SIGINT, SIGTERM: stop (restored at the end)
     stop, received = signals.event, signals.received
-    run: dict[str, Any] = {"cycles_completed": 0, "cycles_incomplete": 0}
+    run: dict[str, Any] = {"cycles_completed": 0, "cycles_incomplete": 0,
+                           "recording": args.record, "tracemalloc_frames": args.tracemalloc}
     floor_before = floor_after = None
-    rows: list[dict] = []
+    rows = Samples()
+    heap_mid: dict | None = None
     server = tcu = None
     t0 = time.monotonic()
     try:
@@ -292,7 +454,13 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             raise SoakError(f"the server cannot be set up: {type(e).__name__}: "
                             f"{' '.join(str(e).split())}") from None
         tcu = _open_tcu(args.tcu_impl, priority)
-        server.start_recording(paths["mf4"], args.record_every)
+        if args.record:
+            server.start_recording(paths["mf4"], args.record_every)
+        if args.tracemalloc and not tracemalloc.is_tracing():
+            # in this process (the server's, the recorder's and the TCU's threads), from
+            # here on: what was allocated after the set-up and is still alive, so that
+            # a snapshot holds few traces and is taken in a moment
+            tracemalloc.start(args.tracemalloc)
         print(f"soak: {duration / 3600.0:.3g} h of {MANEUVER} ({cycle_s:g} s each) over the "
               f"embedded transport, SCHED_FIFO {priority}, the {args.tcu_impl.upper()} TCU"
               if priority else
@@ -344,6 +512,8 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
                     server.start_maneuver(MANEUVER)
                     cycles += 1
                     cycle_started = now
+                if heap_mid is None and tracemalloc.is_tracing() and now >= t0 + duration / 2.0:
+                    heap_mid = heap_sites(tracemalloc.take_snapshot())   # the middle
                 if now >= next_sample:
                     row = sample()
                     if not args.quiet:
@@ -360,6 +530,9 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             if rows and (time.monotonic() - t0) - rows[-1]["t_s"] > 1.0 and server.running:
                 sample()
             f.close()
+            if heap_mid is not None and tracemalloc.is_tracing():
+                run["heap_sites_growth_second_half"] = heap_growth(
+                    heap_mid, heap_sites(tracemalloc.take_snapshot()))
     except SoakError as e:
         print(f"soak: error: {e}", file=err)
         run["error"] = str(e)
@@ -384,6 +557,8 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             run.setdefault("error", report["run"]["error"])
             run["ticks"] = report["run"]["ticks"]
         signals.__exit__(None, None, None)
+        if args.tracemalloc:
+            tracemalloc.stop()
     run["interrupted"] = bool(received)
     if rows and not received and args.floor_s > 0:
         print(f"soak: the machine's wake-up floor again for {args.floor_s:g} s ...", file=out,
@@ -417,7 +592,8 @@ def _write_json(path: Path, args, rows, run, floor_before, floor_after, partial)
     doc = {
         "partial": partial,
         "config": {"seconds": args.seconds, "sample_s": args.sample_s,
-                   "record_every_s": args.record_every, "maneuver": MANEUVER,
+                   "record_every_s": args.record_every, "record": args.record,
+                   "tracemalloc_frames": args.tracemalloc, "maneuver": MANEUVER,
                    "transport": "embedded (python-can virtual, bridged)",
                    "priority": args.priority},
         "run": run,
@@ -427,10 +603,12 @@ def _write_json(path: Path, args, rows, run, floor_before, floor_after, partial)
         "floor_late_per_hour": (sum(f["late_per_hour"] for f in floors) / len(floors)
                                 if floors else None),
         "load_average": os.getloadavg(),
-        "samples": rows,
+        "samples": list(rows),
     }
     tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    with open(tmp, "w", encoding="utf-8") as f:    # written as encoded: no string of it all
+        json.dump(doc, f, indent=1, default=float)
+        f.write("\n")
     os.replace(tmp, path)
     return doc
 
@@ -449,12 +627,29 @@ def _print_summary(doc: dict, paths: dict, out) -> None:
           f"{num(v.get('rss_end_mb'), '{:.1f}')} MB, max {num(v.get('rss_max_mb'), '{:.1f}')} MB; "
           f"slope over the second half {num(v.get('rss_slope_mb_h_second_half'))} MB/h "
           f"(limit {v.get('limits', {}).get('rss_slope_mb_h')})", file=out)
+    last = doc["samples"][-1] if doc["samples"] else {}
+    if "py_heap_mb" in last:
+        print(f"Python heap       {num(doc['samples'][0]['py_heap_mb'], '{:.1f}')} -> "
+              f"{num(last['py_heap_mb'], '{:.1f}')} MB (peak {num(v.get('py_heap_peak_mb'), '{:.1f}')} "
+              f"MB; tracemalloc's own tables {num(last.get('tracemalloc_mb'), '{:.1f}')} MB)",
+              file=out)
+    if "malloc_used_mb" in last:
+        print(f"malloc            in use {num(last['malloc_used_mb'], '{:.1f}')} MB, free in its "
+              f"arenas {num(last['malloc_free_mb'], '{:.1f}')} MB, mapped on their own "
+              f"{num(last['malloc_mmap_mb'], '{:.1f}')} MB", file=out)
+    units = v.get("slope_units", {})
+    slopes = v.get("slopes_second_half") or {}
+    print("second half       " + ", ".join(
+        f"{k.removesuffix('_mb')} {num(x, '{:+.2f}')} {units.get(k, '')}" for k, x in slopes.items()),
+        file=out)
+    for g in (r.get("heap_sites_growth_second_half") or [])[:5]:
+        print(f"  heap site       {g['grew_kb']:+9.1f} kB ({g['blocks_grew']:+d} blocks, now "
+              f"{g['kb']:.0f} kB)  {g['site']}", file=out)
     print(f"descriptors       {v.get('fds_start')} -> {v.get('fds_end')} (max {v.get('fds_max')}); "
           f"threads {v.get('threads_start')} -> {v.get('threads_end')}", file=out)
     print(f"overruns          {v.get('overruns')} ({num(v.get('overruns_per_hour'), '{:.0f}')}/h); "
           f"the machine's floor: {num(fl, '{:.0f}')} wake-ups later than a period per hour",
           file=out)
-    last = doc["samples"][-1] if doc["samples"] else {}
     print(f"counters          rx {last.get('rx_frames')} (accepted {last.get('rx_accepted')}, "
           f"rejected {last.get('rx_rejected')}, lost {last.get('rx_lost')}); tx "
           f"{last.get('tx_frames')} (dropped {last.get('tx_dropped')}); recorded "
@@ -501,6 +696,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tcu-impl", choices=("c", "python"), default="c",
                    help="the reference TCU: the C node (default, as the demo's) or the Python "
                         "node (tcu_stub/can_tcu.py)")
+    p.add_argument("--no-record", dest="record", action="store_false",
+                   help="no MF4 recording (to compare the memory figures with and without)")
+    p.add_argument("--tracemalloc", type=int, default=1, metavar="FRAMES",
+                   help="trace the Python heap with this many frames per allocation site "
+                        "(1; 0: not traced)")
     p.add_argument("--quiet", action="store_true", help="no line per sample")
     return p
 
@@ -509,6 +709,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.priority is not None and not 0 <= args.priority <= 99:
         print("soak: error: --priority must be 0..99", file=sys.stderr)
+        return 2
+    if args.tracemalloc < 0:
+        print("soak: error: --tracemalloc must be 0 or more frames", file=sys.stderr)
         return 2
     args.seconds = (args.minutes * 60.0 if args.minutes else (args.hours or 1.0) * 3600.0)
     if args.floor_s is None:
