@@ -41,10 +41,9 @@ Verdict (exit 1 when failed, one line per finding):
   Python's caches, asammdf's first blocks) at most ``--rss-slope-mb-h``
   (4 MB per hour). Why 4: one byte leaked per tick is 2000 B/s = 7.2 MB/h
   and one byte per received frame about 1.2 MB/h more, so a leak of one
-  byte per tick is caught; what the recorder legitimately keeps per data
-  block it appends (once a second: its block list) is a few hundred kB per
-  hour; and at 4 MB/h a bench that soaks for a week grows by 0.7 GB, which a
-  bench PC holds. A slope needs data: growth of less than
+  byte per tick is caught (the MF4 recorder keeps no list of the blocks it
+  appends: counts and the last block's address); and at 4 MB/h a bench that
+  soaks for a week grows by 0.7 GB, which a bench PC holds. A slope needs data: growth of less than
   ``--rss-noise-mb`` (3 MB) between the second half's first and last
   samples is never a failure (the slope of a few minutes is noise; the
   byte-per-tick leak grows 3.6 MB in the second half of an hour).
