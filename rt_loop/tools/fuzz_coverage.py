@@ -1,0 +1,288 @@
+"""Coverage-guided fuzzing: libFuzzer targets for the C side, atheris targets
+for the Python side (fuzz/).
+
+    python -m rt_loop.tools.fuzz_coverage can_frame --seconds 60     # scripts/fuzz-coverage
+    python -m rt_loop.tools.fuzz_coverage --all --seconds 20         # scripts/test's stage
+    python -m rt_loop.tools.fuzz_coverage --all --runs 100000000     # the long stage
+    python -m rt_loop.tools.fuzz_coverage --list
+
+The C targets are built with clang -fsanitize=fuzzer,address,undefined
+straight from the C sources into build/fuzz/ (objects rebuilt when a source
+or header changed); the Python targets run under atheris in this
+interpreter's environment. Each target starts from its seed corpus
+(fuzz/corpus/<target>/, in the repository, written by fuzz/make_corpus.py)
+and the corpus its earlier runs grew (build/fuzz/corpus/<target>/), with
+its dictionary (fuzz/<target>.dict) when there is one. Printed per target:
+executions, coverage (libFuzzer's cov: edges and ft: features; atheris
+reports the same two counts for the Python bytecode it instruments),
+corpus size and findings; out/fuzz-coverage.json holds the figures. A
+crash, a sanitizer report, a leak or a timeout is a finding: its input is
+kept under out/fuzz-crashes/<target>/ and the exit status is 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from plant.machine import machine_info, write_figures
+
+ROOT = Path(__file__).resolve().parents[2]
+FUZZ = ROOT / "fuzz"
+BUILD = ROOT / "build" / "fuzz"
+OUT_JSON = ROOT / "out" / "fuzz-coverage.json"
+CRASHES = ROOT / "out" / "fuzz-crashes"
+
+PLANT = ROOT / "plant" / "csrc"
+CAN = ROOT / "can_dbc" / "csrc"
+LOOP = ROOT / "rt_loop" / "csrc"
+FMU = ROOT / "plant" / "fmu" / "csrc"
+FMU_TABLE = BUILD / "fmu_variables.c"   # generated: the default car's parameters
+
+SAN = ["-g", "-O1", "-fno-omit-frame-pointer", "-fsanitize=address,undefined",
+       "-fno-sanitize-recover=undefined"]
+
+
+def _plant_sources() -> list[Path]:
+    return [p for p in sorted(PLANT.glob("*.c")) if p.name != "dct_bench.c"]
+
+
+# C targets: their sources besides fuzz/<name>.c, libraries
+C_TARGETS = {
+    "can_frame": (lambda: [CAN / "can_table.c"], []),
+    "rt_prepare": (lambda: [FMU_TABLE, *_plant_sources(), CAN / "can_table.c", *sorted(LOOP.glob("*.c"))],
+                   ["-lpthread"]),
+    "fmu_state": (lambda: [FMU / "fmu_instance.c", FMU_TABLE, *_plant_sources()], []),
+    "plant_prepare": (lambda: [FMU_TABLE, *_plant_sources()], []),
+}
+# Python targets: fuzz/<name>.py
+PY_TARGETS = ["xcp_packet", "mapping_load", "stimulus_load", "control_request"]
+TARGETS = [*C_TARGETS, *PY_TARGETS]
+# longest input (libFuzzer's -max_len): the seeds of the table and mapping targets are long
+MAX_LEN = {"rt_prepare": 65536, "mapping_load": 65536, "stimulus_load": 16384, "plant_prepare": 1024,
+           "xcp_packet": 1024}
+
+# the status lines of libFuzzer (and atheris, which is libFuzzer):
+# "#1234\tpulse  cov: 56 ft: 78 corp: 9/1Kb ...", "#1234\tDONE   cov: ..."
+_STATUS = re.compile(r"^#(\d+)\s+\S+\s+cov: (\d+) ft: (\d+) corp: (\d+)/")
+_DONE = re.compile(r"^Done (\d+) runs in (\d+) second")
+_ARTIFACT = re.compile(r"Test unit written to (\S+)")
+_FINDING = re.compile(r"^(==\d+==ERROR: .*|SUMMARY: .*|.*runtime error: .*|=== Uncaught Python exception: ===|"
+                      r"==\d+== ERROR: libFuzzer: .*)$")
+
+
+class FuzzError(Exception):
+    """A one-line reason the run cannot go on (no compiler, a build failed)."""
+
+
+def _clang() -> str:
+    for cc in ("clang", *(f"clang-{v}" for v in range(19, 13, -1))):
+        if shutil.which(cc):
+            return cc
+    raise FuzzError("clang not found: scripts/fuzz-coverage installs it (apt-get install clang), "
+                    "or install it yourself")
+
+
+def _fmu_table() -> None:
+    """fuzz targets link the FMU's generated parameter table (the default car)."""
+    from plant.fmu import variables
+    text = variables.generate_c()
+    if not FMU_TABLE.exists() or FMU_TABLE.read_text(encoding="utf-8") != text:
+        FMU_TABLE.parent.mkdir(parents=True, exist_ok=True)
+        FMU_TABLE.write_text(text, encoding="utf-8")
+
+
+def _newest_header(dirs) -> float:
+    return max((h.stat().st_mtime for d in dirs for h in d.glob("*.h")), default=0.0)
+
+
+def _compile(cc: str, src: Path, obj: Path, incs, headers_mtime: float) -> None:
+    if obj.exists() and obj.stat().st_mtime >= max(src.stat().st_mtime, headers_mtime):
+        return
+    obj.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [cc, *SAN, "-fsanitize=fuzzer-no-link", "-D_GNU_SOURCE",
+           *(f"-I{d}" for d in incs), "-c", str(src), "-o", str(obj)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise FuzzError(f"compiling {src.relative_to(ROOT)} failed: {r.stderr.strip().splitlines()[0]}")
+
+
+def build(names, out=sys.stdout) -> dict[str, Path]:
+    """Builds the C targets ``names`` into build/fuzz/; returns their binaries."""
+    names = [n for n in names if n in C_TARGETS]
+    if not names:
+        return {}
+    cc = _clang()
+    _fmu_table()
+    t0 = time.monotonic()
+    jobs, objs = {}, {}
+    incs = [PLANT, CAN, LOOP, FMU, FUZZ]          # one set: every object serves every target
+    headers = _newest_header(incs)
+    for name in names:
+        objs[name] = []
+        for src in [FUZZ / f"{name}.c", *C_TARGETS[name][0]()]:
+            obj = BUILD / "obj" / (str(src.relative_to(ROOT)).replace("/", "__") + ".o")
+            jobs[obj] = (src, incs, headers)
+            objs[name].append(obj)
+    with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as ex:
+        for f in [ex.submit(_compile, cc, src, obj, incs, h) for obj, (src, incs, h) in jobs.items()]:
+            f.result()
+    bins = {}
+    for name in names:
+        exe = BUILD / name
+        if not exe.exists() or exe.stat().st_mtime < max(o.stat().st_mtime for o in objs[name]):
+            cmd = [cc, *SAN, "-fsanitize=fuzzer", *map(str, objs[name]), "-lm", *C_TARGETS[name][1],
+                   "-o", str(exe)]
+            r = subprocess.run(cmd, capture_output=True, text=True)
+            if r.returncode != 0:
+                raise FuzzError(f"linking {name} failed: {r.stderr.strip().splitlines()[0]}")
+        bins[name] = exe
+    print(f"fuzz-coverage: C targets built in build/fuzz/ ({time.monotonic() - t0:.0f} s)", file=out)
+    return bins
+
+
+def command(name: str, binary: Path | None, seconds: float | None, runs: int | None) -> list[str]:
+    """The libFuzzer command line of one target (corpus folders last)."""
+    work = BUILD / "corpus" / name
+    work.mkdir(parents=True, exist_ok=True)
+    crashes = CRASHES / name
+    crashes.mkdir(parents=True, exist_ok=True)
+    exe = [str(binary)] if binary else [sys.executable, str(FUZZ / f"{name}.py")]
+    flags = [f"-artifact_prefix={crashes}/", "-print_final_stats=1", "-timeout=25",
+             "-rss_limit_mb=4096", f"-max_len={MAX_LEN.get(name, 4096)}"]
+    if seconds is not None:
+        flags.append(f"-max_total_time={max(1, int(round(seconds)))}")
+    if runs is not None:
+        flags.append(f"-runs={runs}")
+    d = FUZZ / f"{name}.dict"
+    if d.exists():
+        flags.append(f"-dict={d}")
+    seeds = FUZZ / "corpus" / name
+    return [*exe, *flags, str(work), *([str(seeds)] if seeds.is_dir() else [])]
+
+
+def parse(text: str) -> dict:
+    """Executions, coverage and findings from a libFuzzer / atheris log."""
+    res = {"executions": 0, "cov": 0, "ft": 0, "corpus": 0, "findings": [], "inputs": []}
+    for line in text.splitlines():
+        m = _STATUS.match(line)
+        if m:
+            res["executions"], res["cov"], res["ft"], res["corpus"] = map(int, m.groups())
+        m = _DONE.match(line)
+        if m:
+            res["executions"] = int(m.group(1))
+        m = re.match(r"^stat::number_of_executed_units: (\d+)", line)
+        if m:
+            res["executions"] = int(m.group(1))
+        m = _ARTIFACT.search(line)
+        if m:
+            res["inputs"].append(m.group(1))
+        if _FINDING.match(line) and line not in res["findings"]:
+            res["findings"].append(line.strip())
+    return res
+
+
+def run_target(name: str, binary: Path | None, seconds, runs, out=sys.stdout) -> dict:
+    cmd = command(name, binary, seconds, runs)
+    log = BUILD / "logs" / f"{name}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    env = dict(os.environ)
+    env.setdefault("ASAN_OPTIONS", "detect_leaks=1")
+    env.setdefault("UBSAN_OPTIONS", "print_stacktrace=1")
+    with open(log, "w", encoding="utf-8") as f:
+        r = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+    wall = time.monotonic() - t0
+    res = parse(log.read_text(encoding="utf-8", errors="replace"))
+    res.update(kind="C (libFuzzer)" if binary else "Python (atheris)", seconds=round(wall, 1),
+               exit=r.returncode, log=str(log.relative_to(ROOT)),
+               exec_per_s=round(res["executions"] / wall) if wall > 0 else 0)
+    res["crashed"] = r.returncode != 0 or bool(res["inputs"])
+    if res["crashed"] and not res["findings"]:
+        res["findings"].append(f"exit status {r.returncode} (see {res['log']})")
+    verdict = "CRASH" if res["crashed"] else "ok"
+    print(f"  {name:16s} {res['kind']:17s} {res['executions']:>12,d} runs {wall:7.1f} s "
+          f"{res['exec_per_s']:>9,d}/s  cov {res['cov']:>5d}  ft {res['ft']:>6d}  "
+          f"corpus {res['corpus']:>5d}  {verdict}", file=out, flush=True)
+    for line in res["findings"][:3]:
+        print(f"      {line}", file=out)
+    for path in res["inputs"]:
+        print(f"      input kept: {os.path.relpath(path, ROOT)}", file=out)
+    return res
+
+
+def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
+    ap = argparse.ArgumentParser(prog="scripts/fuzz-coverage", description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("targets", nargs="*", metavar="TARGET", help=f"one or more of: {', '.join(TARGETS)}")
+    ap.add_argument("--all", action="store_true", help="every target, one after the other")
+    ap.add_argument("--seconds", type=float, help="seconds per target (default 20 without --runs)")
+    ap.add_argument("--runs", type=int, help="executions per target (the long stage: 1e8 C, 1e6 Python)")
+    ap.add_argument("--py-runs", type=int, help="with --runs: executions per Python target instead")
+    ap.add_argument("--build-only", action="store_true", help="build the C targets and stop")
+    ap.add_argument("--list", action="store_true", help="name the targets and stop")
+    ap.add_argument("--json", default=str(OUT_JSON), help="figures (default out/fuzz-coverage.json)")
+    a = ap.parse_args(argv)
+    if a.list:
+        for n in TARGETS:
+            print(f"{n:16s} {'C (libFuzzer)' if n in C_TARGETS else 'Python (atheris)'}", file=out)
+        return 0
+    names = TARGETS if a.all else a.targets
+    unknown = [n for n in names if n not in TARGETS]
+    if unknown:
+        print(f"scripts/fuzz-coverage: unknown target {unknown[0]!r}: choose from {', '.join(TARGETS)}",
+              file=err)
+        return 2
+    if not names:
+        print("scripts/fuzz-coverage: name a TARGET or --all", file=err)
+        return 2
+    if a.seconds is not None and not a.seconds > 0:
+        print(f"scripts/fuzz-coverage: --seconds {a.seconds:g}: must be a positive number", file=err)
+        return 2
+    if a.runs is not None and a.runs < 1:
+        print(f"scripts/fuzz-coverage: --runs {a.runs}: must be at least 1", file=err)
+        return 2
+    seconds = a.seconds if a.seconds is not None or a.runs is not None else 20.0
+    try:
+        bins = build(names, out=out)
+    except FuzzError as e:
+        print(f"scripts/fuzz-coverage: {e}", file=err)
+        return 2
+    if a.build_only:
+        return 0
+    if any(n in PY_TARGETS for n in names):
+        try:
+            import atheris  # noqa: F401
+        except ImportError:
+            print("scripts/fuzz-coverage: atheris is not installed (the test extra: scripts/setup)",
+                  file=err)
+            return 2
+    limit = f"{seconds:g} s" if a.runs is None else f"{a.runs:,d} runs" + (
+        f" (Python {a.py_runs:,d})" if a.py_runs else "") + (f", at most {seconds:g} s" if seconds else "")
+    print(f"fuzz-coverage: {len(names)} target(s), {limit} each", file=out)
+    t0 = time.monotonic()
+    results = {}
+    for n in names:
+        runs = a.py_runs if (a.py_runs and n in PY_TARGETS) else a.runs
+        results[n] = run_target(n, bins.get(n), seconds, runs, out=out)
+    crashed = [n for n, r in results.items() if r["crashed"]]
+    report = {"machine": machine_info(), "seconds_per_target": seconds, "runs_per_target": a.runs,
+              "wall_s": round(time.monotonic() - t0, 1), "targets": results,
+              "crashed": crashed}
+    write_figures(a.json, report)
+    total = sum(r["executions"] for r in results.values())
+    print(f"fuzz-coverage: {total:,d} executions, {len(crashed)} target(s) with findings"
+          f"{': ' + ', '.join(crashed) if crashed else ''}; figures in {os.path.relpath(a.json, ROOT)}",
+          file=out)
+    return 1 if crashed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
