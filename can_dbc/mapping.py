@@ -608,6 +608,9 @@ class _Loader:
             raise MappingError(f"{self.path}: cannot read: {e.strerror}") from None
         except tomllib.TOMLDecodeError as e:
             raise MappingError(f"{self.path}: not valid TOML: {e}") from None
+        except UnicodeDecodeError as e:
+            raise MappingError(f"{self.path}: not UTF-8 text (byte {e.start}): a mapping is "
+                               "a TOML file") from None
         self.keys(doc, ("bus", "message"), "")
         buses = self.buses(doc.get("bus"))
         entries = self.entries(doc.get("message", {}), buses)

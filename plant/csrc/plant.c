@@ -501,12 +501,33 @@ static int check_state(dct_plant *pl)
     return DCT_OK;
 }
 
+/* the state's discrete values are among their values (a state written from
+ * outside, XCP or a saved FMU state, may hold anything; they index tables) */
+static int check_discrete(dct_plant *pl)
+{
+    for (int k = 0; k < DCT_N_SLEEVES; k++) {
+        const dct_sync_state *y = &pl->state.gearbox.sync[k];
+        if (!(y->side == -1.0 || y->side == 0.0 || y->side == 1.0) ||
+            !(y->phase == DCT_SYNC_DISENGAGED || y->phase == DCT_SYNC_SYNCHRONIZING ||
+              y->phase == DCT_SYNC_ENGAGED)) {
+            pl->error_index = (int)((const double *)&y->side - (const double *)&pl->state);
+            return DCT_ERR_STATE;
+        }
+    }
+    if (!(pl->active_shaft == -1.0 || pl->active_shaft == 0.0 || pl->active_shaft == 1.0))
+        return DCT_ERR_STATE;
+    return DCT_OK;
+}
+
 static int plant_steps(dct_plant *pl, int n)
 {
     coupling c;
+    int st = check_discrete(pl);
+    if (st != DCT_OK)
+        return st;
     int sub = (int)pl->effective.solver.substeps;
     double h = pl->effective.solver.step_s / sub;
-    int st = apply_inputs(pl);
+    st = apply_inputs(pl);
     if (st != DCT_OK)
         return st;
     for (int i = 0; i < n; i++) {

@@ -12,7 +12,8 @@
  * priority outside 0..99, cpu < -1, NaN duration; channel tables missing,
  * too many messages or commands, an unknown transport, source, target,
  * output, status or input index, a value table outside the ranges, a cycle
- * time that is not a positive number, min above max, a CAN FD message on a
+ * time that is not a positive number, min above max, a codec table not laid
+ * out as can_dbc/table.py lays it out (check_table), a CAN FD message on a
  * SocketCAN channel without fd_frames), -EBADF (fd < 0), -ENOTSOCK /
  * -EPROTOTYPE (fd not
  * a datagram socket), another -errno (SO_RXQ_OVFL refused) or -EDOM (the
@@ -48,6 +49,62 @@ static int check_lookup(const rt_lookup *t, const rt_channel *ch)
     return 0;
 }
 
+/* 1 if signal s of a message of len bytes lies inside its frame */
+static int signal_fits(const ct_signal *s, unsigned len)
+{
+    if (s->length < 1 || s->length > 64 || (s->is_float && s->length != 32 && s->length != 64) ||
+        s->conversion > CT_CONV_INT_FACTOR)
+        return 0;
+    if (!isfinite(s->factor) || s->factor == 0.0 || !isfinite(s->offset) ||
+        (s->limited && !(s->minimum < s->maximum)))
+        return 0;
+    const int64_t big = (int64_t)1 << 53; /* integer_value's bound */
+    if (s->factor_int < -big || s->factor_int > big || s->offset_int < -big || s->offset_int > big)
+        return 0;
+    if (!s->is_float) { /* the field's raw range, as the builder computes it */
+        double half = ldexp(1.0, s->length - 1);
+        if (s->raw_min != (s->is_signed ? -half : 0.0) || s->raw_end != (s->is_signed ? half : 2 * half))
+            return 0;
+    }
+    unsigned first = s->big_endian ? 8u * (s->start / 8u) + 7u - s->start % 8u : s->start;
+    return first + s->length <= 8u * len;
+}
+
+/* a codec table as can_dbc/table.py lays it out: each message's signals
+ * right after the previous message's, each multiplexed signal's ranges
+ * right after the previous one's, every index inside its message and every
+ * field inside its frame; *n_signals receives the signals of the table.
+ * The codec trusts its tables: this is what lets the loop trust one. */
+static int check_table(const ct_table *t, uint32_t *n_signals)
+{
+    uint32_t n_sig = 0, n_mux = 0;
+    for (int m = 0; m < t->n_messages; m++) {
+        const ct_message *cm = &t->messages[m];
+        if (cm->first_signal != n_sig || cm->n_signals > RT_MAX_MSG_SIGNALS ||
+            cm->length > CT_MAX_LENGTH || cm->protection > CT_PROT_P7)
+            return -1;
+        const int32_t n = (int32_t)cm->n_signals;
+        if (cm->crc_signal < -1 || cm->crc_signal >= n || cm->counter_signal < -1 ||
+            cm->counter_signal >= n || cm->nibble_signal < -1 || cm->nibble_signal >= n ||
+            cm->crc_byte < -1 || cm->crc_byte >= (int32_t)cm->length)
+            return -1;
+        for (uint32_t i = 0; i < cm->n_signals; i++) {
+            const ct_signal *s = &t->signals[n_sig + i];
+            if (!signal_fits(s, cm->length) || s->mux_signal < -1 || s->mux_signal >= n ||
+                s->mux_signal == (int32_t)i)
+                return -1;
+            if (s->mux_signal >= 0) {
+                if (s->mux_first != n_mux || !t->mux || s->mux_count > RT_MAX_MSG_SIGNALS)
+                    return -1;
+                n_mux += s->mux_count;
+            }
+        }
+        n_sig += cm->n_signals;
+    }
+    *n_signals = n_sig;
+    return 0;
+}
+
 /* the tables of every channel are complete and consistent; fills
  * first_message and stats.n_messages */
 static int check_channels(rt_loop *l)
@@ -67,6 +124,9 @@ static int check_channels(rt_loop *l)
             !ch->targets || t->n_messages > RT_MAX_MESSAGES - total)
             return -1;
         if (ch->transport != RT_TRANSPORT_SOCKETCAN && ch->transport != RT_TRANSPORT_RING)
+            return -1;
+        uint32_t n_sig = 0;
+        if (check_table(t, &n_sig) != 0)
             return -1;
         ch->first_message = total;
         ch->first_signal_value = n_values;
@@ -105,8 +165,6 @@ static int check_channels(rt_loop *l)
             }
         }
         total += t->n_messages;
-        const ct_message *last = &t->messages[t->n_messages - 1];
-        uint32_t n_sig = last->first_signal + last->n_signals;
         if (n_sig > (uint32_t)(RT_MAX_SIGNAL_VALUES - n_values))
             return -1;
         n_values += (int)n_sig;

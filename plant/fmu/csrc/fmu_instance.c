@@ -850,6 +850,23 @@ fmu_status fmu_state_deserialize(fmu_instance *inst, const char *fn, const unsig
     if (core.mode < FMU_MODE_INSTANTIATED || core.mode > FMU_MODE_TERMINATED || core.steps < 0)
         return fail(inst, fn, "the serialized state has an impossible mode %d or step count",
                     core.mode);
+    /* the parameters and faults pass the plant's check, and what the step
+     * uses (effective, derived) is what they give: a state written by this
+     * FMU always is (the checksum only tells damage from a valid buffer) */
+    dct_plant *check = malloc(sizeof *check);
+    if (check == NULL)
+        return fail(inst, fn, "out of memory (%zu bytes to check an FMU state)", sizeof *check);
+    memcpy(check, &core.plant, sizeof *check);
+    int prepared = dct_plant_prepare(check);
+    int same = prepared == DCT_OK &&
+               memcmp(&check->effective, &core.plant.effective, sizeof check->effective) == 0 &&
+               memcmp(&check->derived, &core.plant.derived, sizeof check->derived) == 0;
+    free(check);
+    if (prepared != DCT_OK)
+        return fail(inst, fn, "the serialized state's parameters or faults fail the plant's check");
+    if (!same)
+        return fail(inst, fn, "the serialized state's derived values do not follow from its "
+                              "parameters");
     fmu_saved *s = *state;
     if (s == NULL) {
         s = calloc(1, sizeof *s);
