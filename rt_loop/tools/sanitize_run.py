@@ -311,9 +311,11 @@ class _Readers:
         self.errors: list[str] = []
         self.xcp = {"dtos": 0, "daq_setups": 0, "cal_writes": 0, "cal_refused": 0,
                     "commands": 0, "answer_max_s": 0.0, "lost_answers": 0}
-        self.readers = {"scope_reads": 0, "scope_changes": 0, "snapshots": 0, "stats_reads": 0}
+        self.readers = {"scope_reads": 0, "scope_changes": 0, "snapshots": 0, "stats_reads": 0,
+                        "tcu_figures": 0}
         self.control = {"requests": 0, "faults_injected": 0, "faults_refused": 0, "sets": 0}
         self.threads: list[Any] = []
+        self.tcu: Any = None                   # the C TCU node, once it runs
 
     def start(self) -> None:
         import threading
@@ -460,6 +462,9 @@ class _Readers:
             with srv._read_lock:
                 srv.stats.read()
             self.readers["stats_reads"] += 1
+            if self.tcu is not None:             # the TCU node's figures, as the demo reads them
+                self.tcu.figures()
+                self.readers["tcu_figures"] += 1
             if time.monotonic() >= next_change and extra:  # a session opens or closes
                 if len(traced) > len(names):
                     scope.remove(extra)
@@ -549,6 +554,7 @@ def run_load(args: argparse.Namespace) -> dict:
     server.start()
     tcu = CTcuNode.open("virtual", channel, priority=0)
     readers = _Readers(server, control, stop, args.seed)
+    readers.tcu = tcu
     readers.start()
     gen = Generator(args.seed, "embedded", fd_allowed=True)
     sender = Sender("embedded", channel, True)
