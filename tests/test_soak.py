@@ -161,3 +161,30 @@ def test_a_stalled_bridge_is_a_note_with_its_length():
     v = soak._verdict(rows, _args(), {"cycles_completed": 9})
     assert v["passed"] and v["rx_stall_max_s"] == 180.0
     assert any(n.startswith("no TCU frame accepted for 180 s") for n in v["notes"])
+
+
+_MAPPED = """
+import sys
+import numpy as np
+from rt_loop.measure.mdf_recorder import fixed_mmap_threshold
+from rt_loop.tools.soak import heap_figures
+if sys.argv[1] == "fixed":
+    assert fixed_mmap_threshold()
+a = np.ones(75_000)          # 600 kB: mapped on its own (above the 128 kB threshold)
+del a                        # freed: glibc raises its threshold to 600 kB unless fixed
+before = heap_figures()["malloc_mmap_mb"]
+b = np.ones(75_000)          # the next such block: mapped again, or from the heap
+print(round(heap_figures()["malloc_mmap_mb"] - before, 3))
+"""
+
+
+@pytest.mark.skipif(soak._MALLINFO2 is None, reason="glibc's mallinfo2")
+def test_the_recorders_blocks_stay_out_of_mallocs_heap_once_the_threshold_is_fixed():
+    def mapped(mode):
+        p = subprocess.run([os.path.join(REPO, ".venv", "bin", "python"), "-c", _MAPPED, mode],
+                           cwd=REPO, capture_output=True, text=True, timeout=120)
+        assert p.returncode == 0, p.stderr
+        return float(p.stdout.split()[-1])
+
+    assert mapped("default") < 0.1      # glibc's dynamic threshold: into the heap, kept there
+    assert mapped("fixed") >= 0.6       # mapped, and unmapped when freed

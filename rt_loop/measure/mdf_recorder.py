@@ -61,6 +61,7 @@ second's blocks takes about 3 ms.
 
 from __future__ import annotations
 
+import ctypes
 import datetime as _dt
 import io
 import os
@@ -77,7 +78,7 @@ from can_dbc.mapping import unit_of_name
 from rt_loop.drain import RingDrain, one_line
 from rt_loop.measure.recorder import sample_layout
 
-__all__ = ["MdfRecorder", "MDF_VERSION", "output_comments"]
+__all__ = ["MdfRecorder", "MDF_VERSION", "fixed_mmap_threshold", "output_comments"]
 
 MDF_VERSION = "4.10"
 FLUSH_S = 1.0                           # wall-clock seconds between blocks
@@ -85,6 +86,11 @@ _BATCH = 1024                           # rt_sample per pop
 _LOG_BATCH = 4096                       # rt_log_entry per pop
 _MAX_PENDING_BYTES = 16 * 1024 * 1024   # flush earlier than flush_s beyond this
 _DATA_BYTES = 64                        # CAN_DataFrame.DataBytes: CAN FD's 64 bytes
+#: glibc's M_MMAP_THRESHOLD (malloc.h) and the value the recorder fixes it at: its
+#: default, 128 kB, which glibc raises to the size of every mapped block freed (up
+#: to 32 MB); see ``fixed_mmap_threshold``
+_M_MMAP_THRESHOLD = -3
+MMAP_THRESHOLD_BYTES = 128 * 1024
 
 _CAN_EFF_FLAG = 0x80000000
 _CAN_RTR_FLAG = 0x40000000
@@ -103,6 +109,23 @@ _BUS_GROUPS = (("CAN_DataFrame", _FRAME_FIELDS), ("CAN_RemoteFrame", _REMOTE_FIE
                ("CAN_ErrorFrame", _FRAME_FIELDS))
 
 _HEADER = os.path.join(os.path.dirname(os.path.abspath(plant.__file__)), "csrc", "dct_plant.h")
+
+
+def fixed_mmap_threshold() -> bool:
+    """Keeps glibc's malloc from taking the recorder's blocks into its heap: every
+    second the recorder allocates and frees buffers of 0.1-1 MB (a batch of samples,
+    the records joined, the transposed and compressed block). glibc maps blocks above
+    its threshold on their own, and raises the threshold to the size of each mapped
+    block freed, so from the first block on these come from the heap, between
+    smaller blocks that outlive them: the heap's free space grows in steps and, under
+    mlockall, stays resident (in a soak, RSS rose by 4.6 MB in 6.5 minutes while
+    malloc's bytes in use stayed at 30 MB and its free bytes rose from 0.6 to 4.3). Set explicitly, the threshold stays put: these blocks are
+    mapped and unmapped again. Process-wide, as every malloc setting; False when not
+    glibc."""
+    try:
+        return bool(ctypes.CDLL(None).mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES))
+    except (OSError, AttributeError):
+        return False
 
 
 def _asammdf() -> Any:
@@ -338,6 +361,8 @@ class MdfRecorder(RingDrain):
         from asammdf import Signal
         from asammdf.blocks import v4_constants as v4c
         from asammdf.blocks.v4_blocks import SourceInformation
+
+        fixed_mmap_threshold()
 
         lay = sample_layout(ffi, self.command_names)
         outputs, base_o, base_c, cmd_extra = lay.outputs, lay.base_o, lay.base_c, lay.cmd_extra
