@@ -847,7 +847,8 @@ fmu_status fmu_state_deserialize(fmu_instance *inst, const char *fn, const unsig
         return fail(inst, fn, "checksum mismatch: the serialized state is damaged");
     fmu_core core;
     memcpy(&core, buf + SER_HEAD + tlen, sizeof core);
-    if (core.mode < FMU_MODE_INSTANTIATED || core.mode > FMU_MODE_TERMINATED || core.steps < 0)
+    if (core.mode < FMU_MODE_INSTANTIATED || core.mode > FMU_MODE_TERMINATED || core.steps < 0 ||
+        !(core.plant.step_count >= 0.0 && core.plant.step_count <= 9.0e15))
         return fail(inst, fn, "the serialized state has an impossible mode %d or step count",
                     core.mode);
     /* the parameters and faults pass the plant's check, and what the step
