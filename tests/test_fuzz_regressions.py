@@ -115,3 +115,18 @@ def test_regression_inputs_are_small():
         if p.is_file():
             assert p.stat().st_size < 65536, p
     assert Path(os.path.relpath(REGRESSIONS, fc.ROOT)) == Path("fuzz/regressions")
+
+
+def test_an_mdf_stimulus_that_crashes_the_reader_is_one_line_error(tmp_path):
+    """asammdf 8.8 segfaults on this 1.2 kB MF4 (found by fuzz/stimulus_load.py): the
+    stimulus is read in a child process, so serve refuses it in one line and lives."""
+    pytest.importorskip("asammdf")
+    from rt_loop._rt_loop import ffi
+    from rt_loop.measure import stimulus
+
+    data = (REGRESSIONS / "stimulus_load" / "mdf-reader-segfault").read_bytes()
+    path = tmp_path / "stim.mf4"
+    path.write_bytes(data[1:])                       # the target's first byte picks MF4
+    with pytest.raises(stimulus.StimulusError) as e:
+        stimulus.load_stimulus(str(path), stimulus.plant_inputs_writable(ffi))
+    assert str(e.value).startswith(f"stimulus {path}: not a readable MDF file") and "\n" not in str(e.value)

@@ -256,16 +256,70 @@ def _load_csv(path: str, writable: dict, channels: list[str] | None) -> dict:
 
 
 def _load_mdf(path: str, writable: dict, channels: list[str] | None) -> dict:
-    try:
-        from asammdf import MDF  # optional: only MDF stimuli need it
-    except ImportError:
+    """The channels of an MDF stimulus, read in a child process: asammdf's C
+    parts can crash the process on a malformed file (a 1.2 kB MF4 found by
+    fuzz/stimulus_load.py segfaults asammdf 8.8), and the server must refuse
+    such a file in one line, not die with it."""
+    import importlib.util
+
+    if importlib.util.find_spec("asammdf") is None:
         raise StimulusError(f"stimulus {path}: MDF files need the asammdf package "
-                            "(pip install asammdf)") from None
+                            "(pip install asammdf)")
     if not os.path.isfile(path):
         why = "no such file" if not os.path.exists(path) else "not a file"
         raise StimulusError(f"stimulus {path}: cannot read it: {why}")
     if os.path.getsize(path) == 0:
         raise StimulusError(f"stimulus {path}: the file is empty")
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="dct-hil-stimulus-") as tmp:
+        out = os.path.join(tmp, "channels.npz")
+        args = json.dumps({"path": path, "writable": list(writable), "channels": channels, "out": out})
+        code = "from rt_loop.measure.stimulus import _read_mdf_child; _read_mdf_child()"
+        try:
+            r = subprocess.run([sys.executable, "-c", code, args], capture_output=True, text=True,
+                               timeout=600, check=False)
+        except subprocess.TimeoutExpired:
+            raise StimulusError(f"stimulus {path}: the MDF reader took over 600 s") from None
+        if r.returncode == _CHILD_REFUSED:
+            raise StimulusError(r.stderr.strip().splitlines()[-1])
+        if r.returncode != 0:
+            why = (f"signal {-r.returncode}" if r.returncode < 0
+                   else _one_line(r.stderr.strip().splitlines()[-1] if r.stderr.strip() else r.returncode))
+            raise StimulusError(f"stimulus {path}: not a readable MDF file (the MDF reader "
+                                f"crashed on it: {why})")
+        with np.load(out) as z:
+            names = [str(n) for n in z["names"]]
+            return {n: (z[f"t{k}"].copy(), z[f"v{k}"].copy()) for k, n in enumerate(names)}
+
+
+_CHILD_REFUSED = 3
+
+
+def _read_mdf_child() -> None:
+    """The child of ``_load_mdf``: reads the channels into an .npz; a refusal is its
+    one line on stderr and exit status 3."""
+    import json
+    import sys
+
+    a = json.loads(sys.argv[1])
+    try:
+        data = _read_mdf_channels(a["path"], a["writable"], a["channels"])
+    except StimulusError as e:
+        print(str(e), file=sys.stderr)
+        sys.exit(_CHILD_REFUSED)
+    arrays = {"names": np.array(list(data), dtype=str)}
+    for k, (t, v) in enumerate(data.values()):
+        arrays[f"t{k}"], arrays[f"v{k}"] = t, v
+    np.savez(a["out"], **arrays)
+
+
+def _read_mdf_channels(path: str, writable: list[str], channels: list[str] | None) -> dict:
+    from asammdf import MDF
+
     try:
         mdf = MDF(path)
     except Exception as e:  # asammdf raises many kinds for a bad file
