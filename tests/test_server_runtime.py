@@ -47,6 +47,31 @@ def test_a_maneuver_starts_and_stops_while_running(bench):
     assert srv.running
 
 
+def test_a_maneuver_is_named_before_the_loop_can_play_it(bench, monkeypatch):
+    """A reader that sees the maneuver playing (another thread: the page, the
+    control channel) sees its name: it is set before the command is published,
+    and put back when the loop refuses it."""
+    srv = bench.server
+    command = srv._maneuver_command
+    named_at_publish = []
+
+    def spy(op, fill=None):
+        named_at_publish.append(srv.maneuver_name)
+        command(op, fill)
+
+    monkeypatch.setattr(srv, "_maneuver_command", spy)
+    srv.start_maneuver("creep")
+    assert named_at_publish == ["creep"] and srv.maneuver_playing
+
+    def refused(op, fill=None):
+        raise ServerError("the loop refused the maneuver command")
+
+    monkeypatch.setattr(srv, "_maneuver_command", refused)
+    with pytest.raises(ServerError):
+        srv.start_maneuver("0-100")
+    assert srv.maneuver_name == "creep"
+
+
 def test_a_maneuver_table_ends_and_the_loop_goes_on(bench):
     srv = bench.server
     srv.start_maneuver([(0.0, 40.0, 0.0), (0.1, 20.0, 5.0)], end_s=0.2)

@@ -57,21 +57,20 @@ def require_browser(paths=(CHROMIUM, CHROMEDRIVER)):
 def wait_for(predicate, what, timeout=WAIT_S, step=0.05):
     """``predicate()`` until true; an element the page replaced meanwhile
     (it reloads after a form is sent) or has not shown yet counts as not yet."""
-    from selenium.common.exceptions import (
-        NoSuchElementException,
-        StaleElementReferenceException,
-    )
+    from selenium.common.exceptions import WebDriverException
 
     deadline = time.monotonic() + timeout
+    last = None
     while True:
         try:
             value = predicate()
-        except (StaleElementReferenceException, NoSuchElementException):
-            value = None
+        except WebDriverException as e:  # stale, not there yet, or the node of a page going away
+            value, last = None, e
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+            why = "" if last is None else f" (last: {type(last).__name__}: {last.msg})"
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}{why}")
         time.sleep(step)
 
 

@@ -123,8 +123,13 @@ class ManeuverMixin:
             d.end_s = end
             d.keep_running = 1
 
-        self._maneuver_command(int(self._lib.RT_MCMD_START), fill)
-        self._maneuver = name or "table"
+        # named before it is published: a reader that sees it playing sees its name
+        before, self._maneuver = self._maneuver, name or "table"
+        try:
+            self._maneuver_command(int(self._lib.RT_MCMD_START), fill)
+        except BaseException:
+            self._maneuver = before
+            raise
 
     def stop_maneuver(self) -> None:
         """Ends the maneuver playing (the accelerator released, the brake as
