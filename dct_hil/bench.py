@@ -11,6 +11,7 @@ or the TCU under test on the bus), driven from Python.
         bench.clear(fid)
 
     bench = Bench.attach("/tmp/bench.sock")       # dct-hil serve --control /tmp/bench.sock
+    bench = Bench.attach("tcp://bench-pc:7000", token_file="bench.token")  # --control-tcp
 
 ``Bench.start`` runs a ``rt_loop.server.Server`` in this process: on the
 embedded transport (python-can's in-process virtual bus, a channel of its
@@ -19,7 +20,8 @@ vcan0; the reference TCU as a second process, as ``dct-hil demo`` runs it);
 ``tcu=False`` when the TCU under test is on the bus. It returns once the
 TCU is heard (every TCU message accepted by the loop). ``Bench.attach``
 drives an already running ``dct-hil serve --control PATH`` through its
-control socket, with the same methods: both go through the same request
+control socket, or one on another machine through ``--control-tcp``
+(``tcp://`` or ``tls://``, with a token), with the same methods: both go through the same request
 handler (``rt_loop.control``), so a test behaves alike in both.
 
 Values (``read``): plant outputs (``vehicle_speed_kmh``, ``gear``,
@@ -196,14 +198,24 @@ class Bench:
         return bench
 
     @classmethod
-    def attach(cls, socket_path: str | os.PathLike, timeout_s: float = 30.0) -> Bench:
-        """Drives a running ``dct-hil serve --control PATH`` through its socket."""
+    def attach(cls, target: str | os.PathLike, timeout_s: float = 30.0, *,
+               token: str | None = None, token_file: str | os.PathLike | None = None,
+               ca_file: str | os.PathLike | None = None) -> Bench:
+        """Drives a running ``dct-hil serve`` through its control channel: a
+        socket path (``--control PATH``) or ``tcp://HOST:PORT`` /
+        ``tls://HOST:PORT`` (``--control-tcp``; the token from ``token_file``,
+        the server's certificate checked against ``ca_file``)."""
         from rt_loop.control import ControlClient, ControlError
 
         try:
-            client = ControlClient(socket_path, timeout_s=timeout_s)
+            client = ControlClient(target, timeout_s=timeout_s, token=token,
+                                   token_file=token_file, ca_file=ca_file)
+        except ControlError as e:
+            raise BenchError(_one_line(e)) from None
+        try:
             config = client.request("config")["config"]
         except ControlError as e:
+            client.close()
             raise BenchError(_one_line(e)) from None
 
         def request(op: str, **fields: Any) -> dict:
@@ -216,6 +228,15 @@ class Bench:
                    time_scale=float(config.get("time_scale") or 1.0),
                    transport="socketcan" if config.get("transport") == "socketcan" else "attached",
                    channel=config.get("channel"))
+
+    def detach(self) -> None:
+        """Ends an attached bench's connection and leaves the server running (its
+        watches end with the connection; faults set stay)."""
+        if self.server is not None:
+            raise BenchError("detach: this bench runs in this process (stop() ends it)")
+        if not self._stopped:
+            self._stopped = True
+            self._client.close()
 
     def _await_tcu(self, timeout_s: float) -> None:
         """Until every TCU message the mapping needs (not ``optional``, such as a
@@ -415,10 +436,10 @@ class Bench:
                 self._report = self._request("stop")["report"]
             finally:
                 self._stopped = True
-                path = self._client.path
+                path = self._client.path           # None over TCP
                 self._client.close()
                 end = time.monotonic() + 60.0
-                while os.path.exists(path) and time.monotonic() < end:
+                while path is not None and os.path.exists(path) and time.monotonic() < end:
                     time.sleep(0.02)
             return self._report
         self._teardown()

@@ -74,6 +74,14 @@ def banner_lines(server: Any, stats_path: str) -> list[str]:
         host, port = x.address
         lines.append(f"XCP               on {x.protocol.upper()} {host}:{port} (A2L on GET_ID"
                      + (", seed & key" if server.xcp_key else "") + ")")
+    c = getattr(server, "control", None)
+    if c is not None:
+        doors = [f"socket {c.path}"] if c.path else []
+        if c.tcp_address is not None:
+            host, port = c.tcp_address
+            doors.append(f"{'tls' if c.tls else 'tcp'}://{host}:{port}"
+                         + (" (token)" if c.token else ""))
+        lines.append(f"control           {', '.join(doors)}")
     if server.logger is not None:
         lines.append(f"log               {server.logger.path} ({server.logger.format})")
     if server.recorder is not None:

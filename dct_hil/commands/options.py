@@ -65,11 +65,61 @@ def add_strict_option(parser):
                              "verdict is printed with a warning and the exit status stays)")
 
 
-def add_control_option(parser):
+def add_control_option(parser, tcp=False):
     parser.add_argument("--control", metavar="PATH",
                         help="serve the control channel on the Unix socket PATH (mode 0600, "
                              "removed on exit): scripted tests read values, set plant inputs, "
                              "inject faults and wait on conditions (dct_hil.bench.Bench.attach)")
+    if not tcp:
+        return
+    parser.add_argument("--control-tcp", metavar="[HOST:]PORT",
+                        help="serve the control channel over TCP too, for tests on another "
+                             "machine (Bench.attach(\"tcp://HOST:PORT\"), pytest --bench-url); "
+                             "binds 127.0.0.1 unless HOST is given, beyond loopback only with "
+                             "--control-token-file")
+    parser.add_argument("--control-token-file", metavar="FILE",
+                        help="with --control-tcp: a client first says hello with the token in "
+                             "the first line of FILE (at least 8 characters); a wrong one is "
+                             "refused, counted and logged")
+    parser.add_argument("--control-tls-cert", metavar="PEM",
+                        help="with --control-tcp: speak TLS with this certificate (chain); the "
+                             "clients connect to tls://HOST:PORT")
+    parser.add_argument("--control-tls-key", metavar="PEM",
+                        help="the certificate's private key (default: in the certificate's file)")
+
+
+def control_settings(args):
+    """The Server keywords of --control, --control-tcp, --control-token-file and
+    --control-tls-cert/-key, checked (the address parsed, the token read, the
+    certificate loaded, a token beyond loopback)."""
+    from rt_loop import access
+
+    out = {"control_path": args.control}
+    tcp = getattr(args, "control_tcp", None)
+    token_file = getattr(args, "control_token_file", None)
+    cert = getattr(args, "control_tls_cert", None)
+    key = getattr(args, "control_tls_key", None)
+    if tcp is None:
+        given = [o for o, v in (("--control-token-file", token_file), ("--control-tls-cert", cert),
+                                ("--control-tls-key", key)) if v is not None]
+        if given:
+            raise UserError(f"{', '.join(given)} need --control-tcp")
+        return out
+    if key is not None and cert is None:
+        raise UserError("--control-tls-key needs --control-tls-cert")
+    try:
+        host, port = access.parse_address(tcp, "--control-tcp")
+        token = None if token_file is None else access.read_token_file(token_file,
+                                                                       "--control-token-file")
+        if token is None and not access.is_loopback(host, access.resolve(host, port,
+                                                                         "--control-tcp")):
+            raise access.AccessError(f"--control-tcp {host}:{port}: beyond loopback only with "
+                                     "--control-token-file")
+        tls = None if cert is None else access.server_tls_context(cert, key, "--control-tls-cert")
+    except access.AccessError as e:
+        raise UserError(str(e)) from None
+    out.update(control_tcp=(host, port), control_token=token, control_tls=tls)
+    return out
 
 
 UI_DEFAULT = "127.0.0.1:5006"

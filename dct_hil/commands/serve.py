@@ -92,7 +92,7 @@ def add_parser(sub):
     serve.add_argument("--xcp-key", metavar="FILE",
                        help="seed & key: the secret in FILE (at least 16 bytes) locks calibration "
                             "and DAQ until the master unlocks them (HMAC-SHA256 of the seed)")
-    options.add_control_option(serve)
+    options.add_control_option(serve, tcp=True)
     serve.add_argument("--faults", metavar="FILE.toml",
                        help="inject the faults of a [[fault]] file (rt_loop.faults: kind, target, "
                             "parameters, start_s / when / duration_s), checked whole before the run")
@@ -110,6 +110,7 @@ def run(args):
         require("asammdf")
     mapping, bus_channels = options.mapping_from_args(args, args.rate)
     ui = options.ui_settings(args)
+    control = options.control_settings(args)
     try:
         if args.interface is not None:
             check_interface(args.interface)
@@ -135,7 +136,7 @@ def run(args):
             pm_qos_us=args.pm_qos_us, mapping=mapping, bus_channels=bus_channels,
             xcp=args.xcp, xcp_protocol="tcp" if args.xcp_tcp else "udp", xcp_key=args.xcp_key,
             stimulus_path=args.stimulus, stimulus_start=args.stimulus_start,
-            faults_path=args.faults, control_path=args.control, maneuver_inputs=fixed,
+            faults_path=args.faults, maneuver_inputs=fixed, **control,
         )
         if ui is not None:
             recordings = os.path.join(os.path.dirname(os.path.abspath(args.stats)), "recordings")

@@ -32,9 +32,7 @@ token missing beyond loopback) are ``UiError`` with one line.
 from __future__ import annotations
 
 import asyncio
-import hmac
 import html
-import ipaddress
 import logging
 import os
 import secrets
@@ -45,6 +43,8 @@ from collections.abc import Callable
 from typing import Any
 from urllib.parse import quote
 
+from rt_loop import access
+
 __all__ = ["DEFAULT_ADDRESS", "UiError", "UiServer", "check_token", "is_loopback",
            "origins_for", "parse_address", "read_token_file", "resolve"]
 
@@ -54,15 +54,14 @@ DEFAULT_ADDRESS = f"{DEFAULT_HOST}:{DEFAULT_PORT}"
 #: the signed cookie a right token earns (tornado secure cookie)
 COOKIE = "dct_hil_ui"
 COOKIE_DAYS = 1
-#: shortest token accepted
-MIN_TOKEN = 8
+MIN_TOKEN = access.MIN_TOKEN
 #: a wrong token is answered after this pause (slows guessing; the IOLoop is not held)
 REFUSED_PAUSE_S = 0.3
 _START_TIMEOUT_S = 30.0
 _STOP_TIMEOUT_S = 10.0
 
 
-class UiError(RuntimeError):
+class UiError(access.AccessError):
     """A UI that cannot be served (one line naming the cause)."""
 
 
@@ -75,76 +74,27 @@ def _one_line(text: Any) -> str:
 # --------------------------------------------------------------------------
 
 def parse_address(text: Any, default_host: str = DEFAULT_HOST) -> tuple[str, int]:
-    """(host, port) of "[HOST:]PORT" ("8080", "0.0.0.0:8080", "bench-pc:8080").
-    Port 0 means any free port. Raises UiError (one line)."""
-    if not isinstance(text, str) or not text.strip():
-        raise UiError(f"UI address {text!r}: give [HOST:]PORT, e.g. 5006 or 127.0.0.1:5006")
-    s = text.strip()
-    if s.startswith("[") or s.count(":") > 1:
-        raise UiError(f"UI address {text!r}: IPv6 addresses are not served (the page's "
-                      "websocket origin check takes host:port); use an IPv4 address or a name")
-    if ":" in s:
-        host, port_text = s.split(":")
-    else:
-        host, port_text = default_host, s
-    if not host:
-        raise UiError(f"UI address {text!r}: the host before ':' is empty")
-    if not port_text.isdigit():
-        raise UiError(f"UI address {text!r}: port {port_text!r} is not a number 0..65535")
-    port = int(port_text)
-    if port > 65535:
-        raise UiError(f"UI address {text!r}: port {port} is outside 0..65535")
-    if any(c.isspace() or c in "/?#@" for c in host):
-        raise UiError(f"UI address {text!r}: {host!r} is not a host name or address")
-    return host, port
+    """(host, port) of "[HOST:]PORT" (``rt_loop.access.parse_address``). Raises UiError."""
+    return access.parse_address(text, "UI address", default_host, UiError,
+                                ipv6_why="the page's websocket origin check takes host:port")
 
 
 def resolve(host: str, port: int) -> list[str]:
     """The addresses ``host`` resolves to (raises UiError when it does not)."""
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except (socket.gaierror, UnicodeError, OSError) as e:
-        why = e.strerror if isinstance(e, OSError) and e.strerror else _one_line(e)
-        raise UiError(f"UI address {host}:{port}: host {host!r} does not resolve ({why})"
-                      ) from None
-    return sorted({info[4][0] for info in infos})
+    return access.resolve(host, port, "UI address", UiError)
 
 
-def is_loopback(host: str, addresses: list[str] | None = None) -> bool:
-    """True when every address ``host`` stands for is a loopback address."""
-    addrs = addresses if addresses is not None else resolve(host, 0)
-    try:
-        return bool(addrs) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback
-                                   for a in addrs)
-    except ValueError:
-        return False
+is_loopback = access.is_loopback
 
 
 def check_token(token: Any) -> str:
-    """The token as given, or UiError: at least MIN_TOKEN printable characters,
-    no spaces."""
-    if not isinstance(token, str) or not token:
-        raise UiError("--ui-token: give a token (at least 8 characters)")
-    if len(token) < MIN_TOKEN:
-        raise UiError(f"--ui-token: at least {MIN_TOKEN} characters, got {len(token)}")
-    if any(c.isspace() or not c.isprintable() for c in token):
-        raise UiError("--ui-token: no spaces or control characters")
-    return token
+    """The token as given, or UiError (``rt_loop.access.check_token``)."""
+    return access.check_token(token, "--ui-token", UiError)
 
 
 def read_token_file(path: str | os.PathLike) -> str:
     """The token in the first line of ``path`` (the rest is ignored)."""
-    try:
-        with open(path, encoding="utf-8") as f:
-            line = f.readline().strip()
-    except (OSError, UnicodeDecodeError) as e:
-        why = e.strerror if isinstance(e, OSError) and e.strerror else _one_line(e)
-        raise UiError(f"--ui-token-file {os.fspath(path)}: {why}") from None
-    try:
-        return check_token(line)
-    except UiError as e:
-        raise UiError(f"--ui-token-file {os.fspath(path)}: "
-                      f"{str(e).removeprefix('--ui-token: ')}") from None
+    return access.read_token_file(path, "--ui-token-file", UiError)
 
 
 def origins_for(host: str, port: int) -> list[str]:
@@ -367,12 +317,7 @@ class UiServer:
     # ------------------------------------------------------------ auth
     def token_ok(self, given: Any) -> bool:
         """Constant-time comparison of a typed token with this UI's."""
-        if self.token is None:
-            return True
-        if not isinstance(given, str):
-            return False
-        return hmac.compare_digest(given.encode("utf-8", "surrogateescape"),
-                                   self.token.encode("utf-8"))
+        return access.token_matches(given, self.token)
 
     def refused(self, remote: str) -> None:
         self.counts["refused_logins"] += 1

@@ -210,3 +210,28 @@ def _check_maneuver_inputs(inputs: Any) -> dict:
         return check_inputs(inputs, "maneuver inputs")
     except ValueError as e:
         raise ServerError(str(e)) from None
+
+
+def _check_control_tcp(address: Any, token: Any, tls: Any) -> None:
+    """The control channel's TCP settings: an address (host, port); a token
+    needs it, as does TLS; beyond loopback only with a token."""
+    import ssl
+
+    from rt_loop import access
+
+    if address is None:
+        raise ServerError("a control token or TLS needs a TCP address (control_tcp)")
+    if not (isinstance(address, tuple) and len(address) == 2 and isinstance(address[0], str)
+            and isinstance(address[1], int) and 0 <= address[1] <= 65535):
+        raise ServerError(f"control_tcp {address!r}: give (host, port)")
+    if token is not None:
+        access.check_token(token, "control token", ServerError)
+    if tls is not None and not isinstance(tls, ssl.SSLContext):
+        raise ServerError("control_tls: give an ssl.SSLContext (rt_loop.access."
+                          "server_tls_context)")
+    host, port = address
+    if token is None and not access.is_loopback(host, access.resolve(host, port,
+                                                                     "control address",
+                                                                     ServerError)):
+        raise ServerError(f"control on {host}:{port}: beyond loopback only with a token "
+                          "(--control-token-file); without one bind 127.0.0.1")

@@ -24,6 +24,7 @@ from rt_loop.server.checks import (
     OVERRUN_POLICIES,
     _check_channel,
     _check_choice,
+    _check_control_tcp,
     _check_cpu,
     _check_driver,
     _check_duration,
@@ -144,7 +145,10 @@ class Server(StartupMixin, RecordingMixin, ReportsMixin, ManeuverMixin, RemoteAc
     checked whole and queued for the run. ``control_path``: a Unix domain
     socket (mode 0600, removed on stop) on which ``rt_loop.control`` serves
     JSON-line requests for the running loop (read values, set plant inputs,
-    inject and clear faults, watch conditions, stop). ``cal_lock`` is held by
+    inject and clear faults, watch conditions, stop). ``control_tcp``:
+    (host, port) the same channel also listens on (beyond loopback only with
+    ``control_token``; ``control_tls``: an ``ssl.SSLContext`` for its TLS,
+    ``rt_loop.access.server_tls_context``). ``cal_lock`` is held by
     every producer of the loop's ``cal`` ring (XCP calibration, the control
     channel); the loop never takes it.
 
@@ -169,7 +173,9 @@ class Server(StartupMixin, RecordingMixin, ReportsMixin, ManeuverMixin, RemoteAc
                  stimulus_start: str = "plant",
                  faults_path: str | os.PathLike | None = None,
                  control_path: str | os.PathLike | None = None,
-                 maneuver_inputs: dict | None = None) -> None:
+                 maneuver_inputs: dict | None = None,
+                 control_tcp: tuple[str, int] | None = None, control_token: str | None = None,
+                 control_tls: Any = None) -> None:
         from plant.params import fill_params, load_params
 
         self.channel = _check_channel(channel)
@@ -240,6 +246,10 @@ class Server(StartupMixin, RecordingMixin, ReportsMixin, ManeuverMixin, RemoteAc
             from rt_loop.control import check_socket_path
 
             check_socket_path(self.control_path, ServerError)
+        self.control_tcp, self.control_token, self.control_tls = \
+            control_tcp, control_token, control_tls
+        if control_tcp is not None or control_token is not None or control_tls is not None:
+            _check_control_tcp(control_tcp, control_token, control_tls)
         #: the live scope (``rt_loop.measure.scope``): min and max of chosen values per bucket of ticks
         self.scope = None
         self._maneuver: str | None = None            # the name of the maneuver started last

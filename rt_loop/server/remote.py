@@ -57,15 +57,20 @@ class RemoteAccessMixin:
                                  "--xcp-key: anyone who reaches it can calibrate the plant")
 
     def _start_control(self) -> None:
-        from rt_loop.control import ControlServer
+        from rt_loop.control import ControlError, ControlServer
 
+        where = " and ".join(
+            w for w in (self.control_path and f"socket {self.control_path}",
+                        self.control_tcp and f"on {self.control_tcp[0]}:{self.control_tcp[1]}")
+            if w)
         try:
-            self.control = ControlServer(self, self.control_path)
+            self.control = ControlServer(self, self.control_path, tcp=self.control_tcp,
+                                         token=self.control_token, tls=self.control_tls)
             self.control.start()
-        except OSError as e:
+        except (OSError, ControlError) as e:
             self.control = None
-            raise ServerError(f"control socket {self.control_path}: "
-                              f"{e.strerror or _one_line(e)}") from None
+            why = e.strerror if isinstance(e, OSError) and e.strerror else _one_line(e)
+            raise ServerError(f"control {where}: {why}") from None
 
     def _stop_control(self) -> None:
         if self.control is not None:

@@ -145,6 +145,17 @@ class ReportsMixin:
             return self.transports[0].counters
         return _sum_counters([t.counters for t in self.transports])
 
+    def _control_config(self) -> dict | None:
+        """The control channel's doors (the TCP port bound once it runs)."""
+        if self.control_path is None and self.control_tcp is None:
+            return None
+        tcp = self.control_tcp
+        if self.control is not None and self.control.tcp_address is not None:
+            tcp = self.control.tcp_address
+        return {"socket": self.control_path,
+                "tcp": None if tcp is None else f"{tcp[0]}:{tcp[1]}",
+                "token": self.control_token is not None, "tls": self.control_tls is not None}
+
     def config(self) -> dict:
         s = self.stats.copy
         t = self.transport
@@ -179,6 +190,7 @@ class ReportsMixin:
                 "protocol": self.xcp_protocol,
                 "address": list(self.xcp.address) if self.xcp is not None else list(self.xcp_address),
                 "seed_and_key": self.xcp_key is not None},
+            "control": self._control_config(),
             "params": self.params_path,
             "hydraulics": "solenoid currents (pressure_commanded = 0)",
             "log": self.log_path,

@@ -121,7 +121,7 @@ class StartupMixin:
             self._start_scope()                   # recording.py
             if self.xcp_address is not None:
                 self._start_xcp()                 # remote.py
-            if self.control_path is not None:
+            if self.control_path is not None or self.control_tcp is not None:
                 self._start_control()             # remote.py
             self._acquire_pm_qos()
             for i, t in enumerate(self.transports):
