@@ -54,7 +54,7 @@ class StopSignals:
 
 def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = False,
                 out: TextIO | None = None, err: TextIO | None = None,
-                strict: bool = False) -> int:
+                strict: bool = False, started: Any = None) -> int:
     """Runs ``server`` with a live status until it ends or SIGINT/SIGTERM arrives.
 
     The live status is redrawn in place about 5 times per second when
@@ -69,7 +69,9 @@ def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = Fal
     The summary ends with the run's verdict on its own timing
     (``rt_loop.verdict.serve_verdict``, also in the JSON file as ``verdict``);
     an INVALID run prints a warning to ``err``, and with ``strict`` a run that
-    would exit 0 exits ``verdict.EXIT_INVALID`` (3) instead.
+    would exit 0 exits ``verdict.EXIT_INVALID`` (3) instead. ``started``:
+    called with the server once it runs (an error it raises stops the server
+    and propagates).
     """
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
@@ -87,6 +89,8 @@ def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = Fal
             print(f"dct-hil: stopped by {signal.Signals(signals.received[0]).name} before the "
                   f"loop ran ({e})", file=err, flush=True)
             return 130 if signals.interrupted else 0
+        if started is not None:
+            started(server)        # what runs beside the loop (the reference TCU); may raise
         for line in _status.banner_lines(server, stats_path):
             print(line, file=out, flush=True)
         for warning in server.warnings:

@@ -66,6 +66,10 @@ def test_the_wheel_holds_the_product_packages_only(venv):
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/")[0] for n in names if not n.startswith("dct_hil-")}
     assert tops == {"plant", "can_dbc", "rt_loop", "tcu_stub", "dct_hil"}
+    packages = {p.parent.relative_to(ROOT).as_posix() for top in tops
+                for p in (ROOT / top).rglob("__init__.py")}
+    missing = sorted(p for p in packages if f"{p}/__init__.py" not in names)
+    assert not missing, f"packages of the checkout not in the wheel (pyproject.toml): {missing}"
     for ext in ("plant/_dct_plant", "can_dbc/_can_table", "rt_loop/_rt_loop", "tcu_stub/_tcu_fast"):
         assert any(n.startswith(ext) and n.endswith(".so") for n in names), ext
     assert "dct_hil/studies/examples/shift_map.toml" in names

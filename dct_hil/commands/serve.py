@@ -93,6 +93,15 @@ def add_parser(sub):
                        help="seed & key: the secret in FILE (at least 16 bytes) locks calibration "
                             "and DAQ until the master unlocks them (HMAC-SHA256 of the seed)")
     options.add_control_option(serve, tcp=True)
+    serve.add_argument("--tcu", choices=("none", "reference"), default="none",
+                       help="none: the TCU under test is on the bus (default); reference: the "
+                            "reference TCU runs beside the server (on the embedded transport the "
+                            "C node on the loop's own rings, on a CAN interface a second "
+                            "process), e.g. for tests driving the bench through --control-tcp; "
+                            "its report goes beside --stats as tcu-report.json")
+    serve.add_argument("--tcu-clock", choices=("wall", "bus"), default=None,
+                       help="with --tcu reference: its task clock (default wall in real time, "
+                            "bus in slow motion)")
     serve.add_argument("--faults", metavar="FILE.toml",
                        help="inject the faults of a [[fault]] file (rt_loop.faults: kind, target, "
                             "parameters, start_s / when / duration_s), checked whole before the run")
@@ -126,8 +135,8 @@ def run(args):
 
             m = get_maneuver(args.maneuver)
             driver, end, fixed = m.driver, m.duration_s, m.inputs
-        server = Server(
-            channel, interface=args.interface, rate_hz=args.rate, priority=args.priority,
+        kwargs = dict(
+            interface=args.interface, rate_hz=args.rate, priority=args.priority,
             cpu=args.cpu, duration_s=args.duration, params_path=args.params, log_path=args.log,
             overrun_policy=args.overrun,
             bus_kwargs={"bitrate": args.bitrate} if args.bitrate else None,
@@ -138,6 +147,13 @@ def run(args):
             stimulus_path=args.stimulus, stimulus_start=args.stimulus_start,
             faults_path=args.faults, maneuver_inputs=fixed, **control,
         )
+        started = None
+        if args.tcu == "reference":
+            server, started = _with_reference_tcu(channel, kwargs, args)
+        else:
+            if args.tcu_clock is not None:
+                raise UserError("--tcu-clock needs --tcu reference")
+            server = Server(channel, **kwargs)
         if ui is not None:
             recordings = os.path.join(os.path.dirname(os.path.abspath(args.stats)), "recordings")
             view = options.start_ui(server, ui, recordings, "dct-hil bench")
@@ -145,6 +161,33 @@ def run(args):
             print(f"live view         {view.url}"
                   + (" (asks for the token)" if view.token else "")
                   + f"; recordings from the page in {recordings}", flush=True)
-        return run_console(server, args.stats, quiet=args.quiet, strict=args.strict)
+        return run_console(server, args.stats, quiet=args.quiet, strict=args.strict,
+                           started=started)
     except (ServerError, TransportError, ChannelError) as e:
         raise UserError(str(e)) from None
+
+
+def _with_reference_tcu(channel, kwargs, args):
+    """(server, started): the server made for the reference TCU (on the loop's rings
+    on the embedded transport) and the function that starts the TCU once the loop
+    runs (stopped, its report written, before the server stops)."""
+    from pathlib import Path
+
+    from dct_hil.demo import make_server, start_tcu
+    from rt_loop.transport import default_interface
+
+    interface = args.interface or default_interface(channel)[0]
+    two = interface != "virtual"
+    server = make_server("c", two, channel, **kwargs)
+    folder = Path(os.path.dirname(os.path.abspath(args.stats)))
+    clock = args.tcu_clock or ("wall" if args.time_scale >= 1.0 else "bus")
+    mapping = None if kwargs.get("mapping") is None else server.mapping
+
+    def started(srv):
+        tcu = start_tcu("c", two, interface, channel, srv, srv.time_scale,
+                        folder / "tcu-report.json", folder / "tcu.out", clock, mapping)
+        srv.add_stop_hook(tcu.stop)
+        print(f"reference TCU     the C node ({'a second process' if two else 'on the loop rings'}"
+              f", clock {clock}); its report: {folder / 'tcu-report.json'}", flush=True)
+
+    return server, started
