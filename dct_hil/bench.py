@@ -57,6 +57,14 @@ __all__ = ["Bench", "BenchError", "BenchTimeout", "TRANSPORTS"]
 TRANSPORTS = ("embedded", "socketcan")
 #: how long start() waits for the TCU to be heard (wall seconds, at time scale 1)
 TCU_HEARD_TIMEOUT_S = 30.0
+#: reset(): how long the car may take to stop and the TCU to calm (plant seconds)
+RESET_TIMEOUT_S = 60.0
+#: reset(): the brake pedal while the car slows down (the TCU's coast down-shifts)
+RESET_BRAKE_PCT = 30.0
+#: reset(): the car stands
+RESET_STANDSTILL = "vehicle_speed_kmh < 0.05 and vehicle_speed_kmh > -0.05"
+#: reset() of a bench with a TCU under test: plant time after the brake is released
+RESET_SETTLE_S = 0.5
 #: wall seconds without any advance of plant time after which a wait gives up
 STALL_S = 10.0
 _POLL_S = 0.005
@@ -186,8 +194,11 @@ class Bench:
                         time_scale=server.time_scale, transport=transport, channel=chan,
                         work_dir=work)
             if tcu:
-                bench._tcu = _start_tcu(interface, chan, server, mapping, tcu_clock, work.name,
-                                        tcu_impl)
+                from dct_hil.demo import RestartableTcu
+
+                bench._tcu = RestartableTcu(lambda: _start_tcu(
+                    interface, chan, server, mapping, tcu_clock, work.name, tcu_impl))
+                handler.add_op("ignition", bench._tcu.ignition_op)
                 bench._await_tcu(tcu_timeout_s / min(1.0, server.time_scale))
         except BaseException:
             if bench is not None:
@@ -213,10 +224,11 @@ class Bench:
         except ControlError as e:
             raise BenchError(_one_line(e)) from None
         try:
-            config = client.request("config")["config"]
+            answer = client.request("config")
         except ControlError as e:
             client.close()
             raise BenchError(_one_line(e)) from None
+        config = answer["config"]
 
         def request(op: str, **fields: Any) -> dict:
             try:
@@ -380,7 +392,74 @@ class Bench:
                 last_t, last_wall = now, time.monotonic()
             time.sleep(min(0.02, max(0.001, (end - now) / self.time_scale)))
 
+    # ------------------------------------------------------------------ between tests
+    def reset(self, timeout_s: float = RESET_TIMEOUT_S) -> float:
+        """Brings a running bench back to where a fresh one starts, for a bench
+        that stays up between tests (pytest ``--bench-url``): every fault and
+        watch cleared, the pedals released, the grade 0, then
+
+        - where the reference TCU runs beside the server (the ``ignition``
+          request: ``Bench.start``, ``dct-hil serve --tcu reference``): the
+          plant put back at rest (``reset_plant``: standing, idling, every
+          sleeve in neutral, the initial temperatures) and the TCU's ignition
+          cycled (a fresh TCU: no trouble code, limp home or inhibited gear
+          kept), as a fresh bench;
+        - else (a TCU under test on the bus: its ignition is the bench's
+          wiring): the car braked to a stop as a driver does
+          (``RESET_BRAKE_PCT``, then the brake fully applied);
+
+        then until the car is in first gear or neutral with the TCU reporting
+        no active fault (``TCU_Status``, when the TCU sends one) (after the
+        braking: the brake released and ``RESET_SETTLE_S`` of plant time).
+        Returns the plant time;
+        raises BenchTimeout when that does not happen within ``timeout_s`` of
+        plant time. Online parameters a test changed are not restored."""
+        self.clear_all()
+        if self.snapshot().get("maneuver") in ("waiting for the TCU", "running"):
+            raise BenchError("reset: a maneuver plays the pedals (start the bench without one)")
+        self.set("accel_pedal_pct", 0.0)
+        self.set("road_grade_pct", 0.0)
+        t0 = self.time_s
+        fresh = "ignition" in self._request("config").get("ops", ())
+        if fresh:
+            self.set("brake_pedal_pct", 0.0)
+            self._request("reset_plant")
+            self.ignition()                                  # a fresh TCU: nothing it latched
+        else:
+            self.set("brake_pedal_pct", RESET_BRAKE_PCT)  # as a driver stops: the TCU downshifts
+            self.wait_until(RESET_STANDSTILL, timeout_s=timeout_s)
+            self.set("brake_pedal_pct", 100.0)
+        calm = "gear <= 1"
+        msgs = self.snapshot()["counts"]["tcu_messages"]
+        status = next((n for n in msgs if n.rsplit(":", 1)[-1] == "TCU_Status"), None)
+        if status is not None and msgs[status]["accepted"] > 0:
+            prefix = status if ":" in status else "TCU_Status"
+            calm += f" and {prefix}.ActiveFaults == 0"
+        self.wait_until(calm, timeout_s=max(0.5, t0 + timeout_s - self.time_s))
+        if fresh:                               # as Bench.start: the test starts at once
+            return self.time_s
+        self.set("brake_pedal_pct", 0.0)
+        return self.sleep(RESET_SETTLE_S)
+
     # ------------------------------------------------------------------ the TCU
+    def ignition(self, off_s: float = 0.5, timeout_s: float = TCU_HEARD_TIMEOUT_S) -> None:
+        """Switches the reference TCU off and on again (``off_s`` wall seconds off:
+        the plant sees its messages time out) and returns once every message it
+        sent before is accepted again. Only where the reference TCU runs beside
+        the server (``Bench.start``, ``dct-hil serve --tcu reference``); a TCU
+        under test has its ignition on the bench's own wiring."""
+        before = self.snapshot()["counts"]["tcu_messages"]
+        self._request("ignition", off_s=off_s)
+        heard = {n: m["accepted"] for n, m in before.items() if m["accepted"] > 0}
+        end = time.monotonic() + timeout_s
+        while True:
+            msgs = self.snapshot()["counts"]["tcu_messages"]
+            if all(msgs[n]["accepted"] > heard[n] and not msgs[n]["timed_out"] for n in heard):
+                return
+            if time.monotonic() > end:
+                raise BenchError(f"ignition: the TCU was not heard again within {timeout_s:g} s")
+            time.sleep(0.02)
+
     def tcu_status(self) -> dict:
         """The TCU's status message (``TCU_Status``) as {signal: value}; with
         ``tcu_stub.diagnostics`` the active faults also as DTC names

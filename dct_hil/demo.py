@@ -40,6 +40,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -273,6 +274,50 @@ def start_tcu(impl: str, two: bool, interface: str, channel: str, server, time_s
     if impl == "c":
         return _TcuEmbedded(server, time_scale, report, clock, mapping, priority)
     return _TcuThread(channel, time_scale, report, clock, mapping, server.bus_channels)
+
+
+class RestartableTcu:
+    """A reference TCU (``start_tcu``'s) that can be switched off and on again, as
+    the ignition does on a bench (``restart``): a fresh TCU, no state kept (its
+    trouble codes, limp home, learned values). ``ignition_op`` is the control
+    channel's ``ignition {off_s}`` request for it."""
+
+    #: longest ignition-off time a request may ask for (s)
+    MAX_OFF_S = 10.0
+
+    def __init__(self, start) -> None:
+        self._start = start
+        self._lock = threading.Lock()
+        self.tcu = start()
+        self.restarts = 0
+
+    def restart(self, off_s: float = 0.5) -> None:
+        with self._lock:
+            self.tcu.stop()                # its safe frames, its report
+            time.sleep(off_s)
+            self.tcu = self._start()
+            self.restarts += 1
+
+    def ignition_op(self, request: dict) -> dict:
+        off = request.get("off_s", 0.5)
+        if isinstance(off, bool) or not isinstance(off, (int, float)) or \
+                not 0.0 <= off <= self.MAX_OFF_S:
+            raise ValueError(f"ignition: off_s must be seconds 0..{self.MAX_OFF_S:g}, got {off!r}")
+        self.restart(float(off))
+        return {"off_s": float(off), "restarts": self.restarts}
+
+    def stop(self):
+        with self._lock:
+            return self.tcu.stop()
+
+    def alive(self) -> bool:
+        return self.tcu.alive()
+
+    def status_line(self) -> str:
+        return self.tcu.status_line()
+
+    def report(self) -> dict | None:
+        return self.tcu.report()
 
 
 def make_server(impl: str, two: bool, channel: str, **kwargs):

@@ -21,6 +21,10 @@ follow plant time even on a busy machine), ``--bench-time-scale X`` (slow
 motion, 0 < X <= 1), ``--bench-recordings
 DIR`` (one recording per test, ``DIR/<test name>.mf4``: kept when the test
 fails, deleted when it passes unless ``--bench-keep-recordings``).
+``--bench-url tcp://HOST:PORT`` (``tls://``, or a socket path) with
+``--bench-token-file`` and ``--bench-ca-file``: no bench is started; every
+test drives the one running there (``dct-hil serve --control-tcp ... --tcu
+reference``, or with the TCU under test on its bus), from ``Bench.reset()``.
 
 The marker ``bench(...)`` takes ``dct_hil.bench.Bench.start``'s keywords
 for one test (``transport``, ``channel``, ``maneuver``, ``record``,
@@ -68,6 +72,16 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                          "when it passes unless --bench-keep-recordings")
     group.addoption("--bench-keep-recordings", action="store_true",
                     help="keep the recordings of passing tests too")
+    group.addoption("--bench-url", default=None, metavar="URL",
+                    help="drive a bench that runs already (dct-hil serve --control-tcp, or "
+                         "--control PATH) instead of starting one per test: tcp://HOST:PORT, "
+                         "tls://HOST:PORT or a socket path; each test starts from reset() (faults "
+                         "cleared, the car braked to a stop, the TCU calm)")
+    group.addoption("--bench-token-file", default=None, metavar="FILE",
+                    help="with --bench-url: the token (the server's --control-token-file)")
+    group.addoption("--bench-ca-file", default=None, metavar="PEM",
+                    help="with --bench-url tls://: the certificate the server's is checked "
+                         "against (its own, when self-signed)")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -125,12 +139,52 @@ def bench_settings(item: pytest.Item, config: pytest.Config) -> dict:
     return kwargs
 
 
+#: bench(...) keywords a bench that runs already cannot take (it was started with its own)
+REMOTE_REFUSED = ("maneuver", "record", "params", "mapping", "faults", "log", "control")
+
+
+def _attached(item: pytest.Item, config: pytest.Config):
+    """The bench at --bench-url, reset for this test (the keywords of a bench(...) marker
+    that only a bench of its own could take fail the test; the rest are the server's)."""
+    from dct_hil.bench import Bench, BenchError
+
+    opt = config.option
+    refused = sorted(k for k in marker_settings(item) if k in REMOTE_REFUSED)
+    if refused:
+        pytest.fail(f"bench({', '.join(refused)}=...) needs a bench started for the test, "
+                    f"not --bench-url", pytrace=False)
+    try:
+        b = Bench.attach(opt.bench_url, token_file=opt.bench_token_file,
+                         ca_file=opt.bench_ca_file)
+    except BenchError as e:
+        pytest.fail(f"--bench-url {opt.bench_url}: {e}", pytrace=False)
+    try:
+        b.reset()
+    except BenchError as e:
+        b.detach()
+        pytest.fail(f"the bench at {opt.bench_url} did not reset: {e}", pytrace=False)
+    return b
+
+
 @pytest.fixture
 def bench(request: pytest.FixtureRequest):
-    """A fresh ``dct_hil.bench.Bench`` for this test, stopped after it."""
+    """A fresh ``dct_hil.bench.Bench`` for this test, stopped after it (with
+    --bench-url: the running one, reset, and left running after it)."""
     from dct_hil.bench import Bench, BenchError
 
     item = request.node
+    if request.config.option.bench_url is not None:
+        b = _attached(item, request.config)
+        try:
+            yield b
+        finally:
+            try:
+                item.user_properties.append(("bench_fault_events", json.dumps(b.events())))
+                b.clear_all()
+            except BenchError:
+                pass
+            b.detach()
+        return
     kwargs = bench_settings(item, request.config)
     record = kwargs.get("record")
     explicit = marker_settings(item).get("record") is not None

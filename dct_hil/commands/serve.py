@@ -170,10 +170,11 @@ def run(args):
 def _with_reference_tcu(channel, kwargs, args):
     """(server, started): the server made for the reference TCU (on the loop's rings
     on the embedded transport) and the function that starts the TCU once the loop
-    runs (stopped, its report written, before the server stops)."""
+    runs (stopped, its report written, before the server stops; the control
+    channel's ``ignition`` request restarts it)."""
     from pathlib import Path
 
-    from dct_hil.demo import make_server, start_tcu
+    from dct_hil.demo import RestartableTcu, make_server, start_tcu
     from rt_loop.transport import default_interface
 
     interface = args.interface or default_interface(channel)[0]
@@ -184,9 +185,12 @@ def _with_reference_tcu(channel, kwargs, args):
     mapping = None if kwargs.get("mapping") is None else server.mapping
 
     def started(srv):
-        tcu = start_tcu("c", two, interface, channel, srv, srv.time_scale,
-                        folder / "tcu-report.json", folder / "tcu.out", clock, mapping)
+        tcu = RestartableTcu(lambda: start_tcu("c", two, interface, channel, srv, srv.time_scale,
+                                               folder / "tcu-report.json", folder / "tcu.out",
+                                               clock, mapping))
         srv.add_stop_hook(tcu.stop)
+        if srv.control is not None:
+            srv.control.add_op("ignition", tcu.ignition_op)
         print(f"reference TCU     the C node ({'a second process' if two else 'on the loop rings'}"
               f", clock {clock}); its report: {folder / 'tcu-report.json'}", flush=True)
 

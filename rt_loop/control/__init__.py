@@ -32,7 +32,12 @@ Requests (``{"op": ..., ...}``) and answers (``{"ok": true, ...}``):
 ``clear_all``
 ``faults``                ``faults``: the set faults and watches (state, times)
 ``events``                ``events``: every start and end so far
-``config``                ``config``: ``Server.config()`` (transport, files, ...)
+``config``                ``config``: ``Server.config()`` (transport, files,
+                          ...); ``ops``: the requests served
+``reset_plant``           the plant at rest as it starts (standing, idling,
+                          neutral, clutches open), plant time going on
+``ignition {off_s}``      where the reference TCU runs beside the server: it
+                          is switched off and on again (a fresh TCU)
 ``stop``                  the loop stops; ``report``: the server's report
 ========================  =====================================================
 

@@ -105,7 +105,23 @@ class RequestHandler:
             "set": self._set, "inject": self._inject, "watch": self._watch,
             "clear": self._clear, "clear_all": self._clear_all, "faults": self._faults,
             "events": self._events, "config": self._config, "stop": self._stop_loop,
+            "reset_plant": self._reset_plant,
         }
+
+    def add_op(self, name: str, op: Any) -> None:
+        """Serves ``op(request) -> dict`` as the request ``name`` (a request the
+        process running the server offers, e.g. the reference TCU's ``ignition``);
+        a ValueError it raises is the refusal's line."""
+        if name in self._ops:
+            raise ValueError(f"control op {name!r} exists already")
+
+        def served(request: dict) -> dict:
+            try:
+                return op(request)
+            except ValueError as e:
+                raise _Refused(str(e)) from None
+
+        self._ops[name] = served
 
     def client_ended(self, client: Client) -> None:
         """Frees what ``client`` owned (its watches)."""
@@ -284,7 +300,16 @@ class RequestHandler:
         return {"events": self.server.faults.events()}
 
     def _config(self, _r: dict) -> dict:
-        return {"config": self.server.config()}
+        return {"config": self.server.config(), "ops": list(self._ops)}
+
+    def _reset_plant(self, _r: dict) -> dict:
+        from rt_loop.server import ServerError
+
+        try:
+            self.server.reset_plant()
+        except ServerError as e:
+            raise _Refused(f"reset_plant: {e}") from None
+        return {"time_s": float(self._copy().sim_time_s)}
 
     # ------------------------------------------------------------ stop
     def _stop_loop(self, _r: dict) -> dict:

@@ -685,9 +685,13 @@ typedef struct {
  * A start with a bad table is refused (maneuver_refused). A start plays
  * the table from this tick (maneuver time 0; keep_running as the table
  * says), replacing any maneuver; a stop ends the one playing (state
- * RT_MANEUVER_DONE, the accelerator released, the brake held as it was). */
+ * RT_MANEUVER_DONE, the accelerator released, the brake held as it was).
+ * A plant reset puts the plant back at rest as it starts (dct_plant_reset:
+ * standing, engine idling, every sleeve in neutral, clutches open, the
+ * initial temperatures), its time going on; the inputs stay as they are. */
 #define RT_MCMD_START 1
 #define RT_MCMD_STOP 2
+#define RT_MCMD_RESET_PLANT 3
 
 typedef struct {
     rt_config cfg;

@@ -12,6 +12,8 @@
  * with skipped deadlines still plays the table against simulated time. At
  * end_s the loop stops as if its duration ended (RT_MANEUVER_DONE).
  */
+#include <string.h>
+
 #include "rt_internal.h"
 
 /* rows within 1..RT_DRIVER_ROWS (or 0), times finite and strictly
@@ -59,6 +61,22 @@ uint32_t rt_maneuver_acked(rt_loop *l)
     return atomic_load_explicit(A32(&l->maneuver_ack), ACQUIRE);
 }
 
+/* the plant at rest as it starts (rt_loop.h RT_MCMD_RESET_PLANT): its time
+ * and inputs kept */
+static int reset_plant(dct_plant *pl)
+{
+    double t = pl->state.time_s;
+    dct_inputs inputs = pl->inputs;
+    dct_initial init;
+    memset(&init, 0, sizeof init);
+    init.engine_on = 1.0;
+    int st = dct_plant_reset(pl, &init);
+    pl->inputs = inputs;
+    pl->state.time_s = t;
+    dct_plant_update_outputs(pl);
+    return st;
+}
+
 /* a maneuver command published since the last tick (rt_loop.h): a start
  * plays the new table from this tick, a stop ends the maneuver playing */
 static void maneuver_command(rt_run *r, uint32_t seq)
@@ -77,6 +95,8 @@ static void maneuver_command(rt_run *r, uint32_t seq)
             r->maneuver_state = RT_MANEUVER_DONE;
             l->plant.inputs.accel_pedal_pct = 0.0;
         }
+    } else if (op == RT_MCMD_RESET_PLANT && reset_plant(&l->plant) == DCT_OK) {
+        /* done: the plant at rest, its time going on */
     } else {
         atomic_store_explicit(A32(&l->maneuver_refused),
                               atomic_load_explicit(A32(&l->maneuver_refused), RELAXED) + 1u,

@@ -131,6 +131,14 @@ class ManeuverMixin:
             self._maneuver = before
             raise
 
+    def reset_plant(self) -> None:
+        """Puts the plant back at rest as it starts, at the next tick: standing,
+        the engine idling (a stalled one runs again), every sleeve in neutral,
+        the clutches open, the initial temperatures; plant time goes on and the
+        inputs stay as they are. For a bench that stays up between tests
+        (``dct_hil.bench.Bench.reset``), with the TCU's ignition cycled after."""
+        self._maneuver_command(int(self._lib.RT_MCMD_RESET_PLANT))
+
     def stop_maneuver(self) -> None:
         """Ends the maneuver playing (the accelerator released, the brake as
         it was); nothing when none plays."""
