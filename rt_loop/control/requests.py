@@ -303,11 +303,9 @@ class RequestHandler:
         return {"config": self.server.config(), "ops": list(self._ops)}
 
     def _reset_plant(self, _r: dict) -> dict:
-        from rt_loop.server import ServerError
-
         try:
             self.server.reset_plant()
-        except ServerError as e:
+        except RuntimeError as e:           # ServerError: the loop is not running, ...
             raise _Refused(f"reset_plant: {e}") from None
         return {"time_s": float(self._copy().sim_time_s)}
 
