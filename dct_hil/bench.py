@@ -52,7 +52,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["Bench", "BenchError", "BenchTimeout", "TRANSPORTS"]
+__all__ = ["Bench", "BenchCapture", "BenchError", "BenchTimeout", "TRANSPORTS"]
 
 TRANSPORTS = ("embedded", "socketcan")
 #: how long start() waits for the TCU to be heard (wall seconds, at time scale 1)
@@ -392,6 +392,27 @@ class Bench:
                 last_t, last_wall = now, time.monotonic()
             time.sleep(min(0.02, max(0.001, (end - now) / self.time_scale)))
 
+    # ------------------------------------------------------------------ captures
+    def capture(self, signals: list[str] | tuple[str, ...], every_s: float | None = None,
+                start_when: str | None = None, pre_s: float = 0.0,
+                stop_when: str | None = None, post_s: float = 0.0,
+                duration_s: float | None = None) -> BenchCapture:
+        """Arms a capture in the loop (``rt_loop.measure.capture``): ``signals``
+        (plant outputs, ``inputs.<name>``, ``cmd.<name>``, ``Message.Signal``,
+        ``exec_us``, ...) every ``every_s`` (default every tick), from the
+        plant time ``start_when`` first holds (None: now) minus ``pre_s`` (at
+        most 30 s of history, kept since it was armed) to the time
+        ``stop_when`` holds plus ``post_s``, or ``duration_s`` after the start.
+        Several at once; returns a ``BenchCapture`` (``wait``, ``result``,
+        ``to_mf4``)."""
+        fields = {"signals": list(signals), "pre_s": pre_s, "post_s": post_s}
+        for k, v in (("every_s", every_s), ("start_when", start_when),
+                     ("stop_when", stop_when), ("duration_s", duration_s)):
+            if v is not None:
+                fields[k] = v
+        cid = int(self._request("capture", **fields)["id"])
+        return BenchCapture(self, cid)
+
     # ------------------------------------------------------------------ between tests
     def reset(self, timeout_s: float = RESET_TIMEOUT_S) -> float:
         """Brings a running bench back to where a fresh one starts, for a bench
@@ -552,6 +573,68 @@ class Bench:
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+class BenchCapture:
+    """A capture armed by ``Bench.capture``: ``status()``, ``wait(timeout_s)``
+    until it is done, ``result()`` (``time_s``, ``tick`` and every signal as
+    numpy arrays, with ``trigger_s``), ``to_mf4(path)``, ``stop()``, ``clear()``."""
+
+    def __init__(self, bench: Bench, cid: int) -> None:
+        self.bench, self.id = bench, cid
+
+    def status(self) -> dict:
+        return self.bench._request("capture_status", id=self.id)["capture"]
+
+    def wait(self, timeout_s: float = 60.0) -> dict:
+        """Waits (wall seconds) until the capture is done; returns its status."""
+        end = time.monotonic() + float(timeout_s)
+        while True:
+            st = self.status()
+            if st["state"] == "done":
+                return st
+            if time.monotonic() > end:
+                raise BenchTimeout(f"capture {self.id} not done within {timeout_s:g} s "
+                                   f"({st['state']}, {st['rows']} rows)")
+            time.sleep(0.02)
+
+    def result(self) -> dict:
+        """{"time_s", "tick", <signal>: array, "status": {...}} of what it holds."""
+        import numpy as np
+
+        got = self.bench._request("capture_fetch", id=self.id)
+        out: dict[str, Any] = {"time_s": np.asarray(got["time_s"], dtype=float),
+                               "tick": np.asarray(got["tick"], dtype=np.uint64),
+                               "status": got["capture"]}
+        for name, values in got["values"].items():
+            out[name] = np.asarray([np.nan if v is None else v for v in values], dtype=float)
+        return out
+
+    def to_mf4(self, path: str | os.PathLike) -> str:
+        """Writes what it holds as an ASAM MDF4 file (one channel group, plant time
+        as the master); returns the path."""
+        from plant.extras import require
+
+        require("asammdf")
+        from asammdf import MDF, Signal
+
+        data = self.result()
+        t = data["time_s"]
+        mdf = MDF(version="4.10")
+        sigs = [Signal(samples=data[name], timestamps=t, name=name)
+                for name in data["status"]["signals"]]
+        mdf.append(sigs, comment=f"dct-hil capture {self.id}: trigger at "
+                                 f"{data['status']['trigger_s']} s")
+        out = os.fspath(path)
+        mdf.save(out, overwrite=True)
+        mdf.close()
+        return out
+
+    def stop(self) -> None:
+        self.bench._request("capture_stop", id=self.id)
+
+    def clear(self) -> None:
+        self.bench._request("capture_clear", id=self.id)
 
 
 def _local(handler: Any) -> Any:

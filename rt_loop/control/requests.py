@@ -76,11 +76,13 @@ def _clean(value: Any) -> Any:
 
 
 class Client:
-    """What one connection owns: the watches it set (cleared when it ends)."""
+    """What one connection owns: the watches it set and its captures (both end
+    with it)."""
 
     def __init__(self, name: str) -> None:
         self.name = name
         self.watches: set[int] = set()
+        self.captures: set[int] = set()
 
 
 class RequestHandler:
@@ -106,6 +108,9 @@ class RequestHandler:
             "clear": self._clear, "clear_all": self._clear_all, "faults": self._faults,
             "events": self._events, "config": self._config, "stop": self._stop_loop,
             "reset_plant": self._reset_plant,
+            "capture": self._capture, "capture_status": self._capture_status,
+            "capture_fetch": self._capture_fetch, "capture_stop": self._capture_stop,
+            "capture_clear": self._capture_clear,
         }
 
     def add_op(self, name: str, op: Any) -> None:
@@ -124,13 +129,26 @@ class RequestHandler:
         self._ops[name] = served
 
     def client_ended(self, client: Client) -> None:
-        """Frees what ``client`` owned (its watches)."""
+        """Frees what ``client`` owned (its watches, its captures: counted as
+        ``captures_abandoned`` when one was not done)."""
         for wid in sorted(client.watches):
             try:
                 self.server.faults.clear(wid)
             except self._FaultError:
                 pass                          # cleared already (clear_all, or by id)
         client.watches.clear()
+        captures = self.server.captures
+        for cid in sorted(client.captures):
+            if captures is None:
+                break
+            try:
+                if captures.status(cid)["state"] != "done":
+                    self.counts["captures_abandoned"] = self.counts.get("captures_abandoned",
+                                                                        0) + 1
+                captures.clear(cid)
+            except ValueError:
+                pass                          # cleared already
+        client.captures.clear()
 
     # ------------------------------------------------------------ requests
     def handle_line(self, line: bytes | str, client: Client | None = None) -> dict:
@@ -157,6 +175,8 @@ class RequestHandler:
             answer = self._ops[op](request)
             if op == "watch" and client is not None:
                 client.watches.add(answer["id"])
+            elif op == "capture" and client is not None:
+                client.captures.add(answer["id"])
             return _clean({"ok": True, **answer})
         except _Refused as e:
             self.counts["refused"] += 1
@@ -308,6 +328,53 @@ class RequestHandler:
         except RuntimeError as e:           # ServerError: the loop is not running, ...
             raise _Refused(f"reset_plant: {e}") from None
         return {"time_s": float(self._copy().sim_time_s)}
+
+    # ------------------------------------------------------------ captures
+    def _captures(self) -> Any:
+        try:
+            return self.server.capture_manager()
+        except RuntimeError as e:           # ServerError: the loop is not running
+            raise _Refused(f"capture: {e}") from None
+
+    def _capture(self, r: dict) -> dict:
+        from rt_loop.measure.capture import CaptureError
+
+        keys = ("signals", "every_s", "start_when", "pre_s", "stop_when", "post_s", "duration_s")
+        extra = sorted(set(r) - {"op", *keys})
+        if extra:
+            raise _Refused(f"capture: unknown fields {', '.join(extra)} (fields: "
+                           + ", ".join(keys) + ")")
+        try:
+            cid = self._captures().start(**{k: r[k] for k in keys if k in r})
+        except CaptureError as e:
+            raise _Refused(str(e)) from None
+        return {"id": cid}
+
+    def _capture_call(self, r: dict, what: str) -> Any:
+        from rt_loop.measure.capture import CaptureError
+
+        captures = self._captures()
+        try:
+            return getattr(captures, what)(r.get("id"))
+        except CaptureError as e:
+            raise _Refused(str(e)) from None
+
+    def _capture_status(self, r: dict) -> dict:
+        return {"capture": self._capture_call(r, "status")}
+
+    def _capture_fetch(self, r: dict) -> dict:
+        got = self._capture_call(r, "fetch")
+        return {"capture": got["status"], "tick": got["tick"].tolist(),
+                "time_s": got["time_s"].tolist(),
+                "values": {n: v.tolist() for n, v in got["values"].items()}}
+
+    def _capture_stop(self, r: dict) -> dict:
+        self._capture_call(r, "stop")
+        return {}
+
+    def _capture_clear(self, r: dict) -> dict:
+        self._capture_call(r, "clear")
+        return {}
 
     # ------------------------------------------------------------ stop
     def _stop_loop(self, _r: dict) -> dict:

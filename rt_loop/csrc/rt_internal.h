@@ -20,7 +20,8 @@
  *                  into the DAQ ring at the end of a tick
  *   rt_maneuver.c  the scripted driver (a pedal table played in the tick) and
  *                  its start and stop commands
- *   rt_faults.c, rt_scope.c, rt_floor.c: failure simulation, the scope, the
+ *   rt_faults.c, rt_scope.c, rt_capture.c, rt_floor.c: failure simulation, the scope,
+ *   the captures, the
  *                  machine's wake-up floor (their own headers)
  *   rt_xcp_send.c  not the tick's: the XCP slave's sender thread, the DAQ
  *                  ring's consumer (rt_xcp_send.h, read by cffi too)
@@ -39,6 +40,7 @@
 
 #include "rt_loop.h"
 #include "rt_faults.h"
+#include "rt_capture.h"
 #include "rt_scope.h"
 
 #include <math.h>
@@ -263,6 +265,8 @@ typedef struct {
     int faults_dirty;                /* a fault changed since the last publication */
     /* the scope */
     rt_scope_run scope;
+    /* captures */
+    rt_capture_run capture;
     /* maneuver commands */
     uint32_t maneuver_seq;           /* the last command sequence taken */
 } rt_run;

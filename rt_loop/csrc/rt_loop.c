@@ -65,7 +65,8 @@
  * The stages, each in a file of its own: the receive drain and timeouts
  * (rt_rx.c), faults (rt_faults.c), the scripted driver (rt_maneuver.c), DAQ
  * (rt_daq.c), calibration and stimulus writes (rt_writes.c), the send
- * (rt_tx.c), the scope (rt_scope.c), the statistics (rt_stats.c); what they
+ * (rt_tx.c), the scope (rt_scope.c), the captures (rt_capture.c), the statistics
+ * (rt_stats.c); what they
  * share is rt_internal.h. rt_loop_prepare is in rt_prepare.c, with the
  * return codes of both.
  *
@@ -218,6 +219,8 @@ static void release_unused_rings(rt_loop *l)
         release_storage(l->rec.samples, sizeof l->rec.samples);
     if (l->cfg.release_rings & RT_RELEASE_DAQ)
         release_storage(l->daq_ring.dtos, sizeof l->daq_ring.dtos);
+    if (l->cfg.release_rings & RT_RELEASE_CAPTURE)
+        release_storage(l->capture.records, sizeof l->capture.records);
 }
 
 static int hold_storage(void *p, size_t n)
@@ -241,6 +244,8 @@ int rt_loop_hold_rings(rt_loop *l, uint32_t rings)
         rc = rc ? rc : hold_storage(l->rec.samples, sizeof l->rec.samples);
     if (rings & RT_RELEASE_DAQ)
         rc = rc ? rc : hold_storage(l->daq_ring.dtos, sizeof l->daq_ring.dtos);
+    if (rings & RT_RELEASE_CAPTURE)
+        rc = rc ? rc : hold_storage(l->capture.records, sizeof l->capture.records);
     return rc;
 }
 
@@ -310,6 +315,7 @@ int rt_loop_run(rt_loop *l)
     r.maneuver_time_s = -1.0;
     r.maneuver_seq = atomic_load_explicit(A32(&l->maneuver_ack), ACQUIRE);
     r.scope.gen = atomic_load_explicit(A32(&l->scope_ack), ACQUIRE);
+    r.capture.gen = atomic_load_explicit(A32(&l->capture_ack), ACQUIRE);
     r.spin_ns = llround(l->cfg.spin_us * 1e3);
     rt_tx_plan(&r);
     rt_rx_plan(&r);
@@ -414,6 +420,7 @@ int rt_loop_run(rt_loop *l)
             r.maneuver_state = RT_MANEUVER_DONE;
         rt_daq_copy(&r, deadline, r.c.ticks - 1u);
         rts_tick(&r.scope, l, r.c.ticks - 1u, l->plant.state.time_s);
+        rtc_tick(&r.capture, l, r.cmd, r.c.ticks - 1u, l->plant.state.time_s);
 
         int64_t end = now_ns();
         double turnaround_us = (double)(end - deadline) / 1e3;

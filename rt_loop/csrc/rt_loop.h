@@ -498,11 +498,12 @@ typedef struct {
                                          back before a feature that uses one starts) */
 } rt_config;
 
-/* rt_config.release_rings: the log, recorder and DAQ rings (the rx and tx rings of the
+/* rt_config.release_rings: the log, recorder, DAQ and capture rings (the rx and tx rings of the
    channels beyond n_channels are always released: no run uses them) */
 #define RT_RELEASE_LOG 1
 #define RT_RELEASE_REC 2
 #define RT_RELEASE_DAQ 4
+#define RT_RELEASE_CAPTURE 8
 
 /* the driver of a scripted maneuver, played by the loop itself: pedals (and
  * the selector lever, when the table has it) as a function of maneuver time,
@@ -676,6 +677,48 @@ typedef struct {
     rt_scope_bucket buckets[RT_SCOPE_RING_SIZE];
 } rt_scope_ring;
 
+/* ---- captures: chosen values at every tick, for triggered captures -------
+ *
+ * Python writes a configuration (up to RT_CAPTURE_SIGNALS sources and the
+ * ticks between records) into capture_cfg[(gen + 1) & 1] and publishes gen
+ * + 1 (rt_capture_publish); the tick takes a new generation whole after a
+ * check (offsets of doubles inside the loop, 8-aligned; command indexes
+ * below RT_MAX_COMMANDS; 1..RT_CAPTURE_MAX_EVERY ticks; a bad one is
+ * refused, counted in capture_refused, and capturing stops) and
+ * acknowledges it (capture_ack, release). A source is a byte offset into
+ * the rt_loop of a double (a plant output or input, a CAN signal's last
+ * value, a statistic of the tick before) or RT_CAPTURE_CMD | k, the k-th
+ * received value as applied in this tick. Every `every` executed ticks one
+ * rt_capture_record (the plant after the tick's step, as the recorder's
+ * sample) goes into the capture ring (full: dropped and counted); the
+ * reader (rt_loop.measure.capture) cuts the captures out of it by their
+ * triggers. With nothing configured the tick pays one load. */
+#define RT_CAPTURE_SIGNALS 64
+#define RT_CAPTURE_MAX_EVERY 20000    /* ticks */
+#define RT_CAPTURE_RING_SIZE 4096     /* records, a power of two */
+#define RT_CAPTURE_CMD 0x80000000u    /* source flag: a received value, not an offset */
+
+typedef struct {
+    uint32_t n;                       /* sources, 0..RT_CAPTURE_SIGNALS (0: off) */
+    uint32_t every;                   /* executed ticks between records */
+    uint32_t source[RT_CAPTURE_SIGNALS];
+} rt_capture_config;
+
+typedef struct {
+    uint64_t tick;                    /* executed tick index */
+    double time_s;                    /* plant time after its step */
+    uint32_t gen;                     /* the configuration (its sources, in order) */
+    uint32_t n;
+    double values[RT_CAPTURE_SIGNALS];
+} rt_capture_record;
+
+typedef struct {
+    uint32_t head;
+    uint32_t tail;
+    uint64_t dropped;                 /* records lost because the reader fell behind */
+    rt_capture_record records[RT_CAPTURE_RING_SIZE];
+} rt_capture_ring;
+
 /* ---- a maneuver started and stopped while the loop runs ------------------
  *
  * Python writes maneuver_op (RT_MCMD_*) and, for a start, the table into
@@ -735,6 +778,12 @@ typedef struct {
     uint32_t scope_ack;               /* written by the loop: the generation it took */
     uint64_t scope_refused;           /* configurations refused */
     rt_scope_ring scope;              /* loop -> Python */
+    /* captures (see above) */
+    rt_capture_config capture_cfg[2];
+    uint32_t capture_gen;             /* written by Python */
+    uint32_t capture_ack;             /* written by the loop: the generation it took */
+    uint64_t capture_refused;         /* configurations refused */
+    rt_capture_ring capture;          /* loop -> Python */
     /* maneuvers while running (see above) */
     rt_driver maneuver_next;
     uint32_t maneuver_op;             /* RT_MCMD_* */
@@ -784,6 +833,9 @@ uint32_t rt_daq_acked(rt_loop *l);
 void rt_scope_publish(rt_loop *l, uint32_t gen);
 uint32_t rt_scope_acked(rt_loop *l);
 int rt_scope_pop_many(rt_scope_ring *r, rt_scope_bucket *b, int n);
+void rt_capture_publish(rt_loop *l, uint32_t gen);
+uint32_t rt_capture_acked(rt_loop *l);
+int rt_capture_pop_many(rt_capture_ring *r, rt_capture_record *c, int n);
 void rt_maneuver_publish(rt_loop *l, uint32_t seq);
 uint32_t rt_maneuver_acked(rt_loop *l);
 /* Benchmark only (reads the clock; the loop must not be running): the DAQ
@@ -791,5 +843,10 @@ uint32_t rt_maneuver_acked(rt_loop *l);
  * `iterations` times into the DAQ ring, which is emptied after each; returns
  * ns per copy, -1 for a bad configuration or argument. */
 double rt_daq_bench(rt_loop *l, int64_t iterations);
+/* Benchmark only (the loop must not be running): the capture's work of one
+ * tick with the published configuration (every call due), `iterations`
+ * times into the capture ring, emptied after each; ns per tick, -1 for a
+ * refused configuration or a bad argument. */
+double rt_capture_bench(rt_loop *l, int64_t iterations);
 
 #endif

@@ -35,6 +35,8 @@ RT_DEFINE_POP_MANY(extern, rt_fault_events_pop_many, rt_fault_event_ring, rt_fau
                    RT_FAULT_EVENT_RING_SIZE)
 RT_DEFINE_POP_MANY(extern, rt_scope_pop_many, rt_scope_ring, rt_scope_bucket, buckets,
                    RT_SCOPE_RING_SIZE)
+RT_DEFINE_POP_MANY(extern, rt_capture_pop_many, rt_capture_ring, rt_capture_record, records,
+                   RT_CAPTURE_RING_SIZE)
 
 int rt_ring_push(rt_ring *r, const rt_frame *f)
 {

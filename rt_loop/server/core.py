@@ -252,6 +252,8 @@ class Server(StartupMixin, RecordingMixin, ReportsMixin, ManeuverMixin, RemoteAc
             _check_control_tcp(control_tcp, control_token, control_tls)
         #: the live scope (``rt_loop.measure.scope``): min and max of chosen values per bucket of ticks
         self.scope = None
+        #: the captures (``rt_loop.measure.capture``), made at the first (capture_manager)
+        self.captures = None
         self._maneuver: str | None = None            # the name of the maneuver started last
         self._recording: dict | None = None          # the recording running, if any
         self._rec_lock = threading.Lock()
@@ -310,7 +312,8 @@ class Server(StartupMixin, RecordingMixin, ReportsMixin, ManeuverMixin, RemoteAc
         _LIVE.discard(self)
         errors: list[Exception] = []
         for step in (self._stop_control, self._stop_player, self._stop_xcp, self._release_pm_qos,
-                     self._stop_scope, self._stop_transport, self._stop_logger,
+                     self._stop_scope, self._stop_captures, self._stop_transport,
+                     self._stop_logger,
                      self._stop_recorder, self._close_transport, self._release_cpu,
                      self._release_threads):
             try:

@@ -271,6 +271,22 @@ class RecordingMixin:
                 self._recording = None
                 self.recorder.stop()
 
+    def capture_manager(self) -> Any:
+        """The captures of this loop (``rt_loop.measure.capture.Captures``), made at
+        the first use while the loop runs."""
+        with self._rec_lock:
+            if self.captures is None:
+                if not self.running:
+                    raise ServerError("captures need a running loop")
+                from rt_loop.measure.capture import Captures
+
+                self.captures = Captures(self)
+            return self.captures
+
+    def _stop_captures(self) -> None:
+        if self.captures is not None:
+            self.captures.close()
+
     def _stop_scope(self) -> None:
         if self.scope is not None:
             self.scope.stop()

@@ -176,7 +176,8 @@ class StartupMixin:
         # (a recording started later holds its rings first: start_recording)
         cfg.release_rings = ((0 if cfg.log_frames else lib.RT_RELEASE_LOG)
                              | (0 if self.recorder is not None else lib.RT_RELEASE_REC)
-                             | (0 if self.xcp_address is not None else lib.RT_RELEASE_DAQ))
+                             | (0 if self.xcp_address is not None else lib.RT_RELEASE_DAQ)
+                             | lib.RT_RELEASE_CAPTURE)          # held at the first capture
         self.channels.install(loop, self.transports)
         from rt_loop.measure.xcp import a2l as _a2l
         from rt_loop.measure.xcp.loop_backend import set_regions
