@@ -281,7 +281,8 @@ def format_result(r: dict) -> str:
             f"DAQ {ld['xcp']['dtos']:,} DTOs, {ld['xcp']['daq_setups']} set-ups, "
             f"{ld['xcp']['lost_answers']} answers lost; "
             f"{ld['xcp']['cal_writes']:,} calibration writes; "
-            f"scope {ld['readers']['scope_reads']:,} reads, snapshots "
+            f"scope {ld['readers']['scope_reads']:,} reads, captures "
+            f"{ld['readers']['captures']:,} ({ld['readers']['capture_rows']:,} rows), snapshots "
             f"{ld['readers']['snapshots']:,}; control {ld['control']['requests']:,} requests, "
             f"{ld['control']['faults_injected']:,} faults; recorded "
             f"{ld['recording']['samples']:,} samples ({ld['recording']['mf4_mb']:.1f} MB); "
@@ -312,7 +313,7 @@ class _Readers:
         self.xcp = {"dtos": 0, "daq_setups": 0, "cal_writes": 0, "cal_refused": 0,
                     "commands": 0, "answer_max_s": 0.0, "lost_answers": 0}
         self.readers = {"scope_reads": 0, "scope_changes": 0, "snapshots": 0, "stats_reads": 0,
-                        "tcu_figures": 0}
+                        "tcu_figures": 0, "captures": 0, "capture_rows": 0}
         self.control = {"requests": 0, "faults_injected": 0, "faults_refused": 0, "sets": 0}
         self.threads: list[Any] = []
         self.tcu: Any = None                   # the C TCU node, once it runs
@@ -320,7 +321,8 @@ class _Readers:
     def start(self) -> None:
         import threading
 
-        for name, fn in (("xcp", self._xcp), ("scope", self._scope), ("control", self._control)):
+        for name, fn in (("xcp", self._xcp), ("scope", self._scope), ("control", self._control),
+                         ("capture", self._capture)):
             t = threading.Thread(target=self._guard, args=(name, fn), name=f"sanitize-{name}",
                                  daemon=True)
             t.start()
@@ -475,6 +477,21 @@ class _Readers:
                 self.readers["scope_changes"] += 1
                 next_change = time.monotonic() + 1.0
         scope.remove(traced)
+
+    # -- captures: armed, triggered, fetched and cleared one after the other, two at once
+    def _capture(self) -> None:
+        caps = self.server.capture_manager()
+        names = ["vehicle_speed_kmh", "engine_speed_rpm", "exec_us", "inputs.road_grade_pct"]
+        while not self.stop.is_set():
+            a = caps.start(names, duration_s=0.3)
+            b = caps.start(names[:2], every_s=self.server.step_s * 4, start_when="time_s > 0",
+                           pre_s=0.1, duration_s=0.2)
+            for cid in (a, b):
+                while caps.status(cid)["state"] != "done" and not self.stop.wait(0.02):
+                    pass
+                self.readers["capture_rows"] += len(caps.fetch(cid)["tick"])
+                caps.clear(cid)
+                self.readers["captures"] += 1
 
     # -- the control channel: faults injected and cleared, inputs set, values read
     def _control(self) -> None:
