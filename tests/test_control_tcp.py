@@ -102,7 +102,8 @@ def test_beyond_loopback_only_with_a_token(tmp_path, capsys):
                         "at least 8 characters"),
                        (["--control-tcp", "70000"], "outside 0..65535"),
                        (["--control-tcp", "7000", "--control-tls-cert", tmp_path / "no.pem"],
-                        "no such file")):
+                        "no such file"),
+                       (["--tcu-clock", "bus"], "needs --tcu reference")):
         line = one_line_error(capsys, ["serve", "--duration", "0.1", *argv])
         assert says in line, (argv, line)
 
