@@ -15,6 +15,13 @@ the ``port`` bus option given), a later bus's on ``UDP_DEFAULT_PORT`` + its
 index in the mapping (``with_port``), a derived bus on the first bus's group + i and
 port + i (``derive``), and two buses on one port are refused (``check_ports``).
 
+A ``virtual`` bus (python-can's in-process bus) keeps at most
+``VIRTUAL_BACKLOG_FRAMES`` frames a reader has not taken: python-can's own
+queue grows without bound while its reader is starved (hours of a busy
+machine), so ``open_bus`` gives it a queue that drops its oldest frame for a
+new one and counts it (``backlog_dropped(bus)``); a sender never waits and
+every other reader still gets the frame.
+
 A missing channel (``default_channel``): socketcan and virtual ``vcan0``,
 udp_multicast python-can's IPv4 group, any other interface the one channel
 python-can detects for it; else a one-line error saying what to give.
@@ -25,8 +32,9 @@ from __future__ import annotations
 import ipaddress
 from typing import Any
 
-__all__ = ["ChannelError", "UDP_DEFAULT_GROUP", "UDP_DEFAULT_PORT", "check_ports", "default_channel",
-           "derive", "is_udp_group", "open_bus", "split_udp", "udp_channel", "with_port"]
+__all__ = ["ChannelError", "UDP_DEFAULT_GROUP", "UDP_DEFAULT_PORT", "VIRTUAL_BACKLOG_FRAMES",
+           "backlog_dropped", "check_ports", "default_channel", "derive", "is_udp_group",
+           "open_bus", "split_udp", "udp_channel", "with_port"]
 
 UDP_MULTICAST = "udp_multicast"
 #: python-can's IPv4 group and port of udp_multicast (UdpMulticastBus.DEFAULT_GROUP_IPv4, port)
@@ -34,6 +42,8 @@ UDP_DEFAULT_GROUP = "239.74.163.2"
 UDP_DEFAULT_PORT = 43113
 #: channels used when none is given, per interface
 DEFAULT_CHANNELS = {"socketcan": "vcan0", "virtual": "vcan0", UDP_MULTICAST: UDP_DEFAULT_GROUP}
+#: frames a virtual bus keeps for its reader (about 25 s of a served bus; then the oldest goes)
+VIRTUAL_BACKLOG_FRAMES = 65536
 
 
 class ChannelError(ValueError):
@@ -160,7 +170,62 @@ def open_bus(interface: str, channel: str, **kwargs: Any) -> Any:
     can = python_can()
     try:
         ch, kw = bus_arguments(interface, channel, **kwargs)
-        return can.Bus(interface=interface, channel=ch, **kw)
+        bus = can.Bus(interface=interface, channel=ch, **kw)
     except Exception as e:  # python-can raises many kinds (CanError, OSError, ImportError, ...)
         text = " ".join(str(e).split()) or type(e).__name__
         raise ConnectionError(f"cannot open {interface} bus on channel {channel}: {text}") from None
+    if interface == "virtual" and not kwargs.get("rx_queue_size"):
+        _bound_backlog(bus, VIRTUAL_BACKLOG_FRAMES)
+    return bus
+
+
+def _dropping_queue(maxsize: int) -> Any:
+    import queue
+
+    class DroppingQueue(queue.Queue):
+        def __init__(self, maxsize: int) -> None:
+            super().__init__(maxsize)
+            self.dropped = 0
+
+        def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
+            with self.not_full:
+                if self._qsize() >= self.maxsize:
+                    self._get()                   # the oldest frame: of another time
+                    self.dropped += 1
+                self._put(item)
+                self.unfinished_tasks += 1
+                self.not_empty.notify()
+
+    return DroppingQueue(maxsize)
+
+
+def _bound_backlog(bus: Any, frames: int) -> None:
+    """Gives a python-can virtual bus a queue that keeps at most ``frames``
+    (python-can 4.x's VirtualBus: its ``queue`` in its channel's list); a bus
+    made otherwise is left as it is."""
+    try:
+        from can.interfaces import virtual
+    except ImportError:
+        return
+    lock = getattr(virtual, "channels_lock", None)
+    members = getattr(bus, "channel", None)
+    old = getattr(bus, "queue", None)
+    if lock is None or not isinstance(members, list) or old is None:
+        return
+    q = _dropping_queue(frames)
+    with lock:
+        for i, member in enumerate(members):
+            if member is old:
+                while True:                       # what was queued meanwhile
+                    try:
+                        q.put(old.get_nowait())
+                    except Exception:  # queue.Empty
+                        break
+                members[i] = q
+                bus.queue = q
+                return
+
+
+def backlog_dropped(bus: Any) -> int:
+    """Frames a bus's bounded backlog dropped for newer ones (0: none, or not bounded)."""
+    return int(getattr(getattr(bus, "queue", None), "dropped", 0))

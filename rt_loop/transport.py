@@ -43,7 +43,7 @@ import threading
 import time
 from typing import Any
 
-from can_dbc.channels import open_bus
+from can_dbc.channels import backlog_dropped, open_bus
 from can_dbc.own_frames import ECHOING_INTERFACES, OwnFrames
 from can_dbc.python_can import python_can
 
@@ -729,6 +729,9 @@ class BridgeTransport(Transport):
       include them). Frames of other programs, on this host or not, are
       forwarded as before. Other interfaces do not return a bus's own frames
       (it is opened with receive_own_messages=False): nothing to drop;
+    * ``rx_backlog_dropped``: on the in-process ``virtual`` bus, frames its
+      bounded backlog dropped for newer ones while this thread was starved
+      (``can_dbc.channels.VIRTUAL_BACKLOG_FRAMES``);
     * at stop (the loop has returned): ``rx_left_in_ring``, frames forwarded
       that the loop never read, and ``rx_drained_at_stop``, data frames read
       from the bus after the loop's last tick (for at most
@@ -842,6 +845,8 @@ class BridgeTransport(Transport):
             out["error_frame_kinds"] = dict(self._error_kinds)
         own = self.own
         out["own_echoes_forgotten"] = 0 if own is None else own.forgotten
+        bus = self.bus
+        out["rx_backlog_dropped"] = 0 if bus is None else backlog_dropped(bus)
         out.update(self.watch.counters())
         out["last_error"] = self.last_error
         return out

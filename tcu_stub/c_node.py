@@ -855,7 +855,10 @@ class _Bridge:
             self._thread = None
 
     def counters(self):
-        return {"bus": self.name, **self._counts, "last_error": self.last_error}
+        from can_dbc.channels import backlog_dropped
+
+        return {"bus": self.name, **self._counts, "rx_backlog_dropped": backlog_dropped(self.bus),
+                "last_error": self.last_error}
 
     def _run(self):
         ffi = self._ffi

@@ -318,3 +318,35 @@ def test_the_summary_names_what_was_lost_below_the_bridge():
     assert "controller 1, rx_overflow 1, bus_off 1" in text
     assert "bus state         passive at the end; 1 changes (active->passive 1)" in text
     assert "3 frames arrived too late" in text
+
+
+def test_a_virtual_bus_keeps_a_bounded_backlog_and_counts_what_it_drops(monkeypatch):
+    """A reader that does not read (a starved bridge) holds at most the bound;
+    its oldest frames go for the newest, counted; the sender never waits and
+    another reader gets every frame."""
+    import uuid
+
+    import can
+
+    from can_dbc import channels
+
+    monkeypatch.setattr(channels, "VIRTUAL_BACKLOG_FRAMES", 100)
+    name = f"backlog-{uuid.uuid4().hex[:8]}"
+    starved = channels.open_bus("virtual", name)
+    reader = channels.open_bus("virtual", name)
+    sender = can.Bus(interface="virtual", channel=name)
+    try:
+        read = []
+        for i in range(250):
+            sender.send(can.Message(arbitration_id=0x100, data=i.to_bytes(2, "little")),
+                        timeout=0.0)
+            read.append(reader.recv(0.0))                 # a reader that keeps up
+        assert [int.from_bytes(m.data, "little") for m in read] == list(range(250))
+        assert channels.backlog_dropped(reader) == 0
+        got = [starved.recv(0.0) for _ in range(101)]
+        assert got[-1] is None and all(m is not None for m in got[:100])
+        assert [int.from_bytes(m.data, "little") for m in got[:100]] == list(range(150, 250))
+        assert channels.backlog_dropped(starved) == 150
+    finally:
+        for b in (starved, reader, sender):
+            b.shutdown()
