@@ -12,7 +12,7 @@ Transport:
 - otherwise the embedded default: the TCU stub in a thread of this process
   exchanging frames with the loop. With the C TCU (``tcu_impl="c"``, the
   default: ``tcu_stub.c_node``) the thread is C and the frames go through
-  the loop's own rings (``dct_hil.embedded``): no bus and no Python between
+  the loop's own rings (``rt_loop.embedded``): no bus and no Python between
   them; with the Python TCU (``tcu_impl="python"``) over python-can's
   in-process ``virtual`` bus, the server bridged onto it.
   The demo says which, and why.
@@ -249,11 +249,11 @@ class _TcuThread:
 
 
 class _TcuEmbedded(_TcuThread):
-    """The C TCU on a thread of its own, its frames the loop's rings (``dct_hil.embedded``)."""
+    """The C TCU on a thread of its own, its frames the loop's rings (``rt_loop.embedded``)."""
 
     def __init__(self, server, time_scale: float, report: Path, clock: str, mapping=None,
                  priority: int = 0) -> None:
-        from dct_hil.embedded import connect_tcu
+        from rt_loop.embedded import connect_tcu
 
         self.report_path = report
         self.tcu = connect_tcu(server, time_scale=time_scale, clock=clock, mapping=mapping,
@@ -264,8 +264,8 @@ def start_tcu(impl: str, two: bool, interface: str, channel: str, server, time_s
               report: Path, log: Path, clock: str, mapping=None):
     """The reference TCU of a demo or test bench: a second process on a real bus
     (``two``), else the C node on the loop's rings (``impl`` "c": the server must be
-    ``dct_hil.embedded.embedded_server``'s) or the Python node on the in-process bus."""
-    from dct_hil.embedded import tcu_priority
+    ``rt_loop.embedded.embedded_server``'s) or the Python node on the in-process bus."""
+    from rt_loop.embedded import tcu_priority
 
     priority = tcu_priority(server.priority)
     if two:
@@ -323,7 +323,7 @@ class RestartableTcu:
 def make_server(impl: str, two: bool, channel: str, **kwargs):
     """The plant server for ``start_tcu``: on the loop's rings for the embedded C TCU."""
     if not two and impl == "c":
-        from dct_hil.embedded import embedded_server
+        from rt_loop.embedded import embedded_server
 
         return embedded_server(channel, **kwargs)
     from rt_loop.server import Server

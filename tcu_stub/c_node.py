@@ -29,7 +29,7 @@ Frames in and out (``tcu_stub/csrc/tcu_port.c``):
   bridge thread in Python (a Python step per frame, none per period);
 - ``ports``: {bus name: (recv, recv_ctx, send, send_ctx)} addresses of
   frame functions and their contexts given by a connector (the plant loop's
-  own rings, ``dct_hil.embedded``): no Python between them at all.
+  own rings, ``rt_loop.embedded``): no Python between them at all.
 
 ``report()``, ``status_line()``, ``write_report()``, ``counts()``,
 ``sent()``, ``events``, ``pause()`` and ``wait_for()`` are those of

@@ -9,7 +9,7 @@ message's ride-out and the recovery are in it. The commands must be the same
 to the bit in every period; the stale episodes, shifts and trouble codes
 too. Then the node on its thread: on the in-process bus against a stand-in
 plant (frames, E2E, rates, safe final frames, a silent plant), on the loop's
-own rings (dct_hil.embedded), and the command line.
+own rings (rt_loop.embedded), and the command line.
 """
 
 import json
@@ -249,7 +249,7 @@ def test_on_the_in_process_bus_it_sends_protected_frames_goes_stale_and_ends_saf
 
 
 def test_on_the_loops_own_rings_it_launches_the_car_with_a_matrix():
-    from dct_hil.embedded import connect_tcu, embedded_server
+    from rt_loop.embedded import connect_tcu, embedded_server
 
     m = get_maneuver("paper-cycle")
     server = embedded_server(f"c-node-{uuid.uuid4().hex[:8]}", priority=0, driver=m.driver,

@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 #: each matrix): 9 within 10 ms (6 at 0 ms), 3 at 14-20 ms where the TCU's frames
 #: landed a tick late in a share of its periods (its 2 ms phase near the loop's tick)
 #: or the loop skipped ticks. The embedded TCU's periods now begin half a tick after a
-#: loop tick (dct_hil.embedded: lock_phase), so its frames land on their tick; what
+#: loop tick (rt_loop.embedded: lock_phase), so its frames land on their tick; what
 #: remains is the loop's skipped ticks (the host not waking it: 25 skipped, +14 ms),
 #: which the verdict reports and which the bound below adds.
 SHIFT_TOLERANCE_S = 0.010

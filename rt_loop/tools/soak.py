@@ -3,12 +3,14 @@
     python -m rt_loop.tools.soak --hours 1            # scripts/soak --hours 1
     python -m rt_loop.tools.soak --minutes 3 --out out/soak-short
 
-One process: ``rt_loop.server.Server`` on the embedded transport
-(python-can's in-process virtual bus, bridged into the loop's rings) and the
-reference TCU on the same bus: the C node (``tcu_stub.c_node.CTcuNode``, its
-task on a C thread, a bridge thread moving its frames; ``--tcu-impl c``, the
-default, as the demo's) or the Python node (``tcu_stub.can_tcu.CanTcu``,
-``--tcu-impl python``). The TCU report names which (``impl``).
+One process: ``rt_loop.server.Server`` and the reference TCU, as ``dct-hil
+demo`` runs them without a CAN interface: the C node (``tcu_stub.c_node``,
+its task on a C thread) on the loop's own rings (``rt_loop.embedded``: no
+bus, no Python between them; ``--tcu-impl c``, the default). ``--bridged``:
+the C node on python-can's in-process virtual bus instead, a bridge thread
+on each side; ``--tcu-impl python``: the Python node
+(``tcu_stub.can_tcu.CanTcu``) on that bus. The TCU report names which
+(``impl``).
 The loop plays ``paper-cycle`` again each time it ends (65 s of pedals from
 standstill) and records every plant output and both directions of CAN to
 one MF4 file (``rt_loop.measure.mdf_recorder``) for the whole run.
@@ -327,8 +329,9 @@ def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
         notes.append(f"{run['cycles_incomplete']} paper-cycles did not complete")
     stall = rx_stall_s(rows)
     if stall > 10.0:
-        notes.append(f"no TCU frame accepted for {stall:.0f} s at a time (the bridge fell "
-                     "behind: python-can's virtual bus queues what it has not read, in memory)")
+        notes.append(f"no TCU frame accepted for {stall:.0f} s at a time (the TCU or a bridge "
+                     "fell behind; a virtual bus keeps at most "
+                     "can_dbc.channels.VIRTUAL_BACKLOG_FRAMES frames for it)")
     hours = (t[-1] / 3600.0) if rows else 0.0
     return {
         "passed": not findings and not run.get("interrupted"),
@@ -446,15 +449,21 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             print(f"soak: the machine's wake-up floor for {floor_s:g} s ...", file=out, flush=True)
             floor_before = _floor(floor_s, priority)
         try:
-            server = Server(CHANNEL, interface="virtual", priority=priority,
-                            record_every_s=args.record_every, pm_qos_us="auto")
+            kwargs = {"priority": priority, "record_every_s": args.record_every,
+                      "pm_qos_us": "auto"}
+            if args.tcu_impl == "c" and not args.bridged:     # as dct-hil demo: the loop's rings
+                from rt_loop.embedded import embedded_server
+
+                server = embedded_server(CHANNEL, **kwargs)
+            else:
+                server = Server(CHANNEL, interface="virtual", **kwargs)
             server.start(cancel=stop)
         except (ServerError, TransportError) as e:
             raise SoakError(str(e)) from None
         except Exception as e:  # the plant's parameters, the build: one line
             raise SoakError(f"the server cannot be set up: {type(e).__name__}: "
                             f"{' '.join(str(e).split())}") from None
-        tcu = _open_tcu(args.tcu_impl, priority)
+        tcu = _open_tcu(args.tcu_impl, priority, None if args.bridged else server)
         if args.record:
             server.start_recording(paths["mf4"], args.record_every)
         if args.tracemalloc and not tracemalloc.is_tracing():
@@ -595,7 +604,9 @@ def _write_json(path: Path, args, rows, run, floor_before, floor_after, partial)
         "config": {"seconds": args.seconds, "sample_s": args.sample_s,
                    "record_every_s": args.record_every, "record": args.record,
                    "tracemalloc_frames": args.tracemalloc, "maneuver": MANEUVER,
-                   "transport": "embedded (python-can virtual, bridged)",
+                   "transport": ("embedded (python-can virtual, bridged)"
+                                 if args.bridged or args.tcu_impl == "python"
+                                 else "embedded (the loop's rings)"),
                    "priority": args.priority},
         "run": run,
         "verdict": v,
@@ -662,17 +673,20 @@ def _print_summary(doc: dict, paths: dict, out) -> None:
 
 
 
-def _open_tcu(impl: str, loop_priority: int) -> Any:
-    """The reference TCU on the soak's virtual bus: the C node (SCHED_FIFO below the
-    loop when the loop has it) or the Python node."""
+def _open_tcu(impl: str, loop_priority: int, server: Any = None) -> Any:
+    """The reference TCU: the C node (SCHED_FIFO below the loop when the loop has
+    it) on the loop's own rings (``server``: an ``embedded_server``), else on the
+    soak's virtual bus through a bridge thread; or the Python node on that bus."""
     if impl == "python":
         from tcu_stub.can_tcu import CanTcu
 
         return CanTcu.open("virtual", CHANNEL)
-    from tcu_stub.c_node import DEFAULT_PRIORITY, CTcuNode
+    from rt_loop.embedded import connect_tcu, tcu_priority
+    from tcu_stub.c_node import CTcuNode
 
-    priority = 0 if loop_priority <= 1 else min(DEFAULT_PRIORITY, loop_priority - 1)
-    return CTcuNode.open("virtual", CHANNEL, priority=priority)
+    if server is not None:
+        return connect_tcu(server, priority=tcu_priority(loop_priority))
+    return CTcuNode.open("virtual", CHANNEL, priority=tcu_priority(loop_priority))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -694,6 +708,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"memory slope limit ({RSS_SLOPE_MB_H:g} MB/h)")
     p.add_argument("--rss-noise-mb", type=argtypes.non_negative, default=RSS_NOISE_MB, metavar="MB",
                    help=f"growth never judged a leak ({RSS_NOISE_MB:g} MB)")
+    p.add_argument("--bridged", action="store_true",
+                   help="the C TCU on python-can's virtual bus through bridge threads, not on "
+                        "the loop's own rings")
     p.add_argument("--tcu-impl", choices=("c", "python"), default="c",
                    help="the reference TCU: the C node (default, as the demo's) or the Python "
                         "node (tcu_stub/can_tcu.py)")

@@ -6,7 +6,7 @@ The loop (``rt_loop``) moves a channel's frames through its rx and tx rings
 when the channel's transport is a ring (``RT_TRANSPORT_RING``); the C TCU
 node (``tcu_stub.c_node``) takes frames in and puts them out through a pair
 of frame functions with a context each. Neither knows the other: this
-module, in the layer above both, hands the node the loop's
+module (the loop's layer, which may use the TCU's below it) hands the node the loop's
 ``rt_ring_pop_many`` on the channel's tx ring as its source and
 ``rt_ring_push_many`` on the rx ring as its sink, after checking that the
 two sides' frame structs have the same layout. The server runs with
