@@ -53,7 +53,7 @@ __all__ = ["ControlServer", "HELLO_TIMEOUT_S", "MAX_CLIENTS", "MAX_LINE", "SLOW_
 
 #: longest request line accepted (bytes)
 MAX_LINE = 1 << 20
-#: connections served at once (each listener)
+#: connections served at once (both listeners together)
 MAX_CLIENTS = 64
 #: a TCP connection must finish TLS and say hello (with a token) within this (s)
 HELLO_TIMEOUT_S = 10.0
