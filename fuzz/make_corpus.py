@@ -207,7 +207,12 @@ def control_request() -> dict[str, bytes]:
             {"op": "set", "name": "road_grade_pct", "value": 4.5},
             {"op": "set", "name": "override.accel_pedal_pct", "value": 10},
             {"op": "inject", "spec": {"kind": "can.omit", "message": "VEH_Driver", "duration_s": 0.05}},
-            {"op": "watch", "when": "time_s > 0.3"}, {"op": "clear", "id": 1}, {"op": "clear_all"}]
+            {"op": "watch", "when": "time_s > 0.3"}, {"op": "clear", "id": 1}, {"op": "clear_all"},
+            {"op": "capture", "signals": ["vehicle_speed_kmh", "cmd.target_gear"],
+             "every_s": 0.001, "start_when": "time_s > 0.2", "pre_s": 0.1, "duration_s": 0.1},
+            {"op": "capture_status", "id": 1}, {"op": "capture_fetch", "id": 1},
+            {"op": "capture_stop", "id": 1}, {"op": "capture_clear", "id": 1},
+            {"op": "reset_plant"}]
     return {f"{k:02d}-{r['op']}": json.dumps(r).encode() for k, r in enumerate(reqs)}
 
 
