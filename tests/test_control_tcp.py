@@ -258,3 +258,18 @@ def test_bench_attach_over_tcp_with_a_token_file(tmp_path):
             Bench.attach(f"http://{host}:{port}")
     finally:
         server.stop()
+
+
+def test_a_client_that_half_closes_gets_every_answer(served):
+    """printf '...\\n...\\n' | nc: the requests, then the end of its sending; every
+    line is answered before the server closes."""
+    server, ctl, url = served
+    s, f = _raw(url)
+    lines = [{"op": "hello", "token": TOKEN}] + [{"op": "ping"}] * 20 + [{"op": "snapshot"}]
+    s.sendall(b"".join(json.dumps(x).encode() + b"\n" for x in lines))
+    s.shutdown(socket.SHUT_WR)
+    answers = [json.loads(line) for line in f]
+    assert len(answers) == len(lines) and all(a["ok"] for a in answers)
+    assert "snapshot" in answers[-1]
+    f.close()
+    s.close()
