@@ -216,9 +216,20 @@ def control_request() -> dict[str, bytes]:
     return {f"{k:02d}-{r['op']}": json.dumps(r).encode() for k, r in enumerate(reqs)}
 
 
+def control_stream() -> dict[str, bytes]:
+    """fuzz/control_stream.py: a client's bytes (the first bytes choose the hello and the
+    cuts): requests whole, pipelined, cut, too long, not JSON."""
+    lines = [b'{"op": "ping"}\n', b'{"op": "read", "names": ["gear"]}\n{"op": "faults"}\n',
+             b'{"op": "set", "name": "road_grade_pct", "va', b'not json\n\n{"op": 1}\n',
+             b'{"op": "capture", "signals": ["gear"], "duration_s": 0.01}\n'
+             b'{"op": "capture_fetch", "id": 1}\n', b'{"op": "hello", "token": "x"}\n']
+    return {f"{k:02d}": bytes([1, 2, 0, 9, 40]) + line for k, line in enumerate(lines)}
+
+
 TARGETS = {"can_frame": can_frame, "rt_prepare": rt_prepare, "plant_prepare": plant_prepare,
            "fmu_state": fmu_state, "xcp_packet": xcp_packet, "mapping_load": mapping_load,
-           "stimulus_load": stimulus_load, "control_request": control_request}
+           "stimulus_load": stimulus_load, "control_request": control_request,
+           "control_stream": control_stream}
 
 if __name__ == "__main__":
     for name in sys.argv[1:] or TARGETS:

@@ -63,7 +63,7 @@ C_TARGETS = {
     "plant_prepare": (lambda: [FMU_TABLE, *_plant_sources()], []),
 }
 # Python targets: fuzz/<name>.py
-PY_TARGETS = ["xcp_packet", "mapping_load", "stimulus_load", "control_request"]
+PY_TARGETS = ["xcp_packet", "mapping_load", "stimulus_load", "control_request", "control_stream"]
 TARGETS = [*C_TARGETS, *PY_TARGETS]
 # longest input (libFuzzer's -max_len): the seeds of the table and mapping targets are long
 MAX_LEN = {"rt_prepare": 65536, "mapping_load": 65536, "stimulus_load": 16384, "plant_prepare": 1024,
