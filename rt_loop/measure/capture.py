@@ -149,7 +149,7 @@ class Captures:
     def capturable(self) -> list[str]:
         return sorted(self._sources)
 
-    def start(self, signals: Any, every_s: Any = None, start_when: Any = None,
+    def start(self, signals: Any = None, every_s: Any = None, start_when: Any = None,
               pre_s: Any = 0.0, stop_when: Any = None, post_s: Any = 0.0,
               duration_s: Any = None) -> int:
         """Arms a capture; returns its id. ``every_s``: the time between samples (a
