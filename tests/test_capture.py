@@ -176,3 +176,15 @@ def test_the_history_kept_is_limited_and_said():
     with Bench.start(tcu=False) as bench:
         with pytest.raises(BenchError, match=r"pre_s 31 s is more history than is kept"):
             bench.capture(["gear"], pre_s=31)
+
+
+@pytest.mark.slow
+def test_a_start_condition_true_when_armed_starts_at_once_with_no_history():
+    with Bench.start(tcu=False) as bench:
+        bench.sleep(0.2)
+        cap = bench.capture(["engine_speed_rpm"], start_when="time_s > 0.1", pre_s=1.0,
+                            duration_s=0.2)
+        st = cap.wait(10)
+        data = cap.result()
+    assert st["history_s"] == 0.0 and st["trigger_s"] <= data["time_s"][0] + 1e-9
+    assert data["time_s"][-1] <= st["trigger_s"] + 0.2 + 1e-9

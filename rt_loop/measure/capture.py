@@ -293,7 +293,7 @@ class Captures:
                 "armed_s": cap.armed_s, "trigger_s": cap.trigger_s, "stop_s": cap.stop_s,
                 "end_s": cap.end_s, "rows": 0 if cap.state == "armed" else cap.rows,
                 "history_s": (None if cap.trigger_s is None or cap.armed_s is None
-                              else min(cap.pre_s, cap.trigger_s - cap.armed_s)),
+                              else max(0.0, min(cap.pre_s, cap.trigger_s - cap.armed_s))),
                 "gaps": cap.gaps, "why_done": cap.why_done}
 
     def _hold_ring(self) -> None:
