@@ -97,6 +97,7 @@ def test_the_hil_suite_runs_through_bench_url_against_another_process(tmp_path):
     stats = tmp_path / "serve-stats.json"
     server = subprocess.Popen(
         [sys.executable, "-m", "dct_hil.cli", "serve", "--priority", "0", "--tcu", "reference",
+         "--tcu-clock", "bus",         # as the local suite's marker: the TCU on plant time
          "--control-tcp", f"127.0.0.1:{port}", "--control-token-file", str(token),
          "--stats", str(stats), "--quiet"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
