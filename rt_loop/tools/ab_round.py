@@ -1,6 +1,7 @@
-"""One round of an A/B benchmark of the loop (faults_bench, xcp_bench): a
+"""One round of an A/B benchmark of the loop (faults_bench, xcp_bench, capture_bench): a
 server on a virtual bus driven by a test TCU for the round's length, and the
-figures compared between the rounds with and without what is measured."""
+figures compared between the rounds with and without what is measured; and the
+idle, prepared loop their C measurements time the tick's parts on."""
 
 import time
 
@@ -36,3 +37,22 @@ def execution_mean_under(histogram, limit_us):
     hist = [(b, c) for b, c in histogram if b < limit_us]
     n = sum(c for _, c in hist)
     return sum((b + 0.5) * c for b, c in hist) / n if n else None
+
+
+def idle_loop():
+    """(ffi, lib, loop): a loop prepared with the default parameters and mapping at
+    2 kHz and never run, for the benchmarks that time the tick's parts in C
+    (``rt_daq_bench``, ``rt_capture_bench``)."""
+    from can_dbc import mapping
+    from plant.params import fill_params, load_params
+    from rt_loop._rt_loop import ffi, lib
+    from rt_loop.channels import LoopChannels
+
+    loop = ffi.new("rt_loop *")
+    fill_params(ffi, ffi.addressof(loop[0].plant, "params"), load_params(None, ffi, None))
+    LoopChannels(mapping.load(mapping.DEFAULT_MAPPING), ffi, lib).install(loop)
+    loop.chan[0].transport = lib.RT_TRANSPORT_RING
+    loop.cfg.period_s, loop.cfg.cpu = 0.0005, -1
+    if lib.rt_loop_prepare(loop) != 0:
+        raise RuntimeError("rt_loop_prepare failed")
+    return ffi, lib, loop

@@ -31,7 +31,7 @@ import sys
 import uuid
 
 from plant import argtypes
-from rt_loop.tools.ab_round import drive, loop_figures
+from rt_loop.tools.ab_round import drive, idle_loop, loop_figures
 
 TARGET_NS = 300.0
 
@@ -44,25 +44,9 @@ def _outputs(ffi, n):
     return names[:n]
 
 
-def _idle_loop():
-    from can_dbc import mapping
-    from plant.params import fill_params, load_params
-    from rt_loop._rt_loop import ffi, lib
-    from rt_loop.channels import LoopChannels
-
-    loop = ffi.new("rt_loop *")
-    fill_params(ffi, ffi.addressof(loop[0].plant, "params"), load_params(None, ffi, None))
-    LoopChannels(mapping.load(mapping.DEFAULT_MAPPING), ffi, lib).install(loop)
-    loop.chan[0].transport = lib.RT_TRANSPORT_RING
-    loop.cfg.period_s, loop.cfg.cpu = 0.0005, -1
-    if lib.rt_loop_prepare(loop) != 0:
-        raise RuntimeError("rt_loop_prepare failed")
-    return ffi, lib, loop
-
-
 def copy_ab(names, pairs, iterations=200_000):
     """[(ns without, ns with)] of rt_capture_bench, alternating."""
-    ffi, lib, loop = _idle_loop()
+    ffi, lib, loop = idle_loop()
     offsets = [ffi.offsetof("rt_loop", "plant", "outputs", n) for n in names]
     gen = 0
     out = []

@@ -26,7 +26,7 @@ import sys
 import uuid
 
 from plant import argtypes
-from rt_loop.tools.ab_round import drive, loop_figures
+from rt_loop.tools.ab_round import drive, idle_loop, loop_figures
 
 TARGET_NS = 1000.0
 
@@ -137,18 +137,7 @@ class _Master:
 
 def daq_copy_ns(signals, iterations=200_000):
     """rt_daq_bench of one list of these signals on the tick event (a prepared, idle loop)."""
-    from can_dbc import mapping
-    from plant.params import fill_params, load_params
-    from rt_loop._rt_loop import ffi, lib
-    from rt_loop.channels import LoopChannels
-
-    loop = ffi.new("rt_loop *")
-    fill_params(ffi, ffi.addressof(loop[0].plant, "params"), load_params(None, ffi, None))
-    LoopChannels(mapping.load(mapping.DEFAULT_MAPPING), ffi, lib).install(loop)
-    loop.chan[0].transport = lib.RT_TRANSPORT_RING
-    loop.cfg.period_s, loop.cfg.cpu = 0.0005, -1
-    if lib.rt_loop_prepare(loop) != 0:
-        raise RuntimeError("rt_loop_prepare failed")
+    ffi, lib, loop = idle_loop()
     cfg = loop.daq[1]
     per_odt = int(lib.RT_DAQ_ODT_BYTES) // 8
     odts = [signals[i:i + per_odt] for i in range(0, len(signals), per_odt)]
