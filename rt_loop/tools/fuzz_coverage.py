@@ -3,12 +3,17 @@ for the Python side (fuzz/).
 
     python -m rt_loop.tools.fuzz_coverage can_frame --seconds 60     # scripts/fuzz-coverage
     python -m rt_loop.tools.fuzz_coverage --all --seconds 20         # scripts/test's stage
-    python -m rt_loop.tools.fuzz_coverage --all --runs 100000000     # the long stage
+    python -m rt_loop.tools.fuzz_coverage --all --runs 100000000 --fast --parallel 2   # the long stage
     python -m rt_loop.tools.fuzz_coverage --list
 
 The C targets are built with clang -fsanitize=fuzzer,address,undefined
 straight from the C sources into build/fuzz/ (objects rebuilt when a source
-or header changed); the Python targets run under atheris in this
+or header changed). ``--fast`` runs them from a second build
+(build/fuzz/fast/: -O2, UBSan without its checks of every memory access,
+alignment and pointer-overflow, no ASan; 5-8 times the executions per
+second), then replays every input of the grown corpus once through the
+checked build, so each input that reached new code is also seen by ASan and
+the full UBSan. The Python targets run under atheris in this
 interpreter's environment. Each target starts from its seed corpus
 (fuzz/corpus/<target>/, in the repository, written by fuzz/make_corpus.py)
 and the corpus its earlier runs grew (build/fuzz/corpus/<target>/), with
@@ -48,6 +53,12 @@ FMU_TABLE = BUILD / "fmu_variables.c"   # generated: the default car's parameter
 
 SAN = ["-g", "-O1", "-fno-omit-frame-pointer", "-fsanitize=address,undefined",
        "-fno-sanitize-recover=undefined"]
+# the long runs' build: UBSan without the two checks of every memory access (alignment,
+# pointer-overflow: 3-5x slower on the plant's arithmetic), no ASan; what it finds is
+# what UBSan finds, and its corpus is replayed through SAN's build afterwards
+FAST = ["-g", "-O2", "-fno-omit-frame-pointer", "-fsanitize=undefined",
+        "-fno-sanitize=alignment,pointer-overflow", "-fno-sanitize-recover=undefined"]
+PROFILES = {"checked": (SAN, BUILD), "fast": (FAST, BUILD / "fast")}
 
 
 def _plant_sources() -> list[Path]:
@@ -103,22 +114,24 @@ def _newest_header(dirs) -> float:
     return max((h.stat().st_mtime for d in dirs for h in d.glob("*.h")), default=0.0)
 
 
-def _compile(cc: str, src: Path, obj: Path, incs, headers_mtime: float) -> None:
+def _compile(cc: str, flags, src: Path, obj: Path, incs, headers_mtime: float) -> None:
     if obj.exists() and obj.stat().st_mtime >= max(src.stat().st_mtime, headers_mtime):
         return
     obj.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [cc, *SAN, "-fsanitize=fuzzer-no-link", "-D_GNU_SOURCE",
+    cmd = [cc, *flags, "-fsanitize=fuzzer-no-link", "-D_GNU_SOURCE",
            *(f"-I{d}" for d in incs), "-c", str(src), "-o", str(obj)]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0:
         raise FuzzError(f"compiling {src.relative_to(ROOT)} failed: {r.stderr.strip().splitlines()[0]}")
 
 
-def build(names, out=sys.stdout) -> dict[str, Path]:
-    """Builds the C targets ``names`` into build/fuzz/; returns their binaries."""
+def build(names, out=sys.stdout, profile: str = "checked") -> dict[str, Path]:
+    """Builds the C targets ``names`` with ``profile``'s flags (PROFILES: into
+    build/fuzz/ or build/fuzz/fast/); returns their binaries."""
     names = [n for n in names if n in C_TARGETS]
     if not names:
         return {}
+    flags, where = PROFILES[profile]
     cc = _clang()
     _fmu_table()
     t0 = time.monotonic()
@@ -128,28 +141,31 @@ def build(names, out=sys.stdout) -> dict[str, Path]:
     for name in names:
         objs[name] = []
         for src in [FUZZ / f"{name}.c", *C_TARGETS[name][0]()]:
-            obj = BUILD / "obj" / (str(src.relative_to(ROOT)).replace("/", "__") + ".o")
+            obj = where / "obj" / (str(src.relative_to(ROOT)).replace("/", "__") + ".o")
             jobs[obj] = (src, incs, headers)
             objs[name].append(obj)
     with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 2) as ex:
-        for f in [ex.submit(_compile, cc, src, obj, incs, h) for obj, (src, incs, h) in jobs.items()]:
+        for f in [ex.submit(_compile, cc, flags, src, obj, incs, h) for obj, (src, incs, h) in jobs.items()]:
             f.result()
     bins = {}
     for name in names:
-        exe = BUILD / name
+        exe = where / name
         if not exe.exists() or exe.stat().st_mtime < max(o.stat().st_mtime for o in objs[name]):
-            cmd = [cc, *SAN, "-fsanitize=fuzzer", *map(str, objs[name]), "-lm", *C_TARGETS[name][1],
+            cmd = [cc, *flags, "-fsanitize=fuzzer", *map(str, objs[name]), "-lm", *C_TARGETS[name][1],
                    "-o", str(exe)]
             r = subprocess.run(cmd, capture_output=True, text=True)
             if r.returncode != 0:
                 raise FuzzError(f"linking {name} failed: {r.stderr.strip().splitlines()[0]}")
         bins[name] = exe
-    print(f"fuzz-coverage: C targets built in build/fuzz/ ({time.monotonic() - t0:.0f} s)", file=out)
+    print(f"fuzz-coverage: C targets built in {where.relative_to(ROOT)}/ ({profile}, "
+          f"{time.monotonic() - t0:.0f} s)", file=out)
     return bins
 
 
-def command(name: str, binary: Path | None, seconds: float | None, runs: int | None) -> list[str]:
-    """The libFuzzer command line of one target (corpus folders last)."""
+def command(name: str, binary: Path | None, seconds: float | None, runs: int | None,
+            replay: bool = False) -> list[str]:
+    """The libFuzzer command line of one target (corpus folders last); ``replay``:
+    every input of the corpus folders once, nothing mutated (-runs=0)."""
     work = BUILD / "corpus" / name
     work.mkdir(parents=True, exist_ok=True)
     crashes = CRASHES / name
@@ -157,10 +173,13 @@ def command(name: str, binary: Path | None, seconds: float | None, runs: int | N
     exe = [str(binary)] if binary else [sys.executable, str(FUZZ / f"{name}.py")]
     flags = [f"-artifact_prefix={crashes}/", "-print_final_stats=1", "-timeout=25",
              "-rss_limit_mb=4096", f"-max_len={MAX_LEN.get(name, 4096)}"]
-    if seconds is not None:
-        flags.append(f"-max_total_time={max(1, int(round(seconds)))}")
-    if runs is not None:
-        flags.append(f"-runs={runs}")
+    if replay:
+        flags.append("-runs=0")
+    else:
+        if seconds is not None:
+            flags.append(f"-max_total_time={max(1, int(round(seconds)))}")
+        if runs is not None:
+            flags.append(f"-runs={runs}")
     d = FUZZ / f"{name}.dict"
     if d.exists():
         flags.append(f"-dict={d}")
@@ -189,9 +208,7 @@ def parse(text: str) -> dict:
     return res
 
 
-def run_target(name: str, binary: Path | None, seconds, runs, out=sys.stdout) -> dict:
-    cmd = command(name, binary, seconds, runs)
-    log = BUILD / "logs" / f"{name}.log"
+def _run(name: str, cmd: list[str], log: Path) -> dict:
     log.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     env = dict(os.environ)
@@ -201,20 +218,43 @@ def run_target(name: str, binary: Path | None, seconds, runs, out=sys.stdout) ->
         r = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
     wall = time.monotonic() - t0
     res = parse(log.read_text(encoding="utf-8", errors="replace"))
-    res.update(kind="C (libFuzzer)" if binary else "Python (atheris)", seconds=round(wall, 1),
-               exit=r.returncode, log=str(log.relative_to(ROOT)),
+    res.update(seconds=round(wall, 1), exit=r.returncode, log=str(log.relative_to(ROOT)),
                exec_per_s=round(res["executions"] / wall) if wall > 0 else 0)
     res["crashed"] = r.returncode != 0 or bool(res["inputs"])
     if res["crashed"] and not res["findings"]:
         res["findings"].append(f"exit status {r.returncode} (see {res['log']})")
-    verdict = "CRASH" if res["crashed"] else "ok"
-    print(f"  {name:16s} {res['kind']:17s} {res['executions']:>12,d} runs {wall:7.1f} s "
-          f"{res['exec_per_s']:>9,d}/s  cov {res['cov']:>5d}  ft {res['ft']:>6d}  "
-          f"corpus {res['corpus']:>5d}  {verdict}", file=out, flush=True)
-    for line in res["findings"][:3]:
-        print(f"      {line}", file=out)
-    for path in res["inputs"]:
-        print(f"      input kept: {os.path.relpath(path, ROOT)}", file=out)
+    return res
+
+
+def _report(res: dict) -> list[str]:
+    lines = [f"      {line}" for line in res["findings"][:3]]
+    return lines + [f"      input kept: {os.path.relpath(path, ROOT)}" for path in res["inputs"]]
+
+
+def run_target(name: str, binary: Path | None, seconds, runs, out=None,
+               checked: Path | None = None) -> dict:
+    """One target's run; ``checked`` (with a fast ``binary``): afterwards every
+    input of the grown corpus once through this (ASan + UBSan) build, its
+    findings the run's ("replay" in the result)."""
+    res = _run(name, command(name, binary, seconds, runs), BUILD / "logs" / f"{name}.log")
+    res["kind"] = ("C (libFuzzer" + (", fast build)" if checked else ")")) if binary else "Python (atheris)"
+    wall = res["seconds"]
+    lines = [f"  {name:16s} {res['kind']:17s} {res['executions']:>12,d} runs {wall:7.1f} s "
+             f"{res['exec_per_s']:>9,d}/s  cov {res['cov']:>5d}  ft {res['ft']:>6d}  "
+             f"corpus {res['corpus']:>5d}  {'CRASH' if res['crashed'] else 'ok'}", *_report(res)]
+    if checked is not None and not res["crashed"]:
+        rep = _run(name, command(name, checked, None, None, replay=True),
+                   BUILD / "logs" / f"{name}-replay.log")
+        res["replay"] = {k: rep[k] for k in ("executions", "cov", "ft", "seconds", "findings", "inputs",
+                                             "exit", "log", "crashed")}
+        if rep["crashed"]:
+            res["crashed"] = True
+            res["findings"] += rep["findings"]
+            res["inputs"] += rep["inputs"]
+        lines += [f"  {'':16s} {'replay (checked)':17s} {rep['executions']:>12,d} inputs "
+                  f"{rep['seconds']:7.1f} s  ASan + UBSan  cov {rep['cov']:>5d}  ft {rep['ft']:>6d}  "
+                  f"{'CRASH' if rep['crashed'] else 'ok'}", *_report(rep)]
+    print("\n".join(lines), file=out or sys.stdout, flush=True)
     return res
 
 
@@ -222,10 +262,15 @@ def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
     ap = argparse.ArgumentParser(prog="scripts/fuzz-coverage", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("targets", nargs="*", metavar="TARGET", help=f"one or more of: {', '.join(TARGETS)}")
-    ap.add_argument("--all", action="store_true", help="every target, one after the other")
+    ap.add_argument("--all", action="store_true", help="every target")
     ap.add_argument("--seconds", type=float, help="seconds per target (default 20 without --runs)")
     ap.add_argument("--runs", type=int, help="executions per target (the long stage: 1e8 C, 1e6 Python)")
     ap.add_argument("--py-runs", type=int, help="with --runs: executions per Python target instead")
+    ap.add_argument("--fast", action="store_true",
+                    help="C targets from the fast build (UBSan, -O2), then their corpus replayed "
+                         "through the checked one (ASan + UBSan): the long stage's runs")
+    ap.add_argument("--parallel", type=int, default=1, metavar="N",
+                    help="N targets at once (one core each; default 1)")
     ap.add_argument("--build-only", action="store_true", help="build the C targets and stop")
     ap.add_argument("--list", action="store_true", help="name the targets and stop")
     ap.add_argument("--json", default=str(OUT_JSON), help="figures (default out/fuzz-coverage.json)")
@@ -249,9 +294,13 @@ def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
     if a.runs is not None and a.runs < 1:
         print(f"scripts/fuzz-coverage: --runs {a.runs}: must be at least 1", file=err)
         return 2
+    if a.parallel < 1:
+        print(f"scripts/fuzz-coverage: --parallel {a.parallel}: must be at least 1", file=err)
+        return 2
     seconds = a.seconds if a.seconds is not None or a.runs is not None else 20.0
     try:
         bins = build(names, out=out)
+        fast = build(names, out=out, profile="fast") if a.fast else {}
     except FuzzError as e:
         print(f"scripts/fuzz-coverage: {e}", file=err)
         return 2
@@ -268,12 +317,20 @@ def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
         f" (Python {a.py_runs:,d})" if a.py_runs else "") + (f", at most {seconds:g} s" if seconds else "")
     print(f"fuzz-coverage: {len(names)} target(s), {limit} each", file=out)
     t0 = time.monotonic()
-    results = {}
-    for n in names:
+
+    def one(n: str) -> dict:
         runs = a.py_runs if (a.py_runs and n in PY_TARGETS) else a.runs
-        results[n] = run_target(n, bins.get(n), seconds, runs, out=out)
+        if n in fast:
+            return run_target(n, fast[n], seconds, runs, out=out, checked=bins[n])
+        return run_target(n, bins.get(n), seconds, runs, out=out)
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=a.parallel) as ex:
+        futures = {n: ex.submit(one, n) for n in names}
+        results = {n: f.result() for n, f in futures.items()}
     crashed = [n for n, r in results.items() if r["crashed"]]
     report = {"machine": machine_info(), "seconds_per_target": seconds, "runs_per_target": a.runs,
+              "py_runs_per_target": a.py_runs, "build": "fast, corpus replayed checked" if a.fast else "checked",
+              "parallel": a.parallel,
               "wall_s": round(time.monotonic() - t0, 1), "targets": results,
               "crashed": crashed}
     write_figures(a.json, report)

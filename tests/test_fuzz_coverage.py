@@ -1,0 +1,97 @@
+"""scripts/fuzz-coverage's runs: the long stage's fast build whose corpus is
+replayed through the checked (ASan + UBSan) build, targets in parallel.
+
+The replay's logic is shown with two stand-in fuzzers (shell scripts printing
+what libFuzzer prints): a finding of the replay is the run's finding. The
+real thing runs once where clang is installed: can_frame from its fast build
+beside a Python target, its corpus replayed.
+"""
+
+import json
+import shutil
+import stat
+
+import pytest
+
+from rt_loop.tools import fuzz_coverage as fc
+
+
+def _fake_fuzzer(path, text, status):
+    path.write_text("#!/bin/sh\necho \"$@\" >> \"$0.args\"\ncat <<'EOF'\n" + text + "\nEOF\nexit " + str(status) + "\n")
+    path.chmod(path.stat().st_mode | stat.S_IEXEC)
+    return path
+
+
+@pytest.fixture
+def sandbox(tmp_path, monkeypatch):
+    monkeypatch.setattr(fc, "BUILD", tmp_path / "build")
+    monkeypatch.setattr(fc, "CRASHES", tmp_path / "crashes")
+    monkeypatch.setattr(fc, "ROOT", tmp_path)
+    return tmp_path
+
+
+FAST_OK = ("#2\tINITED cov: 10 ft: 20 corp: 2/10b exec/s: 0 rss: 30Mb\n"
+           "#5000\tDONE   cov: 12 ft: 25 corp: 3/12b lim: 4 exec/s: 5000 rss: 30Mb\n"
+           "Done 5000 runs in 1 second(s)\nstat::number_of_executed_units: 5000")
+
+
+def test_a_replay_finding_is_the_runs_finding(sandbox, capsys):
+    fast = _fake_fuzzer(sandbox / "fast", FAST_OK, 0)
+    checked = _fake_fuzzer(sandbox / "checked", (
+        "#7\tINITED cov: 11 ft: 21 corp: 3/12b exec/s: 0 rss: 40Mb\n"
+        "==42==ERROR: AddressSanitizer: heap-buffer-overflow on address 0x1\n"
+        f"Test unit written to {sandbox}/crashes/can_frame/crash-abc\n"
+        "SUMMARY: AddressSanitizer: heap-buffer-overflow can_table.c:10 in put_bits"), 1)
+    res = fc.run_target("can_frame", fast, None, 5000, checked=checked)
+    assert res["executions"] == 5000 and res["kind"] == "C (libFuzzer, fast build)"
+    assert res["replay"]["executions"] == 7 and res["replay"]["crashed"]
+    assert res["crashed"]
+    assert any("heap-buffer-overflow" in f for f in res["findings"])
+    assert res["inputs"] == [f"{sandbox}/crashes/can_frame/crash-abc"]
+    fast_args = (sandbox / "fast.args").read_text().split()
+    replay_args = (sandbox / "checked.args").read_text().split()
+    assert "-runs=5000" in fast_args
+    # the replay: every input once from the same folders, nothing mutated, no time limit
+    assert "-runs=0" in replay_args and not any(a.startswith("-max_total_time") for a in replay_args)
+    assert replay_args[-2:] == fast_args[-2:] or replay_args[-1] == fast_args[-1]
+    out = capsys.readouterr().out
+    assert "replay (checked)" in out and "CRASH" in out
+
+
+def test_a_clean_replay_keeps_the_run_clean(sandbox):
+    fast = _fake_fuzzer(sandbox / "fast", FAST_OK, 0)
+    checked = _fake_fuzzer(sandbox / "checked", (
+        "#7\tINITED cov: 11 ft: 21 corp: 3/12b exec/s: 0 rss: 40Mb\n"
+        "#7\tDONE   cov: 11 ft: 21 corp: 3/12b lim: 4 exec/s: 0 rss: 40Mb\nDone 7 runs in 0 second(s)"), 0)
+    res = fc.run_target("can_frame", fast, 10, None, checked=checked)
+    assert not res["crashed"] and res["findings"] == [] and res["replay"]["executions"] == 7
+
+
+def test_a_fast_run_that_found_something_is_not_replayed(sandbox):
+    fast = _fake_fuzzer(sandbox / "fast", "runtime error: shift exponent 70 is too large\n"
+                        "SUMMARY: UndefinedBehaviorSanitizer: undefined-behavior a.c:1", 1)
+    checked = _fake_fuzzer(sandbox / "checked", FAST_OK, 0)
+    res = fc.run_target("can_frame", fast, 10, None, checked=checked)
+    assert res["crashed"] and "replay" not in res and not (sandbox / "checked.args").exists()
+
+
+def test_bad_parallel_is_one_line(capsys):
+    assert fc.main(["can_frame", "--parallel", "0"]) == 2
+    assert capsys.readouterr().err.strip().count("\n") == 0
+
+
+@pytest.mark.skipif(not any(shutil.which(c) for c in ("clang", "clang-14", "clang-15", "clang-16")),
+                    reason="clang missing (scripts/fuzz-coverage installs it)")
+def test_fast_build_runs_and_its_corpus_is_replayed_checked(tmp_path, capsys):
+    pytest.importorskip("atheris")
+    out = tmp_path / "fc.json"
+    assert fc.main(["can_frame", "control_request", "--fast", "--seconds", "3", "--parallel", "2",
+                    "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["build"].startswith("fast") and report["parallel"] == 2
+    c, py = report["targets"]["can_frame"], report["targets"]["control_request"]
+    assert c["kind"] == "C (libFuzzer, fast build)" and c["executions"] > 1000
+    seeds = len(list((fc.FUZZ / "corpus" / "can_frame").iterdir()))
+    assert c["replay"]["executions"] >= seeds and not c["replay"]["crashed"]
+    assert (fc.BUILD / "fast" / "can_frame").exists()
+    assert py["kind"] == "Python (atheris)" and "replay" not in py and py["executions"] > 0
