@@ -10,6 +10,7 @@ beside a Python target, its corpus replayed.
 import json
 import shutil
 import stat
+import time
 
 import pytest
 
@@ -75,9 +76,11 @@ def test_a_fast_run_that_found_something_is_not_replayed(sandbox):
     assert res["crashed"] and "replay" not in res and not (sandbox / "checked.args").exists()
 
 
-def test_bad_parallel_is_one_line(capsys):
-    assert fc.main(["can_frame", "--parallel", "0"]) == 2
-    assert capsys.readouterr().err.strip().count("\n") == 0
+@pytest.mark.parametrize("opt", ["--parallel", "--workers"])
+def test_bad_parallel_or_workers_is_one_line(opt, capsys):
+    assert fc.main(["can_frame", opt, "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and opt in err
 
 
 @pytest.mark.skipif(not any(shutil.which(c) for c in ("clang", "clang-14", "clang-15", "clang-16")),
@@ -86,12 +89,46 @@ def test_fast_build_runs_and_its_corpus_is_replayed_checked(tmp_path, capsys):
     pytest.importorskip("atheris")
     out = tmp_path / "fc.json"
     assert fc.main(["can_frame", "control_request", "--fast", "--seconds", "3", "--parallel", "2",
-                    "--json", str(out)]) == 0
+                    "--workers", "2", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["build"].startswith("fast") and report["parallel"] == 2
     c, py = report["targets"]["can_frame"], report["targets"]["control_request"]
-    assert c["kind"] == "C (libFuzzer, fast build)" and c["executions"] > 1000
+    assert c["kind"] == "C (libFuzzer, fast build)" and c["executions"] > 1000 and c["workers"] == 2
     seeds = len(list((fc.FUZZ / "corpus" / "can_frame").iterdir()))
     assert c["replay"]["executions"] >= seeds and not c["replay"]["crashed"]
     assert (fc.BUILD / "fast" / "can_frame").exists()
     assert py["kind"] == "Python (atheris)" and "replay" not in py and py["executions"] > 0
+
+
+def test_workers_share_the_runs_and_one_finding_stops_the_others(sandbox):
+    # the first worker finds something after a moment; the second would run for a minute
+    script = sandbox / "fuzzer"
+    script.write_text(
+        "#!/bin/sh\necho \"$@\" >> \"$0.args\"\n"
+        "if mkdir \"$0.first\" 2>/dev/null; then\n"
+        "  sleep 0.5\n"
+        "  echo '#900\tpulse  cov: 30 ft: 40 corp: 5/20b lim: 4 exec/s: 900 rss: 30Mb'\n"
+        "  echo 'runtime error: shift exponent 70 is too large for 64-bit type'\n"
+        f"  echo 'Test unit written to {sandbox}/crashes/can_frame/crash-1'\n"
+        "  exit 1\n"
+        "fi\n"
+        "echo '#4000\tpulse  cov: 31 ft: 39 corp: 6/24b lim: 4 exec/s: 4000 rss: 30Mb'\n"
+        "exec sleep 60\n")
+    script.chmod(script.stat().st_mode | stat.S_IEXEC)
+    t0 = time.monotonic()
+    res = fc.run_target("can_frame", script, None, 1001, workers=2)
+    assert time.monotonic() - t0 < 30, "the second worker was not stopped"
+    args = (sandbox / "fuzzer.args").read_text().splitlines()
+    assert len(args) == 2 and all("-runs=501" in a.split() for a in args)
+    assert res["workers"] == 2 and len(res["logs"]) == 2
+    assert res["executions"] == 4900 and res["cov"] == 31 and res["ft"] == 40
+    assert res["crashed"] and res["exit"] == 1
+    assert res["inputs"] == [f"{sandbox}/crashes/can_frame/crash-1"]
+    assert any("shift exponent" in f for f in res["findings"])
+
+
+def test_workers_that_all_finish_are_clean(sandbox):
+    fast = _fake_fuzzer(sandbox / "fast", FAST_OK, 0)
+    res = fc.run_target("can_frame", fast, None, 10000, workers=3)
+    assert not res["crashed"] and res["executions"] == 15000 and res["exit"] == 0
+    assert all("-runs=3334" in a.split() for a in (sandbox / "fast.args").read_text().splitlines())

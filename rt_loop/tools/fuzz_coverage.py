@@ -3,7 +3,7 @@ for the Python side (fuzz/).
 
     python -m rt_loop.tools.fuzz_coverage can_frame --seconds 60     # scripts/fuzz-coverage
     python -m rt_loop.tools.fuzz_coverage --all --seconds 20         # scripts/test's stage
-    python -m rt_loop.tools.fuzz_coverage --all --runs 100000000 --fast --parallel 2   # the long stage
+    python -m rt_loop.tools.fuzz_coverage --all --runs 100000000 --fast --workers 2   # the long stage
     python -m rt_loop.tools.fuzz_coverage --list
 
 The C targets are built with clang -fsanitize=fuzzer,address,undefined
@@ -13,7 +13,9 @@ or header changed). ``--fast`` runs them from a second build
 alignment and pointer-overflow, no ASan; 5-8 times the executions per
 second), then replays every input of the grown corpus once through the
 checked build, so each input that reached new code is also seen by ASan and
-the full UBSan. The Python targets run under atheris in this
+the full UBSan. ``--workers M`` runs M processes of a target on one corpus
+(libFuzzer re-reads it for the others' finds), its runs shared among them;
+``--parallel N`` N targets at once. The Python targets run under atheris in this
 interpreter's environment. Each target starts from its seed corpus
 (fuzz/corpus/<target>/, in the repository, written by fuzz/make_corpus.py)
 and the corpus its earlier runs grew (build/fuzz/corpus/<target>/), with
@@ -125,7 +127,7 @@ def _compile(cc: str, flags, src: Path, obj: Path, incs, headers_mtime: float) -
         raise FuzzError(f"compiling {src.relative_to(ROOT)} failed: {r.stderr.strip().splitlines()[0]}")
 
 
-def build(names, out=sys.stdout, profile: str = "checked") -> dict[str, Path]:
+def build(names, out=None, profile: str = "checked") -> dict[str, Path]:
     """Builds the C targets ``names`` with ``profile``'s flags (PROFILES: into
     build/fuzz/ or build/fuzz/fast/); returns their binaries."""
     names = [n for n in names if n in C_TARGETS]
@@ -158,7 +160,7 @@ def build(names, out=sys.stdout, profile: str = "checked") -> dict[str, Path]:
                 raise FuzzError(f"linking {name} failed: {r.stderr.strip().splitlines()[0]}")
         bins[name] = exe
     print(f"fuzz-coverage: C targets built in {where.relative_to(ROOT)}/ ({profile}, "
-          f"{time.monotonic() - t0:.0f} s)", file=out)
+          f"{time.monotonic() - t0:.0f} s)", file=out or sys.stdout)
     return bins
 
 
@@ -208,21 +210,60 @@ def parse(text: str) -> dict:
     return res
 
 
-def _run(name: str, cmd: list[str], log: Path) -> dict:
+def _run(name: str, cmds: list[list[str]], log: Path) -> dict:
+    """Runs ``cmds`` at once (a target's workers: one corpus folder, which
+    libFuzzer re-reads for what the others found), one log each; when one
+    stops with a finding the others are stopped. Executions summed, coverage
+    the highest, findings all of them."""
     log.parent.mkdir(parents=True, exist_ok=True)
+    logs = [log] if len(cmds) == 1 else [log.with_name(f"{log.stem}.w{i}{log.suffix}")
+                                          for i in range(len(cmds))]
     t0 = time.monotonic()
     env = dict(os.environ)
     env.setdefault("ASAN_OPTIONS", "detect_leaks=1")
     env.setdefault("UBSAN_OPTIONS", "print_stacktrace=1")
-    with open(log, "w", encoding="utf-8") as f:
-        r = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+    files = [open(path, "w", encoding="utf-8") for path in logs]
+    try:
+        procs = [subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+                 for cmd, f in zip(cmds, files)]
+        stopped = set()                 # the workers stopped here: not findings of their own
+        try:
+            while None in (running := [p.poll() for p in procs]):
+                if any(c not in (None, 0) for c in running):
+                    for i, p in enumerate(procs):
+                        if p.poll() is None:
+                            p.terminate()
+                            stopped.add(i)
+                time.sleep(0.2)
+        finally:
+            for i, p in enumerate(procs):
+                if p.poll() is None:
+                    p.kill()
+                    stopped.add(i)
+                p.wait()
+    finally:
+        for f in files:
+            f.close()
     wall = time.monotonic() - t0
-    res = parse(log.read_text(encoding="utf-8", errors="replace"))
-    res.update(seconds=round(wall, 1), exit=r.returncode, log=str(log.relative_to(ROOT)),
+    res = {"executions": 0, "cov": 0, "ft": 0, "corpus": 0, "findings": [], "inputs": []}
+    codes = []
+    for i, (path, p) in enumerate(zip(logs, procs)):
+        one = parse(path.read_text(encoding="utf-8", errors="replace"))
+        res["executions"] += one["executions"]
+        for k in ("cov", "ft", "corpus"):
+            res[k] = max(res[k], one[k])
+        res["findings"] += [x for x in one["findings"] if x not in res["findings"]]
+        res["inputs"] += one["inputs"]
+        codes.append(0 if i in stopped and not (one["findings"] or one["inputs"]) else p.returncode)
+    status = next((c for c in codes if c != 0), 0)
+    res.update(seconds=round(wall, 1), exit=status, log=str(log.relative_to(ROOT)),
                exec_per_s=round(res["executions"] / wall) if wall > 0 else 0)
-    res["crashed"] = r.returncode != 0 or bool(res["inputs"])
+    if len(cmds) > 1:
+        res.update(workers=len(cmds), logs=[str(x.relative_to(ROOT)) for x in logs])
+        res["log"] = res["logs"][0]
+    res["crashed"] = status != 0 or bool(res["inputs"])
     if res["crashed"] and not res["findings"]:
-        res["findings"].append(f"exit status {r.returncode} (see {res['log']})")
+        res["findings"].append(f"exit status {status} (see {res['log']})")
     return res
 
 
@@ -232,18 +273,21 @@ def _report(res: dict) -> list[str]:
 
 
 def run_target(name: str, binary: Path | None, seconds, runs, out=None,
-               checked: Path | None = None) -> dict:
+               checked: Path | None = None, workers: int = 1) -> dict:
     """One target's run; ``checked`` (with a fast ``binary``): afterwards every
     input of the grown corpus once through this (ASan + UBSan) build, its
-    findings the run's ("replay" in the result)."""
-    res = _run(name, command(name, binary, seconds, runs), BUILD / "logs" / f"{name}.log")
+    findings the run's ("replay" in the result). ``workers`` processes share
+    the corpus and ``runs`` (each runs its part; ``seconds`` each)."""
+    share = None if runs is None else -(-runs // workers)
+    cmds = [command(name, binary, seconds, share) for _ in range(workers)]
+    res = _run(name, cmds, BUILD / "logs" / f"{name}.log")
     res["kind"] = ("C (libFuzzer" + (", fast build)" if checked else ")")) if binary else "Python (atheris)"
     wall = res["seconds"]
     lines = [f"  {name:16s} {res['kind']:17s} {res['executions']:>12,d} runs {wall:7.1f} s "
              f"{res['exec_per_s']:>9,d}/s  cov {res['cov']:>5d}  ft {res['ft']:>6d}  "
              f"corpus {res['corpus']:>5d}  {'CRASH' if res['crashed'] else 'ok'}", *_report(res)]
     if checked is not None and not res["crashed"]:
-        rep = _run(name, command(name, checked, None, None, replay=True),
+        rep = _run(name, [command(name, checked, None, None, replay=True)],
                    BUILD / "logs" / f"{name}-replay.log")
         res["replay"] = {k: rep[k] for k in ("executions", "cov", "ft", "seconds", "findings", "inputs",
                                              "exit", "log", "crashed")}
@@ -258,7 +302,8 @@ def run_target(name: str, binary: Path | None, seconds, runs, out=None,
     return res
 
 
-def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
+def main(argv=None, out=None, err=None) -> int:
+    out, err = out or sys.stdout, err or sys.stderr
     ap = argparse.ArgumentParser(prog="scripts/fuzz-coverage", description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("targets", nargs="*", metavar="TARGET", help=f"one or more of: {', '.join(TARGETS)}")
@@ -270,7 +315,9 @@ def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
                     help="C targets from the fast build (UBSan, -O2), then their corpus replayed "
                          "through the checked one (ASan + UBSan): the long stage's runs")
     ap.add_argument("--parallel", type=int, default=1, metavar="N",
-                    help="N targets at once (one core each; default 1)")
+                    help="N targets at once (default 1)")
+    ap.add_argument("--workers", type=int, default=1, metavar="M",
+                    help="M processes per target sharing its corpus and its --runs (default 1)")
     ap.add_argument("--build-only", action="store_true", help="build the C targets and stop")
     ap.add_argument("--list", action="store_true", help="name the targets and stop")
     ap.add_argument("--json", default=str(OUT_JSON), help="figures (default out/fuzz-coverage.json)")
@@ -294,9 +341,10 @@ def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
     if a.runs is not None and a.runs < 1:
         print(f"scripts/fuzz-coverage: --runs {a.runs}: must be at least 1", file=err)
         return 2
-    if a.parallel < 1:
-        print(f"scripts/fuzz-coverage: --parallel {a.parallel}: must be at least 1", file=err)
-        return 2
+    for opt in ("parallel", "workers"):
+        if getattr(a, opt) < 1:
+            print(f"scripts/fuzz-coverage: --{opt} {getattr(a, opt)}: must be at least 1", file=err)
+            return 2
     seconds = a.seconds if a.seconds is not None or a.runs is not None else 20.0
     try:
         bins = build(names, out=out)
@@ -321,8 +369,8 @@ def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
     def one(n: str) -> dict:
         runs = a.py_runs if (a.py_runs and n in PY_TARGETS) else a.runs
         if n in fast:
-            return run_target(n, fast[n], seconds, runs, out=out, checked=bins[n])
-        return run_target(n, bins.get(n), seconds, runs, out=out)
+            return run_target(n, fast[n], seconds, runs, out=out, checked=bins[n], workers=a.workers)
+        return run_target(n, bins.get(n), seconds, runs, out=out, workers=a.workers)
 
     with concurrent.futures.ThreadPoolExecutor(max_workers=a.parallel) as ex:
         futures = {n: ex.submit(one, n) for n in names}
@@ -330,7 +378,7 @@ def main(argv=None, out=sys.stdout, err=sys.stderr) -> int:
     crashed = [n for n, r in results.items() if r["crashed"]]
     report = {"machine": machine_info(), "seconds_per_target": seconds, "runs_per_target": a.runs,
               "py_runs_per_target": a.py_runs, "build": "fast, corpus replayed checked" if a.fast else "checked",
-              "parallel": a.parallel,
+              "parallel": a.parallel, "workers": a.workers,
               "wall_s": round(time.monotonic() - t0, 1), "targets": results,
               "crashed": crashed}
     write_figures(a.json, report)
