@@ -282,7 +282,8 @@ class Bench:
         return self._request_fn(op, **fields)
 
     def read(self, name: str) -> float | None:
-        """One value: a plant output, maneuver_time_s, cmd.<name> or Message.Signal."""
+        """One value: a plant output, maneuver_time_s, cmd.<name>, Message.Signal or
+        an online parameter (params.<name>)."""
         return self._request("read", names=[name])["values"][name]
 
     def read_many(self, names: list[str] | tuple[str, ...]) -> dict:
@@ -294,7 +295,8 @@ class Bench:
 
     def set(self, name: str, value: float) -> None:
         """Sets a plant input (road_grade_pct, accel_pedal_pct, ...; override.<input>)
-        at the next tick boundary."""
+        or an online parameter (params.<name>; ``reset`` puts it back) at the next
+        tick boundary."""
         self._request("set", name=name, value=value)
 
     @property
@@ -432,16 +434,21 @@ class Bench:
         then until the car is in first gear or neutral with the TCU reporting
         no active fault (``TCU_Status``, when the TCU sends one) (after the
         braking: the brake released and ``RESET_SETTLE_S`` of plant time).
-        Returns the plant time;
+        Online parameters set through the bench (``set("params.<name>", ...)``,
+        by any client) go back first to the values the server started with; a
+        calibration tool's own writes over XCP stay. Returns the plant time;
         raises BenchTimeout when that does not happen within ``timeout_s`` of
-        plant time. Online parameters a test changed are not restored."""
+        plant time."""
         self.clear_all()
         if self.snapshot().get("maneuver") in ("waiting for the TCU", "running"):
             raise BenchError("reset: a maneuver plays the pedals (start the bench without one)")
         self.set("accel_pedal_pct", 0.0)
         self.set("road_grade_pct", 0.0)
         t0 = self.time_s
-        fresh = "ignition" in self._request("config").get("ops", ())
+        ops = self._request("config").get("ops", ())
+        if "restore_params" in ops:                      # a server of an earlier version has not
+            self._request("restore_params")
+        fresh = "ignition" in ops
         if fresh:
             self.set("brake_pedal_pct", 0.0)
             self._request("reset_plant")

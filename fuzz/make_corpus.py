@@ -212,7 +212,10 @@ def control_request() -> dict[str, bytes]:
              "every_s": 0.001, "start_when": "time_s > 0.2", "pre_s": 0.1, "duration_s": 0.1},
             {"op": "capture_status", "id": 1}, {"op": "capture_fetch", "id": 1},
             {"op": "capture_stop", "id": 1}, {"op": "capture_clear", "id": 1},
-            {"op": "reset_plant"}]
+            {"op": "reset_plant"},
+            {"op": "set", "name": "params.engine.idle_speed_rpm", "value": 900},
+            {"op": "read", "names": ["params.engine.idle_speed_rpm", "params.clutch[1].mu_static"]},
+            {"op": "restore_params"}]
     return {f"{k:02d}-{r['op']}": json.dumps(r).encode() for k, r in enumerate(reqs)}
 
 

@@ -72,6 +72,64 @@ def test_bench_reset_clears_what_the_tcu_latched(bench):
     assert bench.wait_until("gear == 2", timeout_s=10) > t
 
 
+def _param_of(values, name):
+    """params.clutch[0].mu_static -> values["clutch"][0]["mu_static"]"""
+    v = values
+    for part in name.split(".")[1:]:
+        key, _, index = part.partition("[")
+        v = v[key]
+        if index:
+            v = v[int(index.rstrip("]"))]
+    return v
+
+
+def test_online_parameters_read_as_loaded(bench):
+    from plant.params import load_params
+
+    names = _writable_params()
+    assert len(names) > 40
+    values = bench.read_many(names)
+    loaded = load_params()
+    assert values == {n: float(_param_of(loaded, n)) for n in names}
+    with pytest.raises(BenchError, match="'params.engine.no_such_field' is no online parameter"):
+        bench.read("params.engine.no_such_field")
+
+
+def _writable_params():
+    from rt_loop import _rt_loop
+    from rt_loop.measure.stimulus import writable_of_regions
+    from rt_loop.measure.xcp import a2l
+
+    regions = a2l.calibration_regions(_rt_loop.ffi, _rt_loop.lib)
+    return sorted(n for n in writable_of_regions(regions) if n.startswith("params."))
+
+
+@pytest.mark.slow
+def test_reset_puts_back_the_online_parameters_any_client_set(tmp_path):
+    sock = tmp_path / "control.sock"
+    b = Bench.start(control=sock)
+    try:
+        idle, mu = "params.engine.idle_speed_rpm", "params.clutch[0].mu_static"
+        start = b.read_many([idle, mu])
+        b.wait_until(f"engine_speed_rpm > {start[idle] - 100}", timeout_s=5)
+        other = Bench.attach(sock)                       # another client sets them
+        try:
+            other.set(idle, start[idle] + 400)
+            other.set(mu, start[mu] * 0.9)
+        finally:
+            other.detach()
+        assert b.read_many([idle, mu]) == {idle: start[idle] + 400, mu: start[mu] * 0.9}
+        b.wait_until(f"engine_speed_rpm > {start[idle] + 250}", timeout_s=5)   # the engine obeys
+        b.reset()
+        assert b.read_many([idle, mu]) == start
+        b.wait_until(f"engine_speed_rpm < {start[idle] + 100}", timeout_s=5)
+        assert b._request("restore_params")["restored"] == {}             # nothing left to restore
+        b.set("accel_pedal_pct", 30)
+        b.wait_until("gear == 2", timeout_s=10)                           # and it drives as before
+    finally:
+        b.stop()
+
+
 def test_ignition_is_refused_with_a_bad_off_time(bench):
     with pytest.raises(BenchError, match="off_s must be seconds"):
         bench._request("ignition", off_s=-1)

@@ -20,7 +20,8 @@ Requests (``{"op": ..., ...}``) and answers (``{"ok": true, ...}``):
 ``read {names}``          ``values``: {name: value}; a name is a plant output
                           (``vehicle_speed_kmh``, ``time_s``, ``gear``, ...),
                           ``maneuver_time_s``, a received value ``cmd.<name>``,
-                          or a CAN signal ``Message.Signal`` (its last value)
+                          a CAN signal ``Message.Signal`` (its last value),
+                          or an online parameter ``params.<name>``
 ``set {name, value}``     a writable plant input (``road_grade_pct``,
                           ``accel_pedal_pct``, ... or ``override.<input>``, and
                           the parameters marked online, ``params.<name>``);
@@ -36,6 +37,8 @@ Requests (``{"op": ..., ...}``) and answers (``{"ok": true, ...}``):
                           ...); ``ops``: the requests served
 ``reset_plant``           the plant at rest as it starts (standing, idling,
                           neutral, clutches open), plant time going on
+``restore_params``        every ``params.<name>`` that ``set`` wrote back to
+                          the server's start value; ``restored``: {name: value}
 ``ignition {off_s}``      where the reference TCU runs beside the server: it
                           is switched off and on again (a fresh TCU)
 ``stop``                  the loop stops; ``report``: the server's report

@@ -101,13 +101,16 @@ class RequestHandler:
         self._names = server.faults.names
         #: what ``set`` may write: {name: (offset, size, lo, hi)}
         self.writable = writable_of_regions(_a2l.calibration_regions(self._ffi, self._lib))
+        #: the online parameters as the server started with them, and those ``set`` wrote since
+        self._params_at_start = self._start_params()
+        self._params_written: set[str] = set()
         self.counts = {"requests": 0, "refused": 0, "writes": 0}
         self._ops = {
             "ping": self._ping, "snapshot": self._snapshot, "read": self._read,
             "set": self._set, "inject": self._inject, "watch": self._watch,
             "clear": self._clear, "clear_all": self._clear_all, "faults": self._faults,
             "events": self._events, "config": self._config, "stop": self._stop_loop,
-            "reset_plant": self._reset_plant,
+            "reset_plant": self._reset_plant, "restore_params": self._restore_params,
             "capture": self._capture, "capture_status": self._capture_status,
             "capture_fetch": self._capture_fetch, "capture_stop": self._capture_stop,
             "capture_clear": self._capture_clear,
@@ -193,8 +196,9 @@ class RequestHandler:
         return self._stats.read()
 
     def read_values(self, names: Any) -> dict:
-        """{name: value} of plant outputs, maneuver_time_s, cmd.<name> and
-        Message.Signal; raises _Refused naming the first unknown name."""
+        """{name: value} of plant outputs, maneuver_time_s, cmd.<name>,
+        Message.Signal and online parameters (params.<name>); raises _Refused
+        naming the first unknown name."""
         if isinstance(names, str):
             names = [names]
         if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
@@ -217,6 +221,11 @@ class RequestHandler:
                 values[name] = float(commands[nm.commands[name[4:]]])
             elif name in nm.signals:
                 values[name] = float(self._loop.signal_values[nm.signals[name][2]])
+            elif name.startswith("params."):
+                if name not in self.writable:
+                    raise _Refused(f"read: {name!r} is no online parameter (the single values marked "
+                                   "# online in plant/data/ranges.toml, e.g. params.engine.idle_speed_rpm)")
+                values[name] = self._param(name)
             else:
                 try:
                     nm.operand(name, "read")
@@ -234,6 +243,26 @@ class RequestHandler:
 
     def _read(self, r: dict) -> dict:
         return {"values": self.read_values(r.get("names"))}
+
+    def _param(self, name: str) -> float:
+        """An online parameter's value in the loop (as an XCP master uploads it: the
+        loop writes it only when it applies a queued write, a whole aligned double)."""
+        offset = self.writable[name][0]
+        return struct.unpack("<d", self._ffi.buffer(self._ffi.cast("char *", self._loop) + offset, 8)[:])[0]
+
+    def _start_params(self) -> dict[str, float]:
+        """{params.<name>: value} of the parameter set the server loaded (its file and
+        overrides), laid out as in the loop, whatever was written since."""
+        from plant.params import fill_params
+
+        ffi = self._ffi
+        fresh = ffi.new("dct_params *")
+        fill_params(ffi, fresh, self.server.params)
+        base = ffi.offsetof("rt_loop", "plant", "params")
+        blob = ffi.buffer(fresh)
+        return {name: struct.unpack_from("<d", blob, offset - base)[0]
+                for name, (offset, _size, _lo, _hi) in self.writable.items()
+                if name.startswith("params.") and 0 <= offset - base <= len(blob) - 8}
 
     # ------------------------------------------------------------ writes
     def target(self, name: Any) -> tuple[str, tuple]:
@@ -269,6 +298,8 @@ class RequestHandler:
         if ids is None:
             raise _Refused("set: the loop's write ring is full (is the loop ticking?)")
         self.counts["writes"] += 1
+        if key.startswith("params."):
+            self._params_written.add(key)
         first, last = ids
         cal = self._loop.cal
         deadline = time.monotonic() + WRITE_WAIT_S
@@ -328,6 +359,17 @@ class RequestHandler:
         except RuntimeError as e:           # ServerError: the loop is not running, ...
             raise _Refused(f"reset_plant: {e}") from None
         return {"time_s": float(self._copy().sim_time_s)}
+
+    def _restore_params(self, _r: dict) -> dict:
+        """Every online parameter ``set`` wrote back to the value the server started
+        with (a calibration tool's own writes over XCP are not the channel's)."""
+        restored = {}
+        for name in sorted(self._params_written):
+            value = self._params_at_start[name]
+            self.write_value(name, value)
+            restored[name] = value
+        self._params_written.clear()
+        return {"restored": restored}
 
     # ------------------------------------------------------------ captures
     def _captures(self) -> Any:
