@@ -163,6 +163,19 @@ def test_a_stalled_bridge_is_a_note_with_its_length():
     assert any(n.startswith("no TCU frame accepted for 180 s") for n in v["notes"])
 
 
+def test_tcu_timeouts_fail_only_with_the_c_tcu_on_the_loops_rings():
+    rows = _rows(10)
+    rows[-1]["tcu_timeouts"] = 3
+    rings = soak._verdict(rows, _args(), {"cycles_completed": 9, "tcu_on_rings_fifo": True})
+    assert not rings["passed"]
+    assert any(f.startswith("TCU message timeouts: 3 with the C TCU on the loop's rings")
+               for f in rings["findings"])
+    bridged = soak._verdict(rows, _args(), {"cycles_completed": 9, "tcu_on_rings_fifo": False})
+    assert bridged["passed"] and "TCU message timeouts: 3" in bridged["notes"]
+    rows[-1]["tcu_timeouts"] = 0
+    assert soak._verdict(rows, _args(), {"cycles_completed": 9, "tcu_on_rings_fifo": True})["passed"]
+
+
 _MAPPED = """
 import sys
 import numpy as np

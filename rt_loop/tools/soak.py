@@ -55,7 +55,10 @@ Verdict (exit 1 when failed, one line per finding):
 - **the loop**: it ran to the end (no error state, the recording finalized,
   the TCU stopped cleanly). Frames lost, samples or log entries dropped,
   TCU timeouts and paper-cycles cut short are notes, not failures: on a
-  loaded machine they follow the load (the TCU is a Python thread). Overruns
+  loaded machine they follow the load (a bridge or the Python TCU is a
+  Python thread). Not so for the default set-up with SCHED_FIFO: there the
+  C TCU and the loop are both real-time threads with only the rings between
+  them, and a TCU message timeout is a finding. Overruns
   are reported per hour beside the machine's wake-up floor
   (``rt_loop.floor``) measured before and after, not judged: they are the
   machine's.
@@ -315,7 +318,14 @@ def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
                       ("ring_rec_dropped", "recorder samples dropped"),
                       ("tx_dropped", "frames not sent"),
                       ("tcu_timeouts", "TCU message timeouts")):
-        if last.get(key):
+        if not last.get(key):
+            continue
+        if key == "tcu_timeouts" and run.get("tcu_on_rings_fifo"):
+            # the C TCU on the loop's rings, both SCHED_FIFO: no Python and no bus between
+            # them, so a timeout is not the machine's load but a fault of the wiring
+            findings.append(f"TCU message timeouts: {last[key]} with the C TCU on the loop's rings "
+                            "(both SCHED_FIFO, nothing between them: there should be none)")
+        else:
             notes.append(f"{what}: {last[key]}")
     if run.get("error"):
         findings.append(f"the loop stopped: {run['error']}")
@@ -464,6 +474,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             raise SoakError(f"the server cannot be set up: {type(e).__name__}: "
                             f"{' '.join(str(e).split())}") from None
         tcu = _open_tcu(args.tcu_impl, priority, None if args.bridged else server)
+        run["tcu_on_rings_fifo"] = args.tcu_impl == "c" and not args.bridged and priority > 0
         if args.record:
             server.start_recording(paths["mf4"], args.record_every)
         if args.tracemalloc and not tracemalloc.is_tracing():
