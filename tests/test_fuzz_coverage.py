@@ -10,6 +10,7 @@ beside a Python target, its corpus replayed.
 import json
 import shutil
 import stat
+import threading
 import time
 
 import pytest
@@ -132,3 +133,33 @@ def test_workers_that_all_finish_are_clean(sandbox):
     res = fc.run_target("can_frame", fast, None, 10000, workers=3)
     assert not res["crashed"] and res["executions"] == 15000 and res["exit"] == 0
     assert all("-runs=3334" in a.split() for a in (sandbox / "fast.args").read_text().splitlines())
+
+
+def test_a_stop_signal_keeps_the_figures_and_is_no_finding(sandbox, monkeypatch):
+    # a fuzzer that prints its figures when interrupted, as libFuzzer does (exit 72)
+    script = sandbox / "fuzzer"
+    script.write_text("#!/bin/sh\necho '#7000\tpulse  cov: 30 ft: 40 corp: 5/20b lim: 4 exec/s: 7000 rss: 30Mb'\n"
+                      "trap 'echo \"==1== libFuzzer: run interrupted; exiting\"; "
+                      "echo stat::number_of_executed_units: 7100; exit 72' INT\n"
+                      "sleep 60 & wait\n")
+    script.chmod(script.stat().st_mode | stat.S_IEXEC)
+    monkeypatch.setattr(fc, "_STOP", threading.Event())
+    threading.Timer(0.8, fc._STOP.set).start()
+    t0 = time.monotonic()
+    res = fc.run_target("can_frame", script, None, 10**8, workers=2, checked=script)
+    assert time.monotonic() - t0 < 8
+    assert res["interrupted"] and not res["crashed"] and res["findings"] == []
+    assert res["executions"] == 14200 and "replay" not in res
+
+
+def test_the_campaign_ledger_adds_run_after_run(sandbox):
+    r = {"executions": 1000, "seconds": 1.0, "cov": 5, "ft": 6, "findings": []}
+    assert fc.record_campaign({"can_frame": r}, "fast", 2)["can_frame"][:2] == (1000, 1)
+    total = fc.record_campaign({"can_frame": dict(r, executions=250, interrupted=True),
+                                "xcp_packet": r}, "fast", 1)
+    assert total["can_frame"][:2] == (1250, 2) and total["xcp_packet"][:2] == (1000, 1)
+    book = json.loads((sandbox / "build" / "ledger.json").read_text())
+    assert [x["interrupted"] for x in book["can_frame"]["runs"]] == [False, True]
+    assert book["xcp_packet"]["runs"][0]["build"] == "atheris"
+    (sandbox / "build" / "ledger.json").write_text("not json")       # a damaged ledger starts anew
+    assert fc.record_campaign({"can_frame": r}, "checked", 1)["can_frame"][:2] == (1000, 1)

@@ -24,18 +24,25 @@ executions, coverage (libFuzzer's cov: edges and ft: features; atheris
 reports the same two counts for the Python bytecode it instruments),
 corpus size and findings; out/fuzz-coverage.json holds the figures. A
 crash, a sanitizer report, a leak or a timeout is a finding: its input is
-kept under out/fuzz-crashes/<target>/ and the exit status is 1.
+kept under out/fuzz-crashes/<target>/ and the exit status is 1. Ctrl-C or
+SIGTERM stops the fuzzers (their figures kept and written, exit status 130).
+Every run's executions are added to build/fuzz/ledger.json: a campaign's
+executions from the corpus it grows, over runs and sessions.
 """
 
 from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import datetime
+import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -45,6 +52,9 @@ ROOT = Path(__file__).resolve().parents[2]
 FUZZ = ROOT / "fuzz"
 BUILD = ROOT / "build" / "fuzz"
 OUT_JSON = ROOT / "out" / "fuzz-coverage.json"
+#: set by SIGINT / SIGTERM: the running fuzzers are stopped, their figures kept, no new one starts
+_STOP = threading.Event()
+STOP_GRACE_S = 10.0
 CRASHES = ROOT / "out" / "fuzz-crashes"
 
 PLANT = ROOT / "plant" / "csrc"
@@ -227,13 +237,21 @@ def _run(name: str, cmds: list[list[str]], log: Path) -> dict:
         procs = [subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
                  for cmd, f in zip(cmds, files)]
         stopped = set()                 # the workers stopped here: not findings of their own
+        grace_end = None
         try:
             while None in (running := [p.poll() for p in procs]):
-                if any(c not in (None, 0) for c in running):
+                if _STOP.is_set() and grace_end is None:
+                    for p in procs:     # libFuzzer prints its final figures on SIGINT
+                        if p.poll() is None:
+                            p.send_signal(signal.SIGINT)
+                    grace_end = time.monotonic() + STOP_GRACE_S
+                elif grace_end is None and any(c not in (None, 0) for c in running):
                     for i, p in enumerate(procs):
                         if p.poll() is None:
                             p.terminate()
                             stopped.add(i)
+                if grace_end is not None and time.monotonic() > grace_end:
+                    break
                 time.sleep(0.2)
         finally:
             for i, p in enumerate(procs):
@@ -245,7 +263,11 @@ def _run(name: str, cmds: list[list[str]], log: Path) -> dict:
         for f in files:
             f.close()
     wall = time.monotonic() - t0
-    res = {"executions": 0, "cov": 0, "ft": 0, "corpus": 0, "findings": [], "inputs": []}
+    interrupted = _STOP.is_set()
+    if interrupted:                     # every worker was stopped by the signal, here or by the terminal
+        stopped = set(range(len(procs)))
+    res = {"executions": 0, "cov": 0, "ft": 0, "corpus": 0, "findings": [], "inputs": [],
+           "interrupted": interrupted}
     codes = []
     for i, (path, p) in enumerate(zip(logs, procs)):
         one = parse(path.read_text(encoding="utf-8", errors="replace"))
@@ -286,7 +308,9 @@ def run_target(name: str, binary: Path | None, seconds, runs, out=None,
     lines = [f"  {name:16s} {res['kind']:17s} {res['executions']:>12,d} runs {wall:7.1f} s "
              f"{res['exec_per_s']:>9,d}/s  cov {res['cov']:>5d}  ft {res['ft']:>6d}  "
              f"corpus {res['corpus']:>5d}  {'CRASH' if res['crashed'] else 'ok'}", *_report(res)]
-    if checked is not None and not res["crashed"]:
+    if res["interrupted"]:
+        lines[0] = lines[0].rsplit("  ", 1)[0] + "  interrupted"
+    if checked is not None and not res["crashed"] and not res["interrupted"]:
         rep = _run(name, [command(name, checked, None, None, replay=True)],
                    BUILD / "logs" / f"{name}-replay.log")
         res["replay"] = {k: rep[k] for k in ("executions", "cov", "ft", "seconds", "findings", "inputs",
@@ -300,6 +324,33 @@ def run_target(name: str, binary: Path | None, seconds, runs, out=None,
                   f"{'CRASH' if rep['crashed'] else 'ok'}", *_report(rep)]
     print("\n".join(lines), file=out or sys.stdout, flush=True)
     return res
+
+
+def record_campaign(results: dict, build: str, workers: int, ledger: Path | None = None) -> dict:
+    """Adds this run's executions per target to the campaign's ledger
+    (build/fuzz/ledger.json: what the fuzzers did from the corpus they grew,
+    run after run and session after session; removing the file starts a new
+    campaign); returns {target: (executions in all, runs, first date)}."""
+    ledger = ledger or BUILD / "ledger.json"
+    try:
+        book = json.loads(ledger.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        book = {}
+    now = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+    totals = {}
+    for name, r in results.items():
+        kind = "atheris" if name in PY_TARGETS else build
+        entry = book.setdefault(name, {"executions": 0, "runs": []})
+        entry["executions"] += int(r["executions"])
+        entry["runs"].append({"date": now, "executions": int(r["executions"]), "seconds": r["seconds"],
+                              "build": kind, "workers": workers, "cov": r["cov"], "ft": r["ft"],
+                              "findings": len(r["findings"]), "interrupted": bool(r.get("interrupted"))})
+        totals[name] = (entry["executions"], len(entry["runs"]), entry["runs"][0]["date"])
+    ledger.parent.mkdir(parents=True, exist_ok=True)
+    tmp = ledger.with_suffix(".tmp")
+    tmp.write_text(json.dumps(book, indent=1), encoding="utf-8")
+    tmp.replace(ledger)
+    return totals
 
 
 def main(argv=None, out=None, err=None) -> int:
@@ -366,27 +417,47 @@ def main(argv=None, out=None, err=None) -> int:
     print(f"fuzz-coverage: {len(names)} target(s), {limit} each", file=out)
     t0 = time.monotonic()
 
-    def one(n: str) -> dict:
+    def one(n: str) -> dict | None:
+        if _STOP.is_set():
+            return None
         runs = a.py_runs if (a.py_runs and n in PY_TARGETS) else a.runs
         if n in fast:
             return run_target(n, fast[n], seconds, runs, out=out, checked=bins[n], workers=a.workers)
         return run_target(n, bins.get(n), seconds, runs, out=out, workers=a.workers)
 
-    with concurrent.futures.ThreadPoolExecutor(max_workers=a.parallel) as ex:
-        futures = {n: ex.submit(one, n) for n in names}
-        results = {n: f.result() for n, f in futures.items()}
+    _STOP.clear()
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            handlers[sig] = signal.signal(sig, lambda *_: _STOP.set())
+    try:
+        with concurrent.futures.ThreadPoolExecutor(max_workers=a.parallel) as ex:
+            futures = {n: ex.submit(one, n) for n in names}
+            results = {n: r for n, r in ((n, f.result()) for n, f in futures.items()) if r is not None}
+    finally:
+        for sig, h in handlers.items():
+            signal.signal(sig, h)
+    interrupted = _STOP.is_set()
     crashed = [n for n, r in results.items() if r["crashed"]]
+    campaign = record_campaign(results, "fast" if a.fast else "checked", a.workers)
+    for n, r in results.items():
+        r["campaign_executions"], r["campaign_runs"], r["campaign_since"] = campaign[n]
     report = {"machine": machine_info(), "seconds_per_target": seconds, "runs_per_target": a.runs,
               "py_runs_per_target": a.py_runs, "build": "fast, corpus replayed checked" if a.fast else "checked",
               "parallel": a.parallel, "workers": a.workers,
               "wall_s": round(time.monotonic() - t0, 1), "targets": results,
-              "crashed": crashed}
+              "crashed": crashed, "interrupted": interrupted,
+              "not_run": [n for n in names if n not in results]}
     write_figures(a.json, report)
+    for n, (execs, k, since) in campaign.items():
+        print(f"  {n:16s} campaign: {execs:>14,d} executions in {k} run(s) since {since[:10]} "
+              "(build/fuzz/ledger.json)", file=out)
     total = sum(r["executions"] for r in results.values())
     print(f"fuzz-coverage: {total:,d} executions, {len(crashed)} target(s) with findings"
-          f"{': ' + ', '.join(crashed) if crashed else ''}; figures in {os.path.relpath(a.json, ROOT)}",
-          file=out)
-    return 1 if crashed else 0
+          f"{': ' + ', '.join(crashed) if crashed else ''}"
+          f"{'; INTERRUPTED, not run: ' + (', '.join(report['not_run']) or 'none') if interrupted else ''}"
+          f"; figures in {os.path.relpath(a.json, ROOT)}", file=out)
+    return 1 if crashed else (130 if interrupted else 0)
 
 
 if __name__ == "__main__":
