@@ -14,6 +14,7 @@ import threading
 import time
 
 import pytest
+import requires
 
 from rt_loop.tools import fuzz_coverage as fc
 
@@ -87,7 +88,7 @@ def test_bad_parallel_or_workers_is_one_line(opt, capsys):
 @pytest.mark.skipif(not any(shutil.which(c) for c in ("clang", "clang-14", "clang-15", "clang-16")),
                     reason="clang missing (scripts/fuzz-coverage installs it)")
 def test_fast_build_runs_and_its_corpus_is_replayed_checked(tmp_path, capsys):
-    pytest.importorskip("atheris")
+    requires.module("atheris")
     out = tmp_path / "fc.json"
     assert fc.main(["can_frame", "control_request", "--fast", "--seconds", "3", "--parallel", "2",
                     "--workers", "2", "--json", str(out)]) == 0
