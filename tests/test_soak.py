@@ -81,6 +81,9 @@ def test_a_soak_of_one_paper_cycle_passes_and_writes_csv_json_plot_and_mf4(tmp_p
     assert json.loads((out / "serve-stats.json").read_text())["run"]["error"] is None
     tcu = json.loads((out / "tcu-report.json").read_text())
     assert tcu["impl"] == "c" and tcu["error"] is None, tcu["error"]      # the C node by default
+    if soak._MALLINFO2 is not None:      # glibc's account of its arenas, mid-run and at the end
+        for name in ("malloc-mid.xml", "malloc-end.xml"):
+            assert (out / name).read_text().startswith("<malloc"), name
 
 
 def test_bad_options_are_refused():
@@ -204,3 +207,12 @@ def test_the_recorders_blocks_stay_out_of_mallocs_heap_once_the_threshold_is_fix
     # development machine (0.0 MB mapped) but not in a CI run (4.0: the dynamic
     # threshold had not risen there, cause not found), so only the fix is asserted
     assert mapped("fixed") >= 4.0
+
+
+@pytest.mark.skipif(soak._MALLINFO2 is None, reason="glibc's malloc_info")
+def test_malloc_info_writes_glibcs_account_of_its_free_chunks(tmp_path):
+    path = tmp_path / "malloc.xml"
+    assert soak.malloc_info(path)
+    text = path.read_text()
+    assert text.startswith("<malloc") and "<heap nr=\"0\">" in text and "<total type=" in text
+    assert not soak.malloc_info(tmp_path / "missing" / "malloc.xml")   # no folder: False, no raise

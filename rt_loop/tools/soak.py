@@ -31,7 +31,10 @@ the second half (``SLOPES``: per hour) is in the JSON and the summary, and
 so is what the Python heap's allocation sites (``--tracemalloc`` frames,
 1 by default; 0: not traced) grew by between the middle of the run and its
 end: a growth is told apart at once (Python objects, memory malloc holds
-free, or memory allocated outside Python's view). ``--no-record`` runs
+free, or memory allocated outside Python's view); glibc's own account of its
+arenas (``malloc_info``: free chunks by size) at the middle and the end goes to
+``malloc-mid.xml`` and ``malloc-end.xml``, which tell holes left in the heap from
+a high-water mark at its top. ``--no-record`` runs
 without the MF4 recording (to compare). The samples are kept in columns of
 machine numbers (``Samples``): the soak's own bookkeeping grows by a few
 hundred bytes per row, not by a dict of Python objects.
@@ -155,6 +158,28 @@ def heap_figures() -> dict:
         out["malloc_free_mb"] = round(m.fordblks / 1e6, 3)
         out["malloc_mmap_mb"] = round(m.hblkhd / 1e6, 3)
     return out
+
+
+def malloc_info(path: Any) -> bool:
+    """glibc's own account of its arenas (``malloc_info``: XML, the free chunks by
+    size class, per arena) into ``path``: where free bytes grow, it tells holes in
+    the heap (many small free chunks) from a high-water mark (one large one at the
+    top). False, with no file, where not glibc."""
+    try:
+        libc = ctypes.CDLL(None)
+        fopen, fclose, info = libc.fopen, libc.fclose, libc.malloc_info
+    except (OSError, AttributeError):
+        return False
+    fopen.restype, fopen.argtypes = ctypes.c_void_p, [ctypes.c_char_p, ctypes.c_char_p]
+    fclose.argtypes = [ctypes.c_void_p]
+    info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+    fp = fopen(os.fsencode(path), b"w")
+    if not fp:
+        return False
+    try:
+        return info(0, fp) == 0
+    finally:
+        fclose(fp)
 
 
 def heap_sites(snapshot: Any) -> dict[str, tuple[int, int]]:
@@ -438,7 +463,9 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
     paths = {k: folder / n for k, n in (("csv", "soak.csv"), ("json", "soak.json"),
                                           ("png", "soak.png"), ("mf4", "soak.mf4"),
                                           ("stats", "serve-stats.json"),
-                                          ("tcu_report", "tcu-report.json"))}
+                                          ("tcu_report", "tcu-report.json"),
+                                          ("malloc_mid", "malloc-mid.xml"),
+                                          ("malloc_end", "malloc-end.xml"))}
     for p in paths.values():
         if p.exists():
             p.unlink()
@@ -535,6 +562,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
                     cycle_started = now
                 if heap_mid is None and tracemalloc.is_tracing() and now >= t0 + duration / 2.0:
                     heap_mid = heap_sites(tracemalloc.take_snapshot())   # the middle
+                    malloc_info(paths["malloc_mid"])
                 if now >= next_sample:
                     row = sample()
                     if not args.quiet:
@@ -551,6 +579,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
             if rows and (time.monotonic() - t0) - rows[-1]["t_s"] > 1.0 and server.running:
                 sample()
             f.close()
+            malloc_info(paths["malloc_end"])
             if heap_mid is not None and tracemalloc.is_tracing():
                 run["heap_sites_growth_second_half"] = heap_growth(
                     heap_mid, heap_sites(tracemalloc.take_snapshot()))
