@@ -95,6 +95,8 @@ def test_read_set_and_faults(served):
     (b'{"op": "set", "name": "road_grade_pct"}\n', "needs value"),
     (b'{"op": "inject", "spec": {"kind": "can.omit", "message": "Nope"}}\n', "'Nope'"),
     (b'{"op": "inject", "spec": {"kind": "boom"}}\n', "'boom' is not known"),
+    (b'{"op": "inject", "spec": {"kind": {"op": "x"}}}\n', "fault kind {'op': 'x'} is not known"),
+    (b'{"op": "inject", "spec": {"kind": ["can.omit"]}}\n', "is not known"),
     (b'{"op": "inject"}\n', "needs spec"),
     (b'{"op": "watch", "when": "gear = 3"}\n', "cannot read"),
     (b'{"op": "clear", "id": 99}\n', "no fault 99"),

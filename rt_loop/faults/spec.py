@@ -267,7 +267,7 @@ def parse_fault(spec: Any, names: Names) -> Fault:
     if not isinstance(spec, dict):
         raise FaultError(f"a fault is a table of kind, target and parameters, got {spec!r}")
     kind_name = spec.get("kind")
-    if kind_name not in KINDS:
+    if not isinstance(kind_name, str) or kind_name not in KINDS:   # a table or list: not a name
         raise FaultError(f"fault kind {kind_name!r} is not known; kinds: "
                          + ", ".join(KINDS) + _suggest(kind_name, KINDS))
     kind = KINDS[kind_name]
