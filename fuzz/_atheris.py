@@ -4,6 +4,7 @@ checkout on sys.path, one-line error checks, a scratch folder."""
 from __future__ import annotations
 
 import os
+import shlex
 import sys
 import tempfile
 
@@ -42,5 +43,9 @@ def run(test_one_input, instrument, after=None) -> None:
         instrument()
     if after is not None:
         after()
-    atheris.Setup(sys.argv, test_one_input)
+    # libFuzzer runs argv[0] again as a shell command for -merge=1 (and -fork):
+    # this interpreter and the target, quoted, not the script alone
+    argv = [f"{shlex.quote(sys.executable)} {shlex.quote(os.path.abspath(sys.argv[0]))}",
+            *sys.argv[1:]]
+    atheris.Setup(argv, test_one_input)
     atheris.Fuzz()

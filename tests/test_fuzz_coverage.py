@@ -87,11 +87,12 @@ def test_bad_parallel_or_workers_is_one_line(opt, capsys):
 
 @pytest.mark.skipif(not any(shutil.which(c) for c in ("clang", "clang-14", "clang-15", "clang-16")),
                     reason="clang missing (scripts/fuzz-coverage installs it)")
-def test_fast_build_runs_and_its_corpus_is_replayed_checked(tmp_path, capsys):
+def test_fast_build_runs_and_its_corpus_is_replayed_checked(tmp_path, capsys, monkeypatch):
     requires.module("atheris")
+    monkeypatch.setattr(fc, "GROWN", tmp_path / "grown")
     out = tmp_path / "fc.json"
     assert fc.main(["can_frame", "control_request", "--fast", "--seconds", "3", "--parallel", "2",
-                    "--workers", "2", "--json", str(out)]) == 0
+                    "--workers", "2", "--keep", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["build"].startswith("fast") and report["parallel"] == 2
     c, py = report["targets"]["can_frame"], report["targets"]["control_request"]
@@ -100,6 +101,58 @@ def test_fast_build_runs_and_its_corpus_is_replayed_checked(tmp_path, capsys):
     assert c["replay"]["executions"] >= seeds and not c["replay"]["crashed"]
     assert (fc.BUILD / "fast" / "can_frame").exists()
     assert py["kind"] == "Python (atheris)" and "replay" not in py and py["executions"] > 0
+    # --keep: what the runs found beyond the seeds (3 s of can_frame always finds some) went
+    # into the repository's grown folder, through a merge that ran every input once
+    for name in ("can_frame", "control_request"):
+        r = report["targets"][name]
+        kept = sorted((tmp_path / "grown" / name).iterdir()) if r["kept"]["total"] else []
+        assert r["kept"]["total"] == len(kept) and "keep_error" not in r
+    assert report["targets"]["can_frame"]["kept"]["kept"] > 0
+
+
+def _fake_merger(path, status=0):
+    # libFuzzer's -merge=1: the first corpus folder gets what the others add; here one
+    # input of its own name, and the arguments written down
+    path.write_text("#!/bin/sh\necho \"$@\" >> \"$0.args\"\n"
+                    "for a in \"$@\"; do case \"$a\" in -*) ;; *) echo new > \"$a/feed$1\"; break;; esac; done\n"
+                    f"echo 'MERGE-INNER: using the control file'\necho 'MERGE-OUTER: 1 new files'\nexit {status}\n")
+    path.chmod(path.stat().st_mode | stat.S_IEXEC)
+    return path
+
+
+def test_keep_adds_only_inputs_the_repository_does_not_hold(sandbox, monkeypatch):
+    monkeypatch.setattr(fc, "GROWN", sandbox / "grown")
+    (sandbox / "build" / "corpus" / "can_frame").mkdir(parents=True)
+    merger = _fake_merger(sandbox / "merge")
+    assert fc.keep_corpus("can_frame", merger) == {"kept": 1, "total": 1}
+    assert [p.name for p in (sandbox / "grown" / "can_frame").iterdir()] == ["feed-merge=1"]
+    args = (sandbox / "merge.args").read_text().split()
+    seeds = fc.FUZZ / "corpus" / "can_frame"
+    assert args[0] == "-merge=1" and args[-1] == str(sandbox / "build" / "corpus" / "can_frame")
+    assert not any(a == str(seeds) for a in args)          # the seeds are copied, never written into
+    # the same input again: the repository holds it now, nothing added
+    assert fc.keep_corpus("can_frame", merger) == {"kept": 0, "total": 1}
+    # the next run reads the kept inputs beside the seeds
+    assert fc.command("can_frame", merger, 1, None)[-2:] == [str(seeds), str(sandbox / "grown" / "can_frame")]
+
+
+def test_a_failed_merge_is_one_line_and_adds_nothing(sandbox, monkeypatch):
+    monkeypatch.setattr(fc, "GROWN", sandbox / "grown")
+    with pytest.raises(fc.FuzzError, match=r"can_frame: merging its corpus failed \(exit 3\)"):
+        fc.keep_corpus("can_frame", _fake_merger(sandbox / "merge", status=3))
+    assert not (sandbox / "grown").exists()
+
+
+def test_a_merge_whose_inner_process_never_ran_is_a_failure(sandbox, monkeypatch):
+    # libFuzzer's outer process runs argv[0] again; when that cannot run it says
+    # "0 new files" and exits 0: that must not pass for a merge that found nothing
+    monkeypatch.setattr(fc, "GROWN", sandbox / "grown")
+    outer = sandbox / "outer"
+    outer.write_text("#!/bin/sh\necho 'sh: 1: fuzz/x.py: Permission denied'\n"
+                     "echo 'MERGE-OUTER: 0 new files with 0 new features added'\nexit 0\n")
+    outer.chmod(outer.stat().st_mode | stat.S_IEXEC)
+    with pytest.raises(fc.FuzzError, match="the inner process did not run .*Permission denied"):
+        fc.keep_corpus("can_frame", outer)
 
 
 def test_workers_share_the_runs_and_one_finding_stops_the_others(sandbox):

@@ -3,7 +3,7 @@ for the Python side (fuzz/).
 
     python -m rt_loop.tools.fuzz_coverage can_frame --seconds 60     # scripts/fuzz-coverage
     python -m rt_loop.tools.fuzz_coverage --all --seconds 20         # scripts/test's stage
-    python -m rt_loop.tools.fuzz_coverage --all --runs 100000000 --fast --workers 2   # the long stage
+    python -m rt_loop.tools.fuzz_coverage --all --runs 100000000 --fast --workers 2 --keep   # the long stage
     python -m rt_loop.tools.fuzz_coverage --list
 
 The C targets are built with clang -fsanitize=fuzzer,address,undefined
@@ -27,7 +27,11 @@ crash, a sanitizer report, a leak or a timeout is a finding: its input is
 kept under out/fuzz-crashes/<target>/ and the exit status is 1. Ctrl-C or
 SIGTERM stops the fuzzers (their figures kept and written, exit status 130).
 Every run's executions are added to build/fuzz/ledger.json: a campaign's
-executions from the corpus it grows, over runs and sessions.
+executions from the corpus it grows, over runs and sessions. ``--keep``
+afterwards adds the grown corpus's inputs that reach coverage the
+repository's folders do not (libFuzzer's -merge=1, through the checked build)
+to fuzz/grown/<target>/, which every run reads beside the seeds: committed,
+the next campaign on a fresh clone starts from the coverage this one reached.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -62,6 +67,9 @@ CAN = ROOT / "can_dbc" / "csrc"
 LOOP = ROOT / "rt_loop" / "csrc"
 FMU = ROOT / "plant" / "fmu" / "csrc"
 FMU_TABLE = BUILD / "fmu_variables.c"   # generated: the default car's parameters
+#: the inputs earlier campaigns grew that reach code the seeds do not (``--keep``), in the
+#: repository: a fresh clone's campaign starts from the coverage the last one reached
+GROWN = FUZZ / "grown"
 
 SAN = ["-g", "-O1", "-fno-omit-frame-pointer", "-fsanitize=address,undefined",
        "-fno-sanitize-recover=undefined"]
@@ -195,8 +203,54 @@ def command(name: str, binary: Path | None, seconds: float | None, runs: int | N
     d = FUZZ / f"{name}.dict"
     if d.exists():
         flags.append(f"-dict={d}")
-    seeds = FUZZ / "corpus" / name
-    return [*exe, *flags, str(work), *([str(seeds)] if seeds.is_dir() else [])]
+    return [*exe, *flags, str(work), *map(str, _kept_folders(name))]
+
+
+def _kept_folders(name: str) -> list[Path]:
+    """The repository's corpus folders of ``name``: its seeds, the inputs kept from
+    earlier campaigns."""
+    return [d for d in (FUZZ / "corpus" / name, GROWN / name) if d.is_dir()]
+
+
+def keep_corpus(name: str, binary: Path | None, timeout_s: float = 3600.0) -> dict:
+    """Adds to ``GROWN/name`` the inputs of the corpus this machine's runs grew
+    (build/fuzz/corpus/<name>) that reach coverage the seeds and the inputs kept
+    before do not: libFuzzer's ``-merge=1`` through ``binary`` (the checked build
+    of a C target; None: the atheris target), which also runs every input once. A
+    merge that fails is a FuzzError; the repository's folders are only added to.
+    Returns {"kept": new inputs, "total": inputs in GROWN/name}."""
+    work = BUILD / "corpus" / name
+    grown = GROWN / name
+    have = {p.name for d in _kept_folders(name) for p in d.iterdir()}
+    BUILD.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=BUILD, prefix=f"merge-{name}-") as tmp:
+        base = Path(tmp) / "corpus"
+        base.mkdir()
+        for d in _kept_folders(name):
+            for f in d.iterdir():
+                if f.is_file():
+                    shutil.copyfile(f, base / f.name)
+        exe = [str(binary)] if binary else [sys.executable, str(FUZZ / f"{name}.py")]
+        cmd = [*exe, "-merge=1", f"-max_len={MAX_LEN.get(name, 4096)}", "-timeout=25",
+               "-rss_limit_mb=4096", f"-artifact_prefix={tmp}/", str(base),
+               *([str(work)] if work.is_dir() else [])]
+        try:
+            p = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            raise FuzzError(f"{name}: merging its corpus took more than {timeout_s:g} s") from None
+        text = (p.stdout + p.stderr).strip()
+        if p.returncode != 0:
+            last = text.splitlines()[-1:] or ["no output"]
+            raise FuzzError(f"{name}: merging its corpus failed (exit {p.returncode}): {last[0]}")
+        if "MERGE-INNER" not in text:   # libFuzzer's outer process says 0 new files then
+            why = next((ln for ln in text.splitlines() if "MERGE-OUTER" not in ln), "no output")
+            raise FuzzError(f"{name}: merging its corpus failed: the inner process did not run ({why.strip()})")
+        new = sorted(f for f in base.iterdir() if f.name not in have)
+        if new:
+            grown.mkdir(parents=True, exist_ok=True)
+        for f in new:
+            shutil.copyfile(f, grown / f.name)
+    return {"kept": len(new), "total": len(list(grown.iterdir())) if grown.is_dir() else 0}
 
 
 def parse(text: str) -> dict:
@@ -369,6 +423,9 @@ def main(argv=None, out=None, err=None) -> int:
                     help="N targets at once (default 1)")
     ap.add_argument("--workers", type=int, default=1, metavar="M",
                     help="M processes per target sharing its corpus and its --runs (default 1)")
+    ap.add_argument("--keep", action="store_true",
+                    help=f"afterwards add the grown corpus's inputs that reach new coverage to "
+                         f"{GROWN.relative_to(ROOT)}/<target>/ (commit them: the next campaign starts there)")
     ap.add_argument("--build-only", action="store_true", help="build the C targets and stop")
     ap.add_argument("--list", action="store_true", help="name the targets and stop")
     ap.add_argument("--json", default=str(OUT_JSON), help="figures (default out/fuzz-coverage.json)")
@@ -439,6 +496,18 @@ def main(argv=None, out=None, err=None) -> int:
             signal.signal(sig, h)
     interrupted = _STOP.is_set()
     crashed = [n for n, r in results.items() if r["crashed"]]
+    if a.keep and not interrupted:
+        for n, r in results.items():
+            if r["crashed"]:
+                continue
+            try:
+                r["kept"] = keep_corpus(n, bins.get(n))
+            except FuzzError as e:
+                print(f"scripts/fuzz-coverage: {e}", file=err)
+                r["keep_error"] = str(e)
+                continue
+            print(f"  {n:16s} kept: {r['kept']['kept']:,d} new input(s) in "
+                  f"{os.path.relpath(GROWN / n, ROOT)} ({r['kept']['total']:,d} there)", file=out)
     campaign = record_campaign(results, "fast" if a.fast else "checked", a.workers)
     for n, r in results.items():
         r["campaign_executions"], r["campaign_runs"], r["campaign_since"] = campaign[n]
@@ -457,7 +526,8 @@ def main(argv=None, out=None, err=None) -> int:
           f"{': ' + ', '.join(crashed) if crashed else ''}"
           f"{'; INTERRUPTED, not run: ' + (', '.join(report['not_run']) or 'none') if interrupted else ''}"
           f"; figures in {os.path.relpath(a.json, ROOT)}", file=out)
-    return 1 if crashed else (130 if interrupted else 0)
+    keep_failed = any("keep_error" in r for r in results.values())
+    return 1 if crashed else (130 if interrupted else (2 if keep_failed else 0))
 
 
 if __name__ == "__main__":
