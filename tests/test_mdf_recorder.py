@@ -499,7 +499,7 @@ def test_memory_is_one_block_and_the_file_grows_by_blocks(tmp_path):
     loop = new_loop()
     rec = MdfRecorder(tmp_path / "grow.mf4", COMMANDS, flush_s=3600)
     rec.start(ffi, lib, loop)
-    sizes = []
+    sizes, buffers = [], []
     for block in range(5):
         for k in range(block * 500, (block + 1) * 500):
             push_sample(loop, k, vehicle_speed_kmh=k * 0.01)
@@ -508,6 +508,7 @@ def test_memory_is_one_block_and_the_file_grows_by_blocks(tmp_path):
         rec._file.flush()
         assert rec._file.pending_bytes == 0
         sizes.append(rec.bytes)
+        buffers.append(rec._file.groups[0].pending._buf.ctypes.data)
         with asammdf.MDF(tmp_path / "grow.mf4") as mdf:
             assert len(mdf.get("vehicle_speed_kmh")) == (block + 1) * 500
     rec.stop()
@@ -515,6 +516,28 @@ def test_memory_is_one_block_and_the_file_grows_by_blocks(tmp_path):
     steps = np.diff(sizes)
     assert steps.max() < 500 * rec._file.groups[0].dtype.itemsize      # compressed blocks
     assert rec.counters()["group_bytes"]["plant"] > 0
+    # the records waited in one buffer, kept from block to block once it held the first
+    assert len(set(buffers[1:])) == 1 and buffers[1] == buffers[0]
+
+
+def test_pending_records_keep_their_bytes_in_one_kept_buffer():
+    from rt_loop.measure.mdf_recorder import _PENDING_MIN_BYTES, _Pending
+    rng = np.random.default_rng(3)
+    p = _Pending(24)
+    first = p._buf
+    batches = [rng.integers(0, 256, 24 * k, dtype=np.uint8) for k in (1, 7, 5000, 30000, 2)]
+    for b in batches[:2]:
+        p.add(b.tobytes())                     # bytes
+    assert p._buf is first and first.size == _PENDING_MIN_BYTES
+    for b in batches[2:]:
+        p.add(b.view([("a", "<f8"), ("b", "<u8"), ("c", "<i8")]))   # structured records
+    whole = np.concatenate(batches)
+    assert p.nbytes == whole.size and bytes(p._buf[:p.nbytes]) == whole.tobytes()   # grown, kept
+    assert bytes(p.view()) == whole.tobytes()
+    grown = p._buf
+    p.clear()
+    p.add(batches[0])
+    assert p._buf is grown and p.nbytes == 24
 
 
 # --------------------------------------------------------------------------

@@ -46,7 +46,8 @@ process killed at any moment (SIGKILL, a crash) leaves a file asammdf opens
 up to the last flushed block (killed between the two 8-byte writes: the
 count is ahead of the blocks, and asammdf reads the records the blocks
 hold; the other order, blocks beyond the count, asammdf refuses to read).
-Nothing is kept in memory beyond the records of one flush. The writes are
+Nothing is kept in memory beyond the records of one flush, in a buffer per
+group that is kept and reused (``_Pending``: no batch allocates). The writes are
 not fsync'ed per block (only at ``stop()``): after a power cut the file
 system may not have kept their order. ``stop()`` writes what is left in the
 rings and closes the file: there is no finalisation step to miss.
@@ -174,8 +175,51 @@ class _Group:
         self.stream_bytes = 0         # bytes of records so far (the DL offsets)
         self.last_dl = 0              # address of the last DL of the chain (0: none yet)
         self.stored = 0               # bytes of its data blocks in the file (DZ, DL, HL)
-        self.pending: list[bytes] = []
-        self.pending_bytes = 0
+        self.pending = _Pending(dtype.itemsize)
+
+
+#: the smallest buffer a group's records wait in: above the mmap threshold the recorder
+#: fixes (``fixed_mmap_threshold``), so glibc maps it on its own, never in its heap
+_PENDING_MIN_BYTES = 2 * MMAP_THRESHOLD_BYTES
+
+
+class _Pending:
+    """A group's records waiting for the next flush, in one buffer kept from flush
+    to flush. It grows to the largest flush seen and never shrinks, from
+    ``_PENDING_MIN_BYTES`` on: a batch of records is copied in, not allocated
+    (a list of the batches' bytes, freed at each flush, left holes in malloc's heap
+    around whatever other threads allocated meanwhile, and under mlockall the holes
+    stay resident)."""
+
+    def __init__(self, record_bytes: int) -> None:
+        self.record_bytes = record_bytes
+        self.nbytes = 0
+        self._buf = np.empty(_PENDING_MIN_BYTES, np.uint8)
+
+    def reserve(self, nbytes: int) -> np.ndarray:
+        """The next ``nbytes`` of the buffer (uint8), counted as filled: the
+        caller writes its records there."""
+        end = self.nbytes + nbytes
+        if end > self._buf.size:
+            grown = np.empty(max(end, 2 * self._buf.size), np.uint8)
+            grown[:self.nbytes] = self._buf[:self.nbytes]
+            self._buf = grown
+        view = self._buf[self.nbytes:end]
+        self.nbytes = end
+        return view
+
+    def add(self, records: Any) -> None:
+        """Copies ``records`` (bytes, or a numpy array of whole records) in."""
+        src = np.frombuffer(records, np.uint8) if isinstance(records, (bytes, bytearray, memoryview)) \
+            else np.ascontiguousarray(records).view(np.uint8).reshape(-1)
+        self.reserve(src.size)[:] = src
+
+    def view(self) -> memoryview:
+        """The pending records' bytes (valid until the next ``reserve`` or ``clear``)."""
+        return memoryview(self._buf[:self.nbytes])
+
+    def clear(self) -> None:
+        self.nbytes = 0
 
 
 class _Mf4File:
@@ -237,30 +281,37 @@ class _Mf4File:
         self._pad()
         return address
 
-    def add(self, index: int, records: bytes) -> None:
+    def add(self, index: int, records: Any) -> None:
+        """Records for group ``index`` (bytes or a numpy array of whole records)."""
+        self.groups[index].pending.add(records)
+
+    def reserve(self, index: int, n: int) -> np.ndarray:
+        """Room for ``n`` records of group ``index`` (uint8, n x the record size),
+        counted as added: the caller fills it."""
         g = self.groups[index]
-        if records:
-            g.pending.append(records)
-            g.pending_bytes += len(records)
+        return g.pending.reserve(n * g.dtype.itemsize)
 
     @property
     def pending_bytes(self) -> int:
-        return sum(g.pending_bytes for g in self.groups)
+        return sum(g.pending.nbytes for g in self.groups)
 
     def flush(self) -> None:
         """Appends the pending records of every group and links them in."""
         v4b, v4c = self._v4b, self._v4c
-        if any(g.pending for g in self.groups):
+        if any(g.pending.nbytes for g in self.groups):
             self.flushes += 1
         for g in self.groups:
-            if not g.pending:
+            if not g.pending.nbytes:
                 continue
-            data = b"".join(g.pending)
-            g.pending, g.pending_bytes = [], 0
-            n = len(data) // g.dtype.itemsize
-            dz = v4b.DataZippedBlock(data=data, zip_type=v4c.FLAG_DZ_TRANSPOSED_DEFLATE,
+            size = g.pending.nbytes
+            n = size // g.dtype.itemsize
+            # asammdf transposes a copy (one above the mmap threshold for a second of
+            # samples or frames: mapped, not in the heap) and compresses that
+            dz = v4b.DataZippedBlock(data=g.pending.view(),
+                                     zip_type=v4c.FLAG_DZ_TRANSPOSED_DEFLATE,
                                      param=g.dtype.itemsize, original_type=b"DT",
                                      compression_level=self._level)
+            g.pending.clear()
             dz_addr = self._append_block(dz)     # the file's end before: where its blocks start
             dl = v4b.DataList(links_nr=2, data_block_addr0=dz_addr, flags=0, data_block_nr=1,
                               offset_0=g.stream_bytes)
@@ -280,7 +331,7 @@ class _Mf4File:
             else:
                 self._write_u64(g.last_dl + 24, dl_addr)            # dl_dl_next
             g.last_dl = dl_addr
-            g.stream_bytes += len(data)
+            g.stream_bytes += size
         self._f.flush()
         self.bytes = self._f.seek(0, os.SEEK_END)
 
@@ -460,10 +511,12 @@ class MdfRecorder(RingDrain):
     # ------------------------------------------------------------ data
     def _write(self, buf: Any, n: int) -> None:
         raw = np.frombuffer(self._ffi.buffer(buf, n * self._n_doubles * 8), dtype=np.float64)
-        rec = raw.reshape(n, self._n_doubles)[:, self._cols]     # a copy, C order
+        # the recorded columns straight into the group's pending buffer (mode "clip":
+        # numpy takes into ``out`` unbuffered; every column index is in range)
+        rec = self._file.reserve(0, n).view(np.float64).reshape(n, len(self._cols))
+        np.take(raw.reshape(n, self._n_doubles), self._cols, axis=1, out=rec, mode="clip")
         mt = rec[:, self._mt_col]
         mt[mt < 0] = np.nan                                     # before the maneuver started
-        self._file.add(0, rec.tobytes())
 
     def add_frames(self, buf: Any, n: int) -> None:
         """The traffic log's batch of ``n`` ``rt_log_entry`` (copied at once: the
@@ -508,7 +561,7 @@ class MdfRecorder(RingDrain):
                 r["DataBytes"] = data
                 r["EDL"] = fd[sel]
                 r["BRS"] = (flags[sel] & self._brs_flag) != 0
-            self._file.add(1 + index, r.tobytes())
+            self._file.add(1 + index, r)
             self.frames_written += len(r)
 
     def _drain(self) -> int:
@@ -547,7 +600,7 @@ class MdfRecorder(RingDrain):
         for i, e in enumerate(events):
             r[i] = (e["time_s"], e["id"], what.get(e["event"], 0),
                     self._fault_codes.get(e["kind"], 0))
-        self._file.add(len(self._file.groups) - 1, r.tobytes())
+        self._file.add(len(self._file.groups) - 1, r)
         self.fault_events_written += len(events)
 
     def _flush(self) -> None:

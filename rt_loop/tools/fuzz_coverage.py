@@ -425,7 +425,7 @@ def main(argv=None, out=None, err=None) -> int:
                     help="M processes per target sharing its corpus and its --runs (default 1)")
     ap.add_argument("--keep", action="store_true",
                     help=f"afterwards add the grown corpus's inputs that reach new coverage to "
-                         f"{GROWN.relative_to(ROOT)}/<target>/ (commit them: the next campaign starts there)")
+                         f"{os.path.relpath(GROWN, ROOT)}/<target>/ (commit them: the next campaign starts there)")
     ap.add_argument("--build-only", action="store_true", help="build the C targets and stop")
     ap.add_argument("--list", action="store_true", help="name the targets and stop")
     ap.add_argument("--json", default=str(OUT_JSON), help="figures (default out/fuzz-coverage.json)")
