@@ -523,7 +523,7 @@ def test_memory_is_one_block_and_the_file_grows_by_blocks(tmp_path):
 def test_pending_records_keep_their_bytes_in_one_kept_buffer():
     from rt_loop.measure.mdf_recorder import _PENDING_MIN_BYTES, _Pending
     rng = np.random.default_rng(3)
-    p = _Pending(24)
+    p = _Pending()
     first = p._buf
     batches = [rng.integers(0, 256, 24 * k, dtype=np.uint8) for k in (1, 7, 5000, 30000, 2)]
     for b in batches[:2]:

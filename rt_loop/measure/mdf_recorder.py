@@ -175,7 +175,7 @@ class _Group:
         self.stream_bytes = 0         # bytes of records so far (the DL offsets)
         self.last_dl = 0              # address of the last DL of the chain (0: none yet)
         self.stored = 0               # bytes of its data blocks in the file (DZ, DL, HL)
-        self.pending = _Pending(dtype.itemsize)
+        self.pending = _Pending()
 
 
 #: the smallest buffer a group's records wait in: above the mmap threshold the recorder
@@ -191,8 +191,7 @@ class _Pending:
     around whatever other threads allocated meanwhile, and under mlockall the holes
     stay resident)."""
 
-    def __init__(self, record_bytes: int) -> None:
-        self.record_bytes = record_bytes
+    def __init__(self) -> None:
         self.nbytes = 0
         self._buf = np.empty(_PENDING_MIN_BYTES, np.uint8)
 
@@ -209,9 +208,8 @@ class _Pending:
         return view
 
     def add(self, records: Any) -> None:
-        """Copies ``records`` (bytes, or a numpy array of whole records) in."""
-        src = np.frombuffer(records, np.uint8) if isinstance(records, (bytes, bytearray, memoryview)) \
-            else np.ascontiguousarray(records).view(np.uint8).reshape(-1)
+        """Copies ``records`` (bytes, or a contiguous numpy array of whole records) in."""
+        src = np.frombuffer(records, np.uint8)
         self.reserve(src.size)[:] = src
 
     def view(self) -> memoryview:
