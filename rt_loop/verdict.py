@@ -388,9 +388,16 @@ def tcu_report_rules(tcu: dict | None, maneuver_end_s: float | None = None
     skipped = _n(tcu.get("skipped_ticks"))
     if skipped:
         late = _f(_d(tcu.get("tick_wake_late_us")).get("max"))
+        stalls = _d(tcu.get("stalls"))
+        longest, over = _f(stalls.get("longest_ms")), _f(stalls.get("over_ms"))
         period_ms = 1e3 * (_f(tcu.get("period_s")) or 0.002)
-        notes.append(f"TCU task skipped {_plural(skipped, 'tick')} of {period_ms:g} ms"
-                     + (f" (woke up to {late / 1e3:.1f} ms late)" if late is not None else ""))
+        if longest is not None:    # the wake-ups before the missed periods were skipped
+            held = (f" (its thread woke up to {longest:.1f} ms late"
+                    + (f", {_times(_n(stalls.get('count')))} later than {over:g} ms)"
+                       if _n(stalls.get("count")) and over is not None else ")"))
+        else:
+            held = f" (woke up to {late / 1e3:.1f} ms late)" if late is not None else ""
+        notes.append(f"TCU task skipped {_plural(skipped, 'tick')} of {period_ms:g} ms" + held)
     pauses = _d(tcu.get("pauses"))
     if _n(pauses.get("count")):
         notes.append(f"TCU paused on request {_times(_n(pauses['count']))}, "

@@ -588,6 +588,24 @@ class CTcuNode:
         self._lib.tcu_node_figures_read(self._n, out)
         return out
 
+    def stalls(self, since=0):
+        """(stalls, count): the wake-ups of the thread later than
+        ``TCU_NODE_STALL_PERIODS`` periods numbered ``since`` and after, still in
+        the node's ring (the last ``TCU_NODE_MAX_STALLS``), oldest first, each
+        ``{"index", "at_s" (node time), "late_ms"}``; ``count`` is every stall so far
+        (pass it as ``since`` next time). Stalls overwritten before they were
+        read are left out: ``count - since - len(stalls)`` says how many."""
+        lib = self._lib
+        count = int(self.figures().n_stalls)
+        first = max(int(since), count - lib.TCU_NODE_MAX_STALLS)
+        out = []
+        for i in range(first, count):
+            e = self._n.stall_log[i % lib.TCU_NODE_MAX_STALLS]
+            at_s, late_s = float(e.at_s), float(e.late_s)
+            if int(e.index) == i:       # not overwritten meanwhile by a newer one
+                out.append({"index": i, "at_s": round(at_s, 4), "late_ms": round(late_s * 1e3, 3)})
+        return out, count
+
     @property
     def t_s(self):
         return float(self.figures().t_s)
@@ -667,6 +685,13 @@ class CTcuNode:
         return {"n": n, "mean": round(float(h.total) / n, 1), "p50": pct(50), "p99": pct(99),
                 "p99_9": pct(99.9), "max": round(float(h.max), 1)}
 
+    def _stall_report(self, f):
+        lib = self._lib
+        kept, count = self.stalls(0)
+        return {"longest_ms": round(float(f.stall_max_s) * 1e3, 3),
+                "over_ms": round(lib.TCU_NODE_STALL_PERIODS * self.period_wall_s * 1e3, 3),
+                "count": count, "last": kept}
+
     def _episodes(self, f):
         out = []
         for i in range(min(int(f.n_episodes), self._lib.TCU_NODE_MAX_EPISODES)):
@@ -745,6 +770,7 @@ class CTcuNode:
             "skipped_ticks": int(f.skipped_ticks),
             "tick_exec_us": self._hist(self._n.exec_us),
             "tick_wake_late_us": self._hist(self._n.late_us),
+            "stalls": self._stall_report(f),
             "socket_rcvbuf_bytes": self.rcvbuf_bytes,
             "phase": PHASES[f.phase],
             "gear": int(f.gear),

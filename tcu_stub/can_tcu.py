@@ -143,6 +143,7 @@ live status ``dct-hil tcu`` prints once a second.
 """
 
 import argparse
+import collections
 import json
 import math
 import os
@@ -178,6 +179,8 @@ _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
 _HIST_BIN_US = 10.0
 _HIST_BINS = 5000                      # 10 us bins up to 50 ms; later goes in the last one
 _MAX_EPISODES = 1000                   # stale episodes kept in the report (all are counted)
+STALL_PERIODS = 5                      # a wake-up later than this many periods is a stall
+MAX_STALLS = 256                       # the last stalls kept in the report (all are counted)
 #: frames of one plant message rejected in a row that make the TCU stale
 REJECTS_TO_STALE = 3
 _EPISODE_CAUSES = ("missing", "timeout")      # else "rejected" (the kind goes to the logic)
@@ -610,6 +613,9 @@ class CanTcu:
         self.final_safe_frames = None     # True/False once stop() sent (or tried) them
         self._exec_us = _Histogram()
         self._late_us = _Histogram()
+        self.stall_max_s = 0.0            # the latest wake-up of the task (wall clock only)
+        self.stall_count = 0              # ... later than STALL_PERIODS periods; the last kept:
+        self.stall_log = collections.deque(maxlen=MAX_STALLS)
         self.started_at = None
         self.stopped_at = None
         if start:
@@ -811,6 +817,7 @@ class CanTcu:
                     if self._stop.wait(deadline - now):
                         return
                     now = time.monotonic()
+                self._note_wake(now - deadline, now - t0)
                 snap = None
                 if self._pause_s:
                     snap = self._starve()
@@ -832,6 +839,24 @@ class CanTcu:
             self._send_safe()                           # the last commands on the bus are safe
         finally:
             self._ended.set()
+
+    def _note_wake(self, late_s, at_s):
+        """A wake-up late_s after its deadline (before a pause asked for), as the C
+        node's note_wake: the latest kept, one later than STALL_PERIODS periods logged."""
+        if late_s > self.stall_max_s:
+            self.stall_max_s = late_s
+        if late_s > STALL_PERIODS * self.period_wall_s:
+            with self._lock:
+                self.stall_log.append({"index": self.stall_count, "at_s": round(at_s, 4),
+                                       "late_ms": round(late_s * 1e3, 3)})
+                self.stall_count += 1
+
+    def stalls(self, since=0):
+        """(stalls, count) as ``CTcuNode.stalls``: the task's wake-ups later than
+        STALL_PERIODS periods numbered ``since`` and after, of the last MAX_STALLS
+        kept (wall clock only; the bus clock's task waits for frames, not deadlines)."""
+        with self._lock:
+            return [dict(e) for e in self.stall_log if e["index"] >= since], self.stall_count
 
     def _task_bus(self):
         """One tick per accepted DCT_ShaftSpeeds frame (2 ms of plant time each);
@@ -1014,6 +1039,10 @@ class CanTcu:
                 "skipped_ticks": self.skipped_ticks,
                 "tick_exec_us": self._exec_us.summary(),
                 "tick_wake_late_us": self._late_us.summary(),
+                "stalls": None if self.clock == "bus" else {
+                    "longest_ms": round(self.stall_max_s * 1e3, 3),
+                    "over_ms": round(STALL_PERIODS * self.period_wall_s * 1e3, 3),
+                    "count": self.stall_count, "last": list(self.stall_log)},
                 "socket_rcvbuf_bytes": self.rcvbuf_bytes,
                 "phase": self.logic.phase,
                 "gear": self.logic.gear,

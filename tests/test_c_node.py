@@ -323,3 +323,66 @@ def test_frames_queued_before_the_start_are_discarded_and_counted(channel, impl)
     assert rep["drained_at_start"] == 300
     assert speeds["received"] == speeds["accepted"] == 10
     assert speeds["rejected"] == {"bad_length": 0, "bad_crc": 0, "bad_counter": 0}
+
+
+_HELD = """
+import json, sys, time
+impl, channel = sys.argv[1], sys.argv[2]
+if impl == "c":
+    from tcu_stub.c_node import CTcuNode
+    node = CTcuNode.open("virtual", channel, priority=0)
+else:
+    from tcu_stub.can_tcu import CanTcu
+    node = CanTcu.open("virtual", channel)
+with node:
+    node.wait_for(lambda t: t.report()["ticks"] >= 50, timeout=20)
+    node.pause(0.3)                        # asked for: not a stall
+    node.wait_for(lambda t: t.report()["pauses"]["count"] == 1, timeout=20)
+    time.sleep(0.1)
+    print(json.dumps(node.stalls(0)[0]), flush=True)
+    sys.stdin.readline()                   # the test holds this process meanwhile
+    time.sleep(0.1)
+    after, count = node.stalls(0)
+rep = node.report()
+print(json.dumps({"after": after, "count": count, "report": rep["stalls"]}), flush=True)
+"""
+
+
+@pytest.mark.parametrize("impl", ["c", "python"])
+def test_a_hold_of_the_machine_is_a_stall_in_the_log_and_a_pause_asked_for_is_not(channel, impl):
+    """The process held 150 ms (SIGSTOP/SIGCONT: what a host does to a VM): the node's
+    next wake-up is that late, logged with its lateness; the pause of 300 ms asked for
+    before is not a stall. The soak excuses a timeout only with such a stall."""
+    import os
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-c", _HELD, impl, channel], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        before = json.loads(proc.stdout.readline())
+        os.kill(proc.pid, signal.SIGSTOP)
+        time.sleep(0.15)
+        os.kill(proc.pid, signal.SIGCONT)
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        out = json.loads(proc.stdout.readline())
+    finally:
+        proc.stdin.close()
+        assert proc.wait(timeout=WAIT_S) == 0
+    assert not [s for s in before if s["late_ms"] >= 100.0], before       # the pause is not one
+    held = [s for s in out["after"] if s["late_ms"] >= 100.0]
+    assert len(held) == 1 and held[0]["late_ms"] >= 140.0, out["after"]
+    assert [s["index"] for s in out["after"]] == list(range(out["count"]))
+    rep = out["report"]
+    assert rep["count"] == out["count"] and rep["longest_ms"] >= held[0]["late_ms"]
+    assert rep["over_ms"] == pytest.approx(10.0) and rep["last"] == out["after"]
+
+
+def test_the_stall_constants_are_the_python_nodes():
+    from tcu_stub import can_tcu
+    from tcu_stub.c_node import CTcuNode
+
+    lib = CTcuNode(ports=_Rings().ports, start=False)._lib
+    assert lib.TCU_NODE_STALL_PERIODS == can_tcu.STALL_PERIODS
+    assert lib.TCU_NODE_MAX_STALLS == can_tcu.MAX_STALLS

@@ -179,6 +179,65 @@ def test_tcu_timeouts_fail_only_with_the_c_tcu_on_the_loops_rings():
     assert soak._verdict(rows, _args(), {"cycles_completed": 9, "tcu_on_rings_fifo": True})["passed"]
 
 
+def _timeouts(rows, at, name, n, stall_ms=0.0, stall_at=None):
+    """n timeouts of message name counted in the row at index at (and every later row),
+    the TCU thread's longest stall stall_ms logged in the row stall_at (default: at)."""
+    for i, r in enumerate(rows):
+        r.setdefault("tcu_timeouts", 0)
+        r.setdefault("tcu_stall_max_ms", 0.0)
+        for m in ("TCU_ClutchCmd", "TCU_ShiftCmd"):
+            r.setdefault(f"timeouts:{m}", 0)
+        if i >= at:
+            r[f"timeouts:{name}"] += n
+            r["tcu_timeouts"] += n
+    rows[at if stall_at is None else stall_at]["tcu_stall_max_ms"] = max(
+        stall_ms, rows[at if stall_at is None else stall_at]["tcu_stall_max_ms"])
+    return rows
+
+
+LIMITS = {"TCU_ClutchCmd": 16.0, "TCU_ShiftCmd": 88.0}     # (10 - 1) cycles of 2 and 10 ms, less 2 ms
+
+
+def test_a_timeout_is_excused_only_by_a_stall_of_the_tcu_long_enough_to_cause_it():
+    run = {"cycles_completed": 9, "tcu_on_rings_fifo": True, "timeout_limits_ms": LIMITS}
+    # held 120 ms, logged when it woke: in the row of the timeouts or the next
+    for stall_at in (20, 21):
+        rows = _timeouts(_timeouts(_rows(10), 20, "TCU_ClutchCmd", 1), 20, "TCU_ShiftCmd", 1,
+                         stall_ms=120.0, stall_at=stall_at)
+        v = soak._verdict(rows, _args(), run)
+        assert v["passed"], v["findings"]
+        assert any(n.startswith("TCU message timeouts: 2 in 1 row of samples, each with the TCU's "
+                                "thread held 120-120 ms") for n in v["notes"])
+    # held 40 ms: long enough for the 2 ms message, not for the 10 ms one
+    rows = _timeouts(_timeouts(_rows(10), 20, "TCU_ClutchCmd", 1), 20, "TCU_ShiftCmd", 1, stall_ms=40.0)
+    v = soak._verdict(rows, _args(), run)
+    assert not v["passed"]
+    assert any(f.startswith("TCU message timeouts: 2 with the C TCU on the loop's rings and its "
+                            "thread not held") for f in v["findings"])
+    only_fast = _timeouts(_rows(10), 20, "TCU_ClutchCmd", 1, stall_ms=40.0)
+    assert soak._verdict(only_fast, _args(), run)["passed"]
+    # the stall two rows later, or before: not this timeout's
+    for stall_at in (19, 22):
+        rows = _timeouts(_rows(10), 20, "TCU_ClutchCmd", 1, stall_ms=120.0, stall_at=stall_at)
+        assert not soak._verdict(rows, _args(), run)["passed"]
+    # one excused episode and one without a stall: the second fails, counted alone
+    rows = _timeouts(_timeouts(_rows(10), 20, "TCU_ClutchCmd", 1, stall_ms=30.0), 40, "TCU_ClutchCmd", 2)
+    tm = soak.timeout_rows(rows, LIMITS)
+    assert (tm["excused"], tm["unexplained"]) == (1, 2)
+    assert [e["excused"] for e in tm["episodes"]] == [True, False]
+    assert any(f.startswith("TCU message timeouts: 2 with") for f in soak._verdict(rows, _args(), run)["findings"])
+
+
+def test_the_limits_follow_the_loops_timeouts_of_the_received_messages():
+    from rt_loop.embedded import embedded_server
+
+    server = embedded_server("soak-limits", priority=0)
+    limits = soak.timeout_limits_ms(server)
+    # the contract: TCU_ClutchCmd every 2 ms, the others every 10 ms, 10 cycles each
+    assert limits == {"TCU_ClutchCmd": pytest.approx(16.0), "TCU_ShiftCmd": pytest.approx(88.0),
+                      "TCU_EngineCmd": pytest.approx(88.0), "TCU_Status": pytest.approx(88.0)}
+
+
 _MAPPED = """
 import sys
 import numpy as np

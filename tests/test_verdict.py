@@ -329,6 +329,9 @@ def test_tcu_errors_and_notes():
     assert notes == ["TCU task skipped 362 ticks of 2 ms (woke up to 0.9 ms late)",
                      "TCU paused on request once, 0.5 s in all (CanTcu.pause)",
                      "TCU saw plant frames far apart: DCT_ShaftSpeeds 501 ms (cycle 2 ms)"]
+    tcu["stalls"] = {"longest_ms": 731.5, "over_ms": 10.0, "count": 3, "last": []}
+    _, notes = vd.tcu_report_rules(tcu, 8.0)
+    assert notes[0] == "TCU task skipped 362 ticks of 2 ms (its thread woke up to 731.5 ms late, 3 times later than 10 ms)"
 
 
 def test_a_different_shift_sequence_invalidates_and_names_the_difference():

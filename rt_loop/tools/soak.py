@@ -61,7 +61,10 @@ Verdict (exit 1 when failed, one line per finding):
   loaded machine they follow the load (a bridge or the Python TCU is a
   Python thread). Not so for the default set-up with SCHED_FIFO: there the
   C TCU and the loop are both real-time threads with only the rings between
-  them, and a TCU message timeout is a finding. Overruns
+  them, and a TCU message timeout is a finding, unless the TCU thread's
+  stall log shows the machine held it long enough to cause it (a wake-up
+  later than the message's timeout less a cycle, in the row of samples of
+  the timeout or the next: ``timeout_rows``). Overruns
   are reported per hour beside the machine's wake-up floor
   (``rt_loop.floor``) measured before and after, not judged: they are the
   machine's.
@@ -88,7 +91,8 @@ from plant import argtypes
 from rt_loop.console import StopSignals
 
 __all__ = ["SLOPES", "Samples", "SoakError", "heap_figures", "heap_sites", "main",
-           "proc_figures", "run_soak", "rx_stall_s", "second_half_slopes", "slope_per_hour"]
+           "proc_figures", "run_soak", "rx_stall_s", "second_half_slopes", "slope_per_hour",
+           "timeout_limits_ms", "timeout_rows"]
 
 CHANNEL = "dct-hil-soak"
 MANEUVER = "paper-cycle"
@@ -285,6 +289,8 @@ def _sample(server: Any, t0: float, cycles: int, mf4: Path) -> dict:
     row["tx_frames"] = int(tx["frames"])
     row["tx_dropped"] = int(tx["dropped"])
     row["tcu_timeouts"] = sum(int(m.get("timeouts", 0)) for m in c["tcu_messages"].values())
+    for name, m in c["tcu_messages"].items():
+        row[f"timeouts:{name}"] = int(m.get("timeouts", 0))
     row["record_written"] = int(c["record"]["written"])
     row["mf4_mb"] = round(mf4.stat().st_size / 1e6, 3) if mf4.exists() else 0.0
     row["turnaround_max_us"] = round(snap["turnaround_max_us"], 1)
@@ -307,6 +313,48 @@ def rx_stall_s(rows: Any) -> float:
             since = None
         prev = r
     return longest
+
+
+def timeout_limits_ms(server: Any) -> dict[str, float]:
+    """{received message: the shortest stall of the TCU's thread that times it out}.
+    The loop times a message out after timeout_cycles of its cycle times of
+    silence (wall time), draining what the TCU sent meanwhile first; the TCU
+    sends it every cycle, so the silence is at most a cycle plus how late the
+    TCU's thread woke: a wake-up later than timeout - cycle - one TCU period
+    (the two threads' phase) explains the timeout."""
+    from rt_loop import _rt_loop
+    from tcu_stub.logic import PERIOD_S
+
+    names = server.channels.message_names()
+    out = {}
+    for name, (_bus, m) in zip(names, server.channels.messages):
+        if m.direction != "receive":
+            continue
+        cycles = m.timeout_cycles or _rt_loop.lib.RT_TIMEOUT_CYCLES
+        out[name] = (cycles - 1) * float(m.cycle_ms) - PERIOD_S * 1e3
+    return out
+
+
+def timeout_rows(rows: Any, limits: dict[str, float]) -> dict:
+    """The TCU message timeouts of the run, row by row: excused when the TCU's
+    thread woke late enough to cause them (``limits``) in that row or the next
+    (a stall is logged when the thread wakes, the timeout counted before), else
+    unexplained. {"excused", "unexplained": timeouts; "episodes": [{t_s, timeouts:
+    {message: n}, stall_ms, excused}]}."""
+    episodes, excused, unexplained = [], 0, 0
+    prev: dict = {}
+    for i, r in enumerate(rows):
+        new = {k.split(":", 1)[1]: r[k] - prev.get(k, 0) for k in r if k.startswith("timeouts:")}
+        new = {k: n for k, n in new.items() if n > 0}
+        prev = r
+        if not new:
+            continue
+        stall = max(rows[j].get("tcu_stall_max_ms", 0.0) for j in (i, i + 1) if j < len(rows))
+        ok = all(stall >= limits.get(name, math.inf) for name in new)
+        n = sum(new.values())
+        excused, unexplained = excused + (n if ok else 0), unexplained + (0 if ok else n)
+        episodes.append({"t_s": r["t_s"], "timeouts": new, "stall_ms": stall, "excused": ok})
+    return {"excused": excused, "unexplained": unexplained, "episodes": episodes}
 
 
 def second_half_slopes(rows: Any) -> dict:
@@ -347,9 +395,19 @@ def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
             continue
         if key == "tcu_timeouts" and run.get("tcu_on_rings_fifo"):
             # the C TCU on the loop's rings, both SCHED_FIFO: no Python and no bus between
-            # them, so a timeout is not the machine's load but a fault of the wiring
-            findings.append(f"TCU message timeouts: {last[key]} with the C TCU on the loop's rings "
-                            "(both SCHED_FIFO, nothing between them: there should be none)")
+            # them, so a timeout is a fault of the wiring unless the machine held the TCU's
+            # thread long enough to cause it (its stall log, row by row)
+            tm = timeout_rows(rows, run.get("timeout_limits_ms") or {})
+            unexplained = last[key] - tm["excused"]    # rows without a message's column too
+            if unexplained:
+                findings.append(f"TCU message timeouts: {unexplained} with the C TCU on the "
+                                "loop's rings and its thread not held long enough to explain them "
+                                "(both SCHED_FIFO, nothing between them: there should be none)")
+            if tm["excused"]:
+                held = [e["stall_ms"] for e in tm["episodes"] if e["excused"]]
+                notes.append(f"TCU message timeouts: {tm['excused']} in {len(held)} "
+                             f"{'row' if len(held) == 1 else 'rows'} of samples, each with the "
+                             f"TCU's thread held {min(held):.0f}-{max(held):.0f} ms by the machine")
         else:
             notes.append(f"{what}: {last[key]}")
     if run.get("error"):
@@ -502,6 +560,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
                             f"{' '.join(str(e).split())}") from None
         tcu = _open_tcu(args.tcu_impl, priority, None if args.bridged else server)
         run["tcu_on_rings_fifo"] = args.tcu_impl == "c" and not args.bridged and priority > 0
+        run["timeout_limits_ms"] = timeout_limits_ms(server)
         if args.record:
             server.start_recording(paths["mf4"], args.record_every)
         if args.tracemalloc and not tracemalloc.is_tracing():
@@ -527,10 +586,15 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
         f = open(paths["csv"], "w", newline="", encoding="utf-8")
         writer = None
 
+        stalls_seen = 0
+
         def sample():
             """One row: taken, kept, written to the CSV (its header first)."""
-            nonlocal writer
+            nonlocal writer, stalls_seen
             row = _sample(server, t0, cycles, paths["mf4"])
+            new, stalls_seen = tcu.stalls(stalls_seen)
+            row["tcu_stalls"] = stalls_seen      # the TCU thread's wake-ups a few periods late
+            row["tcu_stall_max_ms"] = max((e["late_ms"] for e in new), default=0.0)
             rows.append(row)
             if writer is None:
                 writer = csv.DictWriter(f, fieldnames=list(row))

@@ -9,7 +9,10 @@
  * and the figures published under a sequence counter. Late periods skip the
  * missed deadlines and TCU time advances by the periods that really passed,
  * as in CanTcu._task; the bus clock ticks per frame of its message, as
- * CanTcu._task_bus.
+ * CanTcu._task_bus. Every wake-up's lateness is taken before anything else
+ * (note_wake): a wake-up later than a few periods is a stall, logged, so a
+ * timeout on the other side can be told apart from the machine holding the
+ * thread.
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -62,6 +65,7 @@ void tcu_node_reset(tcu_node *n)
     }
     memset(&n->exec_us, 0, sizeof n->exec_us);
     memset(&n->late_us, 0, sizeof n->late_us);
+    memset(n->stall_log, 0, sizeof n->stall_log);
     n->open_episode = -1;
     n->stop = 0;
     n->pause_ns = 0;
@@ -433,6 +437,25 @@ static int sleep_until(tcu_node *n, const struct timespec *t)
     }
 }
 
+/* a wake-up late_s after its time (read before a pause asked for): the longest
+   kept, one later than TCU_NODE_STALL_PERIODS periods logged. A reader of the
+   log takes n_stalls from the figures, then the entries below it whose index
+   still matches (the ring overwrites only entries TCU_NODE_MAX_STALLS older) */
+static void note_wake(tcu_node *n, double late_s, double now)
+{
+    tcu_node_figures *g = &n->fig;
+    if (late_s > g->stall_max_s)
+        g->stall_max_s = late_s;
+    if (late_s <= TCU_NODE_STALL_PERIODS * 1e-9 * (double)n->period_ns)
+        return;
+    tcu_node_stall *e = &n->stall_log[g->n_stalls % TCU_NODE_MAX_STALLS];
+    e->index = g->n_stalls;
+    e->at_s = now - n->t0;
+    e->late_s = late_s;
+    __atomic_thread_fence(__ATOMIC_RELEASE);
+    g->n_stalls++;
+}
+
 /* a starvation asked for: the whole node waits, frames stay where they are */
 static int starve(tcu_node *n)
 {
@@ -475,6 +498,8 @@ static void run_wall(tcu_node *n)
         add_ns(&deadline, k * n->period_ns);
         if (sleep_until(n, &deadline))
             break;
+        double woke = tcu_node_now();
+        note_wake(n, woke - ts_s(&deadline), woke);
         int starved = starve(n);
         double now = tcu_node_now();
         double late = now - ts_s(&deadline);
@@ -509,6 +534,8 @@ static void run_bus(tcu_node *n)
         add_ns(&until, poll_ns);
         if (sleep_until(n, &until))
             break;
+        double woke = tcu_node_now();
+        note_wake(n, woke - ts_s(&until), woke);
         int starved = starve(n);
         double now = tcu_node_now();
         if (!starved)

@@ -44,6 +44,8 @@
 #define TCU_NODE_MAX_SHIFTS 4096      /* shifts kept */
 #define TCU_NODE_MAX_EVENTS 1000      /* trouble code events kept */
 #define TCU_NODE_HIST_BINS 5000       /* 10 us bins up to 50 ms */
+#define TCU_NODE_MAX_STALLS 256       /* the last stalls kept (a ring; all are counted) */
+#define TCU_NODE_STALL_PERIODS 5      /* a wake-up later than this many periods is a stall */
 #define TCU_NODE_BATCH 64             /* frames taken from a port per call */
 #define TCU_RING_SIZE 4096            /* frames of a node's own ring, a power of two */
 
@@ -187,7 +189,19 @@ typedef struct {
     double paused_s;
     int32_t running;                  /* the thread runs its periods */
     int32_t final_safe_frames;        /* -1 not sent yet, 0 a send failed, 1 sent */
+    double stall_max_s;               /* the latest any wake-up of the thread came (the
+                                         scheduler's or the machine's hold, before missed
+                                         periods are skipped; not a pause asked for) */
+    int64_t n_stalls;                 /* wake-ups later than TCU_NODE_STALL_PERIODS periods;
+                                         the last TCU_NODE_MAX_STALLS in tcu_node.stall_log */
 } tcu_node_figures;
+
+/* a wake-up of the node's thread later than TCU_NODE_STALL_PERIODS periods */
+typedef struct {
+    int64_t index;                    /* its number from 0: stall_log[index % TCU_NODE_MAX_STALLS] */
+    double at_s;                      /* node time when the thread woke */
+    double late_s;                    /* how late it woke */
+} tcu_node_stall;
 
 typedef struct {
     double start_s;
@@ -256,6 +270,7 @@ typedef struct {
     tcu_node_episode episodes[TCU_NODE_MAX_EPISODES];
     tcu_shift shift_log[TCU_NODE_MAX_SHIFTS];
     tcu_diag_event event_log[TCU_NODE_MAX_EVENTS];
+    tcu_node_stall stall_log[TCU_NODE_MAX_STALLS];  /* a ring: entry written, then n_stalls counted */
     tcu_node_hist exec_us;
     tcu_node_hist late_us;
     int32_t open_episode;             /* index of the episode going on, -1: none */
