@@ -72,8 +72,13 @@ def test_a_soak_of_one_paper_cycle_passes_and_writes_csv_json_plot_and_mf4(tmp_p
     rows = list(csv.DictReader((out / "soak.csv").open()))
     assert len(rows) >= 12
     for key in ("rss_mb", "fds", "threads", "ring_rx_fill", "ring_tx_fill", "ring_log_fill",
-                "ring_rec_fill", "overruns", "rx_accepted", "record_written", "mf4_mb"):
+                "ring_rec_fill", "overruns", "rx_accepted", "record_written", "mf4_mb",
+                "tcu_stalls", "tcu_stall_max_ms", "timeouts:TCU_ClutchCmd"):
         assert key in rows[0], key
+    # resident memory told apart: anonymous (malloc, Python's arenas) + mapped files
+    r = rows[-1]
+    assert float(r["rss_anon_mb"]) > 10 and float(r["rss_file_mb"]) > 1
+    assert float(r["rss_anon_mb"]) + float(r["rss_file_mb"]) <= float(r["rss_mb"]) + 0.01
     assert (out / "soak.png").stat().st_size > 10_000
     with MDF(str(out / "soak.mf4")) as mdf:
         t = mdf.get("vehicle_speed_kmh").timestamps

@@ -102,9 +102,9 @@ FD_TOLERANCE = 2
 THREAD_TOLERANCE = 2
 _TCU_START_S = 30.0
 #: the figures whose slope over the second half the soak reports: (row key, unit)
-SLOPES = (("rss_mb", "MB/h"), ("py_heap_mb", "MB/h"), ("malloc_used_mb", "MB/h"),
-          ("malloc_free_mb", "MB/h"), ("malloc_mmap_mb", "MB/h"), ("fds", "/h"),
-          ("threads", "/h"))
+SLOPES = (("rss_mb", "MB/h"), ("rss_anon_mb", "MB/h"), ("rss_file_mb", "MB/h"),
+          ("py_heap_mb", "MB/h"), ("malloc_used_mb", "MB/h"), ("malloc_free_mb", "MB/h"),
+          ("malloc_mmap_mb", "MB/h"), ("fds", "/h"), ("threads", "/h"))
 #: allocation sites reported with their growth between the middle and the end
 HEAP_SITES = 12
 
@@ -114,12 +114,14 @@ class SoakError(RuntimeError):
 
 
 def proc_figures(pid: int | str = "self") -> dict:
-    """VmRSS and VmHWM in kB, threads and open file descriptors of a process."""
+    """VmRSS and VmHWM in kB, of it RssAnon (heaps, stacks, anonymous maps: what
+    malloc and Python's own small-object arenas hold) and RssFile (mapped files:
+    the extensions and libraries), threads and open file descriptors of a process."""
     out: dict[str, Any] = {}
     with open(f"/proc/{pid}/status", encoding="ascii") as f:
         for line in f:
             key, _, value = line.partition(":")
-            if key in ("VmRSS", "VmHWM"):
+            if key in ("VmRSS", "VmHWM", "RssAnon", "RssFile"):
                 out[key.lower() + "_kb"] = int(value.split()[0])
             elif key == "Threads":
                 out["threads"] = int(value)
@@ -268,6 +270,8 @@ def _sample(server: Any, t0: float, cycles: int, mf4: Path) -> dict:
     c = snap["counts"]
     row: dict[str, Any] = {"t_s": round(time.monotonic() - t0, 3), **proc_figures()}
     row["rss_mb"] = round(row["vmrss_kb"] / 1024.0, 3)
+    row["rss_anon_mb"] = round(row.get("rssanon_kb", 0) / 1024.0, 3)
+    row["rss_file_mb"] = round(row.get("rssfile_kb", 0) / 1024.0, 3)
     row.update(heap_figures())
     n = len(server.transports)
     row["ring_rx_fill"] = max((_fill(loop.rx[i]) for i in range(n)), default=0)
