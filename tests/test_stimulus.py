@@ -163,7 +163,9 @@ _BAD = [
     ("subset2.csv", "time_s,road_grade_pct\n0,0\n", ["gear"], ["'gear'", "cannot be stimulated"]),
     ("missing.csv", None, None, ["cannot read it", "No such file"]),
     ("stimulus.json", "{}", None, ["unknown format", "'.json'"]),
-    ("garbage.mf4", "this is not an MDF file at all" * 10, None, ["not a readable MDF file"]),
+    ("garbage.mf4", "this is not an MDF file at all" * 10, None, ["not an MDF file", "b'this is '"]),
+    ("table.mf4", "time_s,road_grade_pct\n0,0\n", None, ["not an MDF file", "b'time_s,r'"]),
+    ("short.mf4", "MDF     4.10    ", None, ["not a readable MDF file", "16 bytes"]),
     ("empty.mf4", "", None, ["empty"]),
     ("missing.mf4", None, None, ["cannot read it", "no such file"]),
 ]
@@ -188,6 +190,26 @@ def _refused_in_one_line(path, channels, words):
     assert "\n" not in text and text.startswith(f"stimulus {path}: ")
     for word in words:
         assert word in text, (word, text)
+
+
+def test_a_file_that_is_no_mdf_file_is_refused_before_a_reader_is_started(tmp_path, monkeypatch):
+    """The identification block is read in the process: a table renamed .mf4 or a cut
+    file is refused at once, no reader process started for it."""
+    requires.module("asammdf")
+    import subprocess
+
+    started = []
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: started.append(a) or 1 / 0)
+    (tmp_path / "t.mf4").write_bytes(b"\x00" * 4096)
+    _refused_in_one_line(tmp_path / "t.mf4", None, ["not an MDF file"])
+    (tmp_path / "u.mf4").write_bytes(b"UnFinMF 4.10")
+    _refused_in_one_line(tmp_path / "u.mf4", None, ["12 bytes", "identification block alone is 64"])
+    assert not started
+    # an unfinalized file's identifier is taken: its reader is started
+    (tmp_path / "v.mf4").write_bytes(b"UnFinMF 4.10    " + b"\x00" * 100)
+    with pytest.raises(ZeroDivisionError):
+        load_stimulus(tmp_path / "v.mf4", WRITABLE)
+    assert len(started) == 1
 
 
 def test_bad_mf4_channels_are_one_line_too(tmp_path):

@@ -268,8 +268,17 @@ def _load_mdf(path: str, writable: dict, channels: list[str] | None) -> dict:
     if not os.path.isfile(path):
         why = "no such file" if not os.path.exists(path) else "not a file"
         raise StimulusError(f"stimulus {path}: cannot read it: {why}")
-    if os.path.getsize(path) == 0:
+    size = os.path.getsize(path)
+    if size == 0:
         raise StimulusError(f"stimulus {path}: the file is empty")
+    with open(path, "rb") as f:       # the identification block, before a reader is started
+        head = f.read(_MDF_ID_BYTES)
+    if head[:8] not in _MDF_IDS:
+        raise StimulusError(f"stimulus {path}: not an MDF file (it begins with {head[:8]!r}; "
+                            "an MDF file with b'MDF     ')")
+    if size < _MDF_ID_BYTES:
+        raise StimulusError(f"stimulus {path}: not a readable MDF file ({size} bytes; its "
+                            f"identification block alone is {_MDF_ID_BYTES})")
     import json
     import subprocess
     import sys
@@ -297,6 +306,8 @@ def _load_mdf(path: str, writable: dict, channels: list[str] | None) -> dict:
 
 
 _CHILD_REFUSED = 3
+_MDF_ID_BYTES = 64                               # the identification block of MDF 3 and 4
+_MDF_IDS = (b"MDF     ", b"UnFinMF ")           # its file identifier (finalized or not)
 
 
 def _read_mdf_child() -> None:
