@@ -265,20 +265,7 @@ def _load_mdf(path: str, writable: dict, channels: list[str] | None) -> dict:
     if importlib.util.find_spec("asammdf") is None:
         raise StimulusError(f"stimulus {path}: MDF files need the asammdf package "
                             "(pip install asammdf)")
-    if not os.path.isfile(path):
-        why = "no such file" if not os.path.exists(path) else "not a file"
-        raise StimulusError(f"stimulus {path}: cannot read it: {why}")
-    size = os.path.getsize(path)
-    if size == 0:
-        raise StimulusError(f"stimulus {path}: the file is empty")
-    with open(path, "rb") as f:       # the identification block, before a reader is started
-        head = f.read(_MDF_ID_BYTES)
-    if head[:8] not in _MDF_IDS:
-        raise StimulusError(f"stimulus {path}: not an MDF file (it begins with {head[:8]!r}; "
-                            "an MDF file with b'MDF     ')")
-    if size < _MDF_ID_BYTES:
-        raise StimulusError(f"stimulus {path}: not a readable MDF file ({size} bytes; its "
-                            f"identification block alone is {_MDF_ID_BYTES})")
+    check_mdf_identification(path)
     import json
     import subprocess
     import sys
@@ -303,6 +290,26 @@ def _load_mdf(path: str, writable: dict, channels: list[str] | None) -> dict:
         with np.load(out) as z:
             names = [str(n) for n in z["names"]]
             return {n: (z[f"t{k}"].copy(), z[f"v{k}"].copy()) for k, n in enumerate(names)}
+
+
+def check_mdf_identification(path: str | os.PathLike) -> None:
+    """Refuses in one line (StimulusError) a path that is no file, an empty one, or
+    one that does not begin with an MDF identification block: read in the process,
+    before any reader is started for it."""
+    if not os.path.isfile(path):
+        why = "no such file" if not os.path.exists(path) else "not a file"
+        raise StimulusError(f"stimulus {path}: cannot read it: {why}")
+    size = os.path.getsize(path)
+    if size == 0:
+        raise StimulusError(f"stimulus {path}: the file is empty")
+    with open(path, "rb") as f:
+        head = f.read(_MDF_ID_BYTES)
+    if head[:8] not in _MDF_IDS:
+        raise StimulusError(f"stimulus {path}: not an MDF file (it begins with {head[:8]!r}; "
+                            "an MDF file with b'MDF     ')")
+    if size < _MDF_ID_BYTES:
+        raise StimulusError(f"stimulus {path}: not a readable MDF file ({size} bytes; its "
+                            f"identification block alone is {_MDF_ID_BYTES})")
 
 
 _CHILD_REFUSED = 3
