@@ -17,6 +17,8 @@ import errno
 import os
 import socket
 import struct
+import subprocess
+import sys
 import threading
 import time
 from collections import Counter, defaultdict
@@ -507,6 +509,65 @@ def test_timeout_falls_back_to_safe_values_and_recovers():
                 and command(s, "solenoid_current1_a") == pytest.approx(0.6, abs=1e-4)
                 ) or s.msgs[CLUTCH].timeouts == 2
         loop.wait(lambda s: s.msgs[CLUTCH].timeouts == 2, "the second timeout")
+
+
+_HOG = """
+import os, sys, time
+os.sched_setaffinity(0, {int(sys.argv[1])})
+os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+end = time.monotonic() + float(sys.argv[2])
+while time.monotonic() < end:
+    pass
+"""
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or len(os.sched_getaffinity(0)) < 2,
+                    reason="holds the loop's CPU with a SCHED_FIFO process: root and 2 CPUs")
+def test_a_loop_held_from_its_cpu_does_not_time_out_a_tcu_that_kept_sending():
+    """The loop's thread held 80 ms, three times (a real-time process on its CPU, as a
+    host holds a vCPU) while the TCU goes on sending every cycle: the late tick drains what
+    came meanwhile, and its receive clock is the time of the drain, so the ticks it
+    skips do not make those frames look 80 ms old: no timeout."""
+    cpus = sorted(os.sched_getaffinity(0))
+    loop_cpu, own_cpu = cpus[0], cpus[1]
+    plan = {CLUTCH_CMD: (1, {"SolenoidCurrent1": 0.5}),             # every 2 ms tick
+            ENGINE_CMD: (5, {"EngineTorqueRequest": 20.0, "TorqueRequestActive": 1}),
+            TCU_MESSAGES["TCU_ShiftCmd"]: (5, {})}
+    counters = dict.fromkeys(plan, 0)
+    saved = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {own_cpu})          # this thread sends, beside the loop's CPU
+    loop = Loop()
+    loop.c.cfg.cpu = loop_cpu
+    try:
+        with loop:
+            k, t_next = 0, time.monotonic()
+
+            def send_until(t_end):
+                nonlocal k, t_next
+                while time.monotonic() < t_end:
+                    frames = []
+                    for msg, (every, sig) in plan.items():
+                        if k % every == 0:
+                            frames.append(tcu_frame(msg, counters[msg] % 16, **sig))
+                            counters[msg] += 1
+                    assert loop.push(frames) == len(frames)
+                    k += 1
+                    t_next += 0.002
+                    time.sleep(max(0.0, t_next - time.monotonic()))
+
+            send_until(time.monotonic() + 0.3)
+            before = loop.stats()
+            assert [before.msgs[g].timed_out for g in (CLUTCH, ENGINE, SHIFT)] == [0, 0, 0]
+            for _ in range(3):
+                hog = subprocess.Popen([sys.executable, "-c", _HOG, str(loop_cpu), "0.08"])
+                send_until(time.monotonic() + 0.4)          # the hold is in here
+                assert hog.wait(WAIT_S) == 0
+            after = loop.stats()
+    finally:
+        os.sched_setaffinity(0, saved)
+    assert after.skipped_ticks - before.skipped_ticks >= 300, "the loop was not held"
+    assert after.rx_bad_counter == 0 and after.rx_accepted > before.rx_accepted
+    assert [after.msgs[g].timeouts - before.msgs[g].timeouts for g in (CLUTCH, ENGINE, SHIFT)] == [0, 0, 0]
 
 
 # ----------------------------------------------------------------- overruns

@@ -12,7 +12,8 @@
  *     (checksum, counter), count the outcome per channel and message; an
  *     accepted frame is decoded (ct_decode) and each signal with a target
  *     sets its command value (scaled or looked up, limited), stamps
- *     last_rx_tick = n and ends a timeout of its message
+ *     last_rx_tick = the deadline index of the drain's time (n, or more
+ *     in a tick woken late) and ends a timeout of its message
  *   timeouts                         a message not accepted for more than
  *                                    its timeout_cycles (RT_TIMEOUT_CYCLES by
  *                                    default) cycle times is timed out: its
@@ -42,8 +43,9 @@
  *     deadline delays the due frames by one tick instead of losing them.
  *   - the receive timeouts follow the deadline index n (wall time): a TCU
  *     silent for 10 of its cycle times is timed out however many ticks the
- *     loop skipped. The frames queued meanwhile are drained first, so a late
- *     loop does not time out a TCU that kept sending.
+ *     loop skipped. The frames queued meanwhile are drained first and stamped
+ *     with the index of the time they were drained at, so a late loop does
+ *     not time out a TCU that kept sending.
  *
  * Time scale: cfg.step_s is the simulated time of one tick (the plant step),
  * cfg.period_s the wall-clock time between deadlines. Equal, the run is real
@@ -368,17 +370,25 @@ int rt_loop_run(rt_loop *l)
         if (stop_requested(l))
             break;
         r.time_s = (double)(deadline - r.t0_ns) / 1e9;
+        /* the receive clock: the deadline index of now, not of this tick. A tick
+         * woken late (the thread held) drains what the TCU sent meanwhile; stamped
+         * with its own n they would look as old as the lateness once the ticks
+         * missed are skipped, and the next tick would time out a TCU that kept
+         * sending */
+        uint64_t rx_n = (uint64_t)((start - r.t0_ns) / r.period_ns);
+        if (rx_n < n)
+            rx_n = n;
 
         int err = 0;
         for (int c = 0; c < l->n_channels && !err; c++)
-            err = rt_rx_drain(&r, c, n);
+            err = rt_rx_drain(&r, c, rx_n);
         if (err) {
             state = RT_STATE_ERROR;
             error = err;
             final_sim_state = -1.0;
             break;
         }
-        rt_rx_timeouts(&r, n);
+        rt_rx_timeouts(&r, rx_n);
         /* faults: nothing set and no command queued costs two loads */
         int fc = r.f.n_used || atomic_load_explicit(A32(&l->fault_cmds.head), ACQUIRE) !=
                                    atomic_load_explicit(A32(&l->fault_cmds.tail), RELAXED)
