@@ -101,9 +101,10 @@ def test_bad_options_are_refused():
 def test_the_soaks_rows_are_kept_in_columns_of_machine_numbers():
     import tracemalloc
 
-    rows = soak.Samples()
+    rows = soak.Samples(10_001)          # the run's rows: every column allocated once
     row = {"t_s": 0.0, "rss_mb": 400.5, "fds": 9, "threads": 11, "rx_frames": 10**9}
     rows.append(row)
+    where = {k: c.buffer_info()[0] for k, c in rows._cols.items()}
     tracemalloc.start()
     try:
         before = tracemalloc.get_traced_memory()[0]
@@ -112,10 +113,18 @@ def test_the_soaks_rows_are_kept_in_columns_of_machine_numbers():
         grew = tracemalloc.get_traced_memory()[0] - before
     finally:
         tracemalloc.stop()
-    # 5 figures of 8 bytes a row (the arrays over-allocate by an eighth): a dict per row
-    # would hold some 500 bytes
-    assert grew < 10_000 * 5 * 8 * 1.5
+    # nothing allocated row by row (a dict per row would hold some 500 bytes), and no
+    # column moved: no reallocation leaves a hole in malloc's heap
+    assert grew < 2_000
+    assert {k: c.buffer_info()[0] for k, c in rows._cols.items()} == where
     assert len(rows) == 10_001 and bool(rows)
+    with pytest.raises(IndexError):
+        rows[10_001]
+    more = soak.Samples(4)               # past its capacity: doubled, every value kept
+    for i in range(10):
+        more.append({**row, "t_s": float(i)})
+    assert len(more) == 10 and more.column("t_s") == [float(i) for i in range(10)]
+    assert more[-1]["t_s"] == 9.0 and more[0]["fds"] == 9
     assert rows[-1] == {"t_s": 100_000.0, "rss_mb": 400.5, "fds": 9, "threads": 11,
                         "rx_frames": 10**9 + 10_000}
     assert type(rows[0]["fds"]) is int and type(rows[0]["rss_mb"]) is float

@@ -223,28 +223,44 @@ class Samples:
     Python objects per row: the soak's bookkeeping must not be what grows). Reads as
     a list of dicts (``rows[i]``, ``rows[-1]``, iteration, ``len``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, capacity: int = 1024) -> None:
+        # every column allocated once for ``capacity`` rows (the run's, when known):
+        # columns grown row by row were reallocated past each other, and their old
+        # blocks left holes in malloc's heap that grew with the run (3-8 kB free
+        # chunks by the hundred at the end of two hours)
+        self._capacity = max(1, int(capacity))
+        self._n = 0
         self._cols: dict[str, array.array] = {}
 
     def append(self, row: dict) -> None:
         if not self._cols:
-            self._cols = {k: array.array("q" if isinstance(v, int) else "d") for k, v in row.items()}
+            self._cols = {k: array.array("q" if isinstance(v, int) else "d", bytes(8 * self._capacity))
+                          for k, v in row.items()}
         elif row.keys() != self._cols.keys():
             raise ValueError("a row with other keys than the first")
+        if self._n == self._capacity:           # beyond the run's length: doubled, once in a while
+            for c in self._cols.values():
+                c.extend(array.array(c.typecode, bytes(8 * self._capacity)))
+            self._capacity *= 2
         for k, v in row.items():
-            self._cols[k].append(v)
+            self._cols[k][self._n] = v
+        self._n += 1
 
     def __len__(self) -> int:
-        return len(next(iter(self._cols.values()))) if self._cols else 0
+        return self._n
 
     def __getitem__(self, i: int) -> dict:
+        if i < 0:
+            i += self._n
+        if not 0 <= i < self._n:
+            raise IndexError("row index out of range")
         return {k: c[i] for k, c in self._cols.items()}
 
     def __iter__(self):
         return (self[i] for i in range(len(self)))
 
     def column(self, key: str) -> list:
-        return list(self._cols[key])
+        return list(self._cols[key][:self._n])
 
 
 def slope_per_hour(t_s: list[float], y: list[float]) -> float | None:
@@ -361,30 +377,45 @@ def timeout_rows(rows: Any, limits: dict[str, float]) -> dict:
     return {"excused": excused, "unexplained": unexplained, "episodes": episodes}
 
 
+def _column(rows: Any, key: str) -> list:
+    """One figure of every row (``Samples`` reads it from its column: no row's dict)."""
+    return rows.column(key) if hasattr(rows, "column") else [r[key] for r in rows]
+
+
+def _first_at(t: list[float], t_from: float) -> int:
+    """The index of the first row at or after ``t_from`` (len(t): none)."""
+    return next((i for i, x in enumerate(t) if x >= t_from), len(t))
+
+
 def second_half_slopes(rows: Any) -> dict:
     """{key: slope per hour over the second half} of each of ``SLOPES`` the rows hold."""
-    t_end = rows[-1]["t_s"] if len(rows) else 0.0
-    half = [r for r in rows if r["t_s"] >= t_end / 2.0]
-    t = [r["t_s"] for r in half]
-    return {key: slope_per_hour(t, [r[key] for r in half])
-            for key, _unit in SLOPES if half and key in half[0]}
+    if not len(rows):
+        return {}
+    t = _column(rows, "t_s")
+    i0 = _first_at(t, t[-1] / 2.0)
+    keys = rows[0].keys()
+    return {key: slope_per_hour(t[i0:], _column(rows, key)[i0:]) for key, _unit in SLOPES if key in keys}
 
 
 def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
     findings: list[str] = []
-    t = [r["t_s"] for r in rows]
-    half = [r for r in rows if r["t_s"] >= t[-1] / 2.0] if rows else []
-    slopes = second_half_slopes(rows) if rows else {}
+    # figures from the columns, not a list of the rows' dicts: the verdict is written every
+    # minute, and lists of them grew Python's heap with the run
+    t = _column(rows, "t_s")
+    rss = _column(rows, "rss_mb") if len(rows) else []
+    i_half = _first_at(t, t[-1] / 2.0) if t else 0
+    slopes = second_half_slopes(rows) if len(rows) else {}
     rss_slope = slopes.get("rss_mb")
-    growth = (half[-1]["rss_mb"] - half[0]["rss_mb"]) if len(half) >= 2 else 0.0
+    growth = (rss[-1] - rss[i_half]) if len(rss) - i_half >= 2 else 0.0
     if rss_slope is not None and rss_slope > args.rss_slope_mb_h and growth > args.rss_noise_mb:
         findings.append(f"memory grows: RSS slope {rss_slope:.2f} MB/h over the second half "
                         f"(limit {args.rss_slope_mb_h:g} MB/h), {growth:.1f} MB in it")
-    after = [r for r in rows if r["t_s"] >= min(60.0, t[-1] / 2.0)] if rows else []
+    i_after = _first_at(t, min(60.0, t[-1] / 2.0)) if t else 0
     for key, tol, what in (("fds", FD_TOLERANCE, "open file descriptors"),
                            ("threads", THREAD_TOLERANCE, "threads")):
-        if len(after) >= 2:
-            base, top = after[0][key], max(r[key] for r in after)
+        if len(t) - i_after >= 2:
+            after = _column(rows, key)[i_after:]
+            base, top = after[0], max(after)
             if top > base + tol:
                 findings.append(f"{what} grow: {base} after the first minute, up to {top} "
                                 f"(tolerance {tol})")
@@ -538,7 +569,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
     run: dict[str, Any] = {"cycles_completed": 0, "cycles_incomplete": 0,
                            "recording": args.record, "tracemalloc_frames": args.tracemalloc}
     floor_before = floor_after = None
-    rows = Samples()
+    rows = Samples(int(duration / args.sample_s) + 16)
     heap_mid: dict | None = None
     server = tcu = None
     t0 = time.monotonic()
@@ -723,13 +754,18 @@ def _write_json(path: Path, args, rows, run, floor_before, floor_after, partial)
         "floor_late_per_hour": (sum(f["late_per_hour"] for f in floors) / len(floors)
                                 if floors else None),
         "load_average": os.getloadavg(),
-        "samples": list(rows),
     }
     tmp = path.with_suffix(".json.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:    # written as encoded: no string of it all
-        json.dump(doc, f, indent=1, default=float)
-        f.write("\n")
+    with open(tmp, "w", encoding="utf-8") as f:
+        # the samples one row at a time, as they are encoded: every minute, a list of
+        # every row's dict (or the text of them all) grew Python's heap with the run
+        head = json.dumps(doc, indent=1, default=float)
+        f.write(head[:-2] + ',\n "samples": [')
+        for i, row in enumerate(rows):
+            f.write(("\n  " if i == 0 else ",\n  ") + json.dumps(row, default=float))
+        f.write("\n ]\n}\n")
     os.replace(tmp, path)
+    doc["samples"] = rows
     return doc
 
 
