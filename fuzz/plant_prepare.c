@@ -17,7 +17,7 @@
  * step. The target steps only parameters within STEP_BUDGET hydraulic
  * sub-steps per step (the data's ranges allow 64 x 64, the car runs 1 x 2);
  * beyond it the checks still run. Without the budget the campaign spent
- * most of its time in the valve's loop (4,300 inputs/s instead of ~40,000).
+ * most of its time in the valve's loop (4,300 inputs/s against 61,600 with it, one worker).
  */
 #include <stdlib.h>
 
