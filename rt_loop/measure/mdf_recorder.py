@@ -49,7 +49,11 @@ hold; the other order, blocks beyond the count, asammdf refuses to read).
 Nothing is kept in memory beyond the records of one flush, in a buffer per
 group that is kept and reused (``_Pending``: no batch allocates). The writes are
 not fsync'ed per block (only at ``stop()``): after a power cut the file
-system may not have kept their order. ``stop()`` writes what is left in the
+system may not have kept their order. A copy taken while the recorder runs
+(``cp``) is read front to back over time: one that spans a flush can hold
+the count from before it and a link from after it, which asammdf refuses;
+copy between flushes (a flush takes a few milliseconds every ``flush_s``;
+``blocks`` counts the finished ones) and check that ``blocks`` did not move. ``stop()`` writes what is left in the
 rings and closes the file: there is no finalisation step to miss.
 
 Size, measured on the demo's paper-cycle (65 s, 2 ms samples of 69
@@ -258,7 +262,7 @@ class _Mf4File:
             if g.dg_addr == 0 or self._read_u64(g.cycles_at) != 0:
                 raise RuntimeError(f"unexpected metadata of group {g.name}")
         self.bytes = f.tell()
-        self.flushes = 0              # flushes that appended blocks
+        self.flushes = 0              # flushes that appended blocks, each counted when done
 
     def _read_u64(self, at: int) -> int:
         self._f.flush()
@@ -296,8 +300,7 @@ class _Mf4File:
     def flush(self) -> None:
         """Appends the pending records of every group and links them in."""
         v4b, v4c = self._v4b, self._v4c
-        if any(g.pending.nbytes for g in self.groups):
-            self.flushes += 1
+        appends = any(g.pending.nbytes for g in self.groups)
         for g in self.groups:
             if not g.pending.nbytes:
                 continue
@@ -332,6 +335,8 @@ class _Mf4File:
             g.stream_bytes += size
         self._f.flush()
         self.bytes = self._f.seek(0, os.SEEK_END)
+        if appends:
+            self.flushes += 1         # counted once its blocks are linked in
 
     def close(self, sync: bool = True) -> None:
         try:
@@ -624,7 +629,9 @@ class MdfRecorder(RingDrain):
 
     @property
     def blocks(self) -> int:
-        """Flushes that appended data blocks to the file so far."""
+        """Flushes that appended data blocks to the file and linked them in so far
+        (a flush is counted when it is done: a reader that sees the count grow
+        finds the file complete up to that flush)."""
         return self._file.flushes if self._file is not None else 0
 
     @property
