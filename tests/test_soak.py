@@ -243,6 +243,34 @@ def test_a_timeout_is_excused_only_by_a_stall_of_the_tcu_long_enough_to_cause_it
     assert any(f.startswith("TCU message timeouts: 2 with") for f in soak._verdict(rows, _args(), run)["findings"])
 
 
+def test_an_excused_timeout_names_the_hosts_steal_time_over_its_rows():
+    run = {"cycles_completed": 9, "tcu_on_rings_fifo": True, "timeout_limits_ms": LIMITS}
+    rows = _timeouts(_rows(10), 20, "TCU_ClutchCmd", 1, stall_ms=100.0)
+    for i, r in enumerate(rows):            # 10 ms a row; 90 more in the timeout's row and the next
+        r["steal_ms"] = 10.0 * i + (50.0 if i >= 20 else 0.0) + (40.0 if i >= 21 else 0.0)
+    tm = soak.timeout_rows(rows, LIMITS)
+    assert [e["steal_ms"] for e in tm["episodes"]] == [pytest.approx(110.0)]
+    v = soak._verdict(rows, _args(), run)
+    assert v["passed"]
+    assert any(n.endswith("held 100-100 ms by the machine (the host's steal time over those rows: "
+                          "110-110 ms)") for n in v["notes"]), v["notes"]
+    # rows without the figure: none named
+    rows = _timeouts(_rows(10), 20, "TCU_ClutchCmd", 1, stall_ms=100.0)
+    assert soak.timeout_rows(rows, LIMITS)["episodes"][0]["steal_ms"] is None
+
+
+def test_steal_is_read_from_the_cpu_line_in_milliseconds(tmp_path):
+    stat = tmp_path / "stat"
+    hz = os.sysconf("SC_CLK_TCK")
+    stat.write_text("cpu  1920511 929075 205745 2398192 13176 0 10420 5217 0 0\n"
+                    "cpu0 837228 469774 83700 1274921 4867 0 571 2618 0 0\n")
+    assert soak.steal_ms(str(stat)) == pytest.approx(5217 * 1000.0 / hz)
+    stat.write_text("cpu  1 2 3 4\n")                  # a kernel that does not count it
+    assert soak.steal_ms(str(stat)) == 0.0
+    assert soak.steal_ms(str(tmp_path / "missing")) == 0.0
+    assert soak.steal_ms() >= 0.0                          # this machine's
+
+
 def test_the_limits_follow_the_loops_timeouts_of_the_received_messages():
     from rt_loop.embedded import embedded_server
 

@@ -129,6 +129,21 @@ def proc_figures(pid: int | str = "self") -> dict:
     return out
 
 
+def steal_ms(stat: str = "/proc/stat") -> float:
+    """The time the host ran something else while this machine's CPUs wanted to run
+    (``steal`` of the ``cpu`` line: all CPUs, since boot), in ms; 0.0 where the
+    kernel does not count it. Its growth in a row tells a thread held by the
+    machine's host from one held inside the machine."""
+    try:
+        with open(stat, encoding="ascii") as f:
+            fields = f.readline().split()
+    except OSError:
+        return 0.0
+    if len(fields) < 9 or fields[0] != "cpu":
+        return 0.0
+    return int(fields[8]) * 1000.0 / os.sysconf("SC_CLK_TCK")
+
+
 class _Mallinfo2(ctypes.Structure):
     _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
                                                "usmblks", "fsmblks", "uordblks", "fordblks",
@@ -317,6 +332,7 @@ def _sample(server: Any, t0: float, cycles: int, mf4: Path) -> dict:
     row["sim_time_s"] = round(snap["sim_time_s"], 3)
     row["cycles_started"] = cycles
     row["vehicle_speed_kmh"] = round(float(snap["plant"].get("vehicle_speed_kmh", float("nan"))), 2)
+    row["steal_ms"] = steal_ms()
     return row
 
 
@@ -360,7 +376,8 @@ def timeout_rows(rows: Any, limits: dict[str, float]) -> dict:
     thread woke late enough to cause them (``limits``) in that row or the next
     (a stall is logged when the thread wakes, the timeout counted before), else
     unexplained. {"excused", "unexplained": timeouts; "episodes": [{t_s, timeouts:
-    {message: n}, stall_ms, excused}]}."""
+    {message: n}, stall_ms, steal_ms, excused}]}: ``steal_ms`` is what the host took
+    of the machine's CPUs over the same rows (None: the rows do not count it)."""
     episodes, excused, unexplained = [], 0, 0
     prev: dict = {}
     for i, r in enumerate(rows):
@@ -373,7 +390,11 @@ def timeout_rows(rows: Any, limits: dict[str, float]) -> dict:
         ok = all(stall >= limits.get(name, math.inf) for name in new)
         n = sum(new.values())
         excused, unexplained = excused + (n if ok else 0), unexplained + (0 if ok else n)
-        episodes.append({"t_s": r["t_s"], "timeouts": new, "stall_ms": stall, "excused": ok})
+        last = rows[min(i + 1, len(rows) - 1)]
+        steal = (last["steal_ms"] - rows[i - 1]["steal_ms"]
+                 if i > 0 and "steal_ms" in r else None)
+        episodes.append({"t_s": r["t_s"], "timeouts": new, "stall_ms": stall, "steal_ms": steal,
+                         "excused": ok})
     return {"excused": excused, "unexplained": unexplained, "episodes": episodes}
 
 
@@ -440,9 +461,13 @@ def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
                                 "(both SCHED_FIFO, nothing between them: there should be none)")
             if tm["excused"]:
                 held = [e["stall_ms"] for e in tm["episodes"] if e["excused"]]
+                steal = [e["steal_ms"] for e in tm["episodes"]
+                         if e["excused"] and e["steal_ms"] is not None]
                 notes.append(f"TCU message timeouts: {tm['excused']} in {len(held)} "
                              f"{'row' if len(held) == 1 else 'rows'} of samples, each with the "
-                             f"TCU's thread held {min(held):.0f}-{max(held):.0f} ms by the machine")
+                             f"TCU's thread held {min(held):.0f}-{max(held):.0f} ms by the machine"
+                             + (f" (the host's steal time over those rows: "
+                                f"{min(steal):.0f}-{max(steal):.0f} ms)" if steal else ""))
         else:
             notes.append(f"{what}: {last[key]}")
     if run.get("error"):
