@@ -124,7 +124,7 @@ def test_the_soaks_rows_are_kept_in_columns_of_machine_numbers():
     more = soak.Samples(4)               # past its capacity: doubled, every value kept
     for i in range(10):
         more.append({**row, "t_s": float(i)})
-    assert len(more) == 10 and more.column("t_s") == [float(i) for i in range(10)]
+    assert len(more) == 10 and more.column("t_s").tolist() == [float(i) for i in range(10)]
     assert more[-1]["t_s"] == 9.0 and more[0]["fds"] == 9
     assert rows[-1] == {"t_s": 100_000.0, "rss_mb": 400.5, "fds": 9, "threads": 11,
                         "rx_frames": 10**9 + 10_000}
@@ -257,6 +257,51 @@ def test_an_excused_timeout_names_the_hosts_steal_time_over_its_rows():
     # rows without the figure: none named
     rows = _timeouts(_rows(10), 20, "TCU_ClutchCmd", 1, stall_ms=100.0)
     assert soak.timeout_rows(rows, LIMITS)["episodes"][0]["steal_ms"] is None
+
+
+def _samples(n):
+    s = soak.Samples(n)
+    for i in range(n):
+        s.append({"t_s": i * 10.0, "rss_mb": 400.0, "rss_anon_mb": 200.0, "rss_file_mb": 150.0,
+                  "py_heap_mb": 1.0, "py_heap_peak_mb": 1.5, "malloc_used_mb": 27.0,
+                  "malloc_free_mb": 1.5, "malloc_mmap_mb": 29.0, "fds": 9, "threads": 9,
+                  "overruns": 0, "rx_accepted": i * 8000, "tcu_timeouts": 0,
+                  "timeouts:TCU_ClutchCmd": 0, "tcu_stall_max_ms": 0.0, "steal_ms": 0.0})
+    return s
+
+
+def test_the_verdict_makes_no_python_number_per_row():
+    """The partial verdict runs every minute over every row: a Python float per row and
+    column (a list of them: 40 bytes and more a figure) is a burst that grows with the
+    run, and Python's allocator met it with new 1 MiB arenas, resident under mlockall,
+    that stayed. Machine numbers cost 8 bytes a figure, a few columns at a time."""
+    import tracemalloc
+
+    def peak(n):
+        rows = _samples(n)
+        soak._verdict(rows, _args(), {"cycles_completed": 9})
+        tracemalloc.start()
+        try:
+            v = soak._verdict(rows, _args(), {"cycles_completed": 9})
+            return tracemalloc.get_traced_memory()[1], v
+        finally:
+            tracemalloc.stop()
+
+    small, _ = peak(720)                       # two hours of 10 s rows
+    large, v = peak(7200)                      # twenty
+    assert v["passed"] and v["fds_max"] == 9 and v["py_heap_peak_mb"] == 1.5
+    assert v["rss_max_mb"] == 400.0 and v["rss_slope_mb_h_all"] == pytest.approx(0.0)
+    per_row = (large - small) / (7200 - 720)
+    assert per_row < 64, f"{per_row:.0f} bytes of Python heap per row"   # lists of floats: 140
+
+
+def test_the_middles_heap_snapshot_is_taken_before_the_judged_half():
+    # two hours: a minute before the half; a minute: 6 s before; a run that short the
+    # verdict never judges, but the snapshot still comes first
+    assert soak.mid_snapshot_s(7200.0) == pytest.approx(3540.0)
+    assert soak.mid_snapshot_s(60.0) == pytest.approx(24.0)
+    for d in (1.0, 65.0, 600.0, 3600.0, 86400.0):
+        assert 0.0 < soak.mid_snapshot_s(d) < d / 2.0
 
 
 def test_steal_is_read_from_the_cpu_line_in_milliseconds(tmp_path):

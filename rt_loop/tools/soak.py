@@ -30,7 +30,10 @@ of each of those memory figures, of the descriptors and the threads over
 the second half (``SLOPES``: per hour) is in the JSON and the summary, and
 so is what the Python heap's allocation sites (``--tracemalloc`` frames,
 1 by default; 0: not traced) grew by between the middle of the run and its
-end: a growth is told apart at once (Python objects, memory malloc holds
+end (the middle's snapshot taken ``mid_snapshot_s`` ahead of the judged half:
+its sites stay for the run's end, and Python places them among the snapshot's
+objects, so they keep one of Python's 1 MiB arenas, resident under mlockall:
+a step of the instrument's own that must not fall in the half it judges): a growth is told apart at once (Python objects, memory malloc holds
 free, or memory allocated outside Python's view); glibc's own account of its
 arenas (``malloc_info``: free chunks by size) at the middle and the end goes to
 ``malloc-mid.xml`` and ``malloc-end.xml``, which tell holes left in the heap from
@@ -84,6 +87,7 @@ import signal
 import sys
 import time
 import tracemalloc
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -99,6 +103,8 @@ MANEUVER = "paper-cycle"
 RSS_SLOPE_MB_H = 4.0
 RSS_NOISE_MB = 3.0
 FD_TOLERANCE = 2
+#: the middle's heap snapshot this long before the second half (at most a tenth of the run)
+MID_SNAPSHOT_AHEAD_S = 60.0
 THREAD_TOLERANCE = 2
 _TCU_START_S = 30.0
 #: the figures whose slope over the second half the soak reports: (row key, unit)
@@ -274,11 +280,21 @@ class Samples:
     def __iter__(self):
         return (self[i] for i in range(len(self)))
 
-    def column(self, key: str) -> list:
-        return list(self._cols[key][:self._n])
+    def column(self, key: str) -> array.array:
+        """One figure of every row, as machine numbers (a copy: 8 bytes a row, not a
+        Python number each; the verdict reads these every minute, and a list of them
+        grew a burst of Python objects with the run that Python's allocator met with
+        new 1 MiB arenas, one of which stayed)."""
+        return self._cols[key][:self._n]
 
 
-def slope_per_hour(t_s: list[float], y: list[float]) -> float | None:
+def mid_snapshot_s(duration_s: float) -> float:
+    """When (seconds into the run) the middle's heap snapshot is taken: ahead of the
+    second half, whose slopes are judged (see the module's docstring)."""
+    return max(0.0, duration_s / 2.0 - min(MID_SNAPSHOT_AHEAD_S, duration_s / 10.0))
+
+
+def slope_per_hour(t_s: Sequence[float], y: Sequence[float]) -> float | None:
     """Least-squares slope of y over t in units of y per hour (None: < 3 points)."""
     n = len(t_s)
     if n < 3:
@@ -398,7 +414,7 @@ def timeout_rows(rows: Any, limits: dict[str, float]) -> dict:
     return {"excused": excused, "unexplained": unexplained, "episodes": episodes}
 
 
-def _column(rows: Any, key: str) -> list:
+def _column(rows: Any, key: str) -> Sequence:
     """One figure of every row (``Samples`` reads it from its column: no row's dict)."""
     return rows.column(key) if hasattr(rows, "column") else [r[key] for r in rows]
 
@@ -492,16 +508,17 @@ def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
         "notes": notes,
         "rss_start_mb": rows[0]["rss_mb"] if rows else None,
         "rss_end_mb": last.get("rss_mb"),
-        "rss_max_mb": max((r["rss_mb"] for r in rows), default=None),
+        "rss_max_mb": max(rss, default=None),
         "rss_slope_mb_h_second_half": rss_slope,
-        "rss_slope_mb_h_all": slope_per_hour(t, [r["rss_mb"] for r in rows]),
+        "rss_slope_mb_h_all": slope_per_hour(t, rss),
         "rss_growth_second_half_mb": growth,
         "rx_stall_max_s": stall,
         "slopes_second_half": slopes,
         "slope_units": dict(SLOPES),
-        "py_heap_peak_mb": max((r.get("py_heap_peak_mb", 0.0) for r in rows), default=None),
+        "py_heap_peak_mb": (max(_column(rows, "py_heap_peak_mb"), default=None)
+                            if rows and "py_heap_peak_mb" in rows[0] else 0.0 if rows else None),
         "fds_start": rows[0]["fds"] if rows else None, "fds_end": last.get("fds"),
-        "fds_max": max((r["fds"] for r in rows), default=None),
+        "fds_max": max(_column(rows, "fds"), default=None) if rows else None,
         "threads_start": rows[0]["threads"] if rows else None,
         "threads_end": last.get("threads"),
         "overruns": last.get("overruns"),
@@ -684,7 +701,7 @@ def run_soak(args: argparse.Namespace, out=sys.stdout, err=sys.stderr) -> int:
                     server.start_maneuver(MANEUVER)
                     cycles += 1
                     cycle_started = now
-                if heap_mid is None and tracemalloc.is_tracing() and now >= t0 + duration / 2.0:
+                if heap_mid is None and tracemalloc.is_tracing() and now >= t0 + mid_snapshot_s(duration):
                     heap_mid = heap_sites(tracemalloc.take_snapshot())   # the middle
                     malloc_info(paths["malloc_mid"])
                 if now >= next_sample:
