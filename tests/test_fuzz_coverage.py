@@ -10,6 +10,7 @@ beside a Python target, its corpus replayed.
 import json
 import shutil
 import stat
+import sys
 import threading
 import time
 
@@ -190,18 +191,40 @@ def test_workers_that_all_finish_are_clean(sandbox):
 
 
 def test_a_stop_signal_keeps_the_figures_and_is_no_finding(sandbox, monkeypatch):
-    # a fuzzer that prints its figures when interrupted, as libFuzzer does (exit 72)
+    # a fuzzer that prints its figures when interrupted, as libFuzzer does (exit 72); like
+    # libFuzzer it installs its SIGINT handler itself (a shell's trap cannot, when the
+    # test runs under a parent that ignores SIGINT, as a job started in the background
+    # does), and says when it has (a ready file each): only then the stop comes
+    ready = sandbox / "ready"
+    ready.mkdir()
     script = sandbox / "fuzzer"
-    script.write_text("#!/bin/sh\necho '#7000\tpulse  cov: 30 ft: 40 corp: 5/20b lim: 4 exec/s: 7000 rss: 30Mb'\n"
-                      "trap 'echo \"==1== libFuzzer: run interrupted; exiting\"; "
-                      "echo stat::number_of_executed_units: 7100; exit 72' INT\n"
-                      "sleep 60 & wait\n")
+    script.write_text(f"#!{sys.executable}\n"
+                      "import os, signal, sys, time\n"
+                      "def stop(*_):\n"
+                      "    print('==1== libFuzzer: run interrupted; exiting')\n"
+                      "    print('stat::number_of_executed_units: 7100', flush=True)\n"
+                      "    os._exit(72)\n"
+                      "signal.signal(signal.SIGINT, stop)\n"
+                      "print('#7000\\tpulse  cov: 30 ft: 40 corp: 5/20b lim: 4 exec/s: 7000 rss: 30Mb',"
+                      " flush=True)\n"
+                      f"open(os.path.join({str(ready)!r}, str(os.getpid())), 'w').close()\n"
+                      "time.sleep(60)\n")
     script.chmod(script.stat().st_mode | stat.S_IEXEC)
     monkeypatch.setattr(fc, "_STOP", threading.Event())
-    threading.Timer(0.8, fc._STOP.set).start()
-    t0 = time.monotonic()
+
+    stopped_at = []
+
+    def stop_when_ready():
+        deadline = time.monotonic() + 30.0
+        while len(list(ready.iterdir())) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stopped_at.append(time.monotonic())
+        fc._STOP.set()
+
+    threading.Thread(target=stop_when_ready, daemon=True).start()
     res = fc.run_target("can_frame", script, None, 10**8, workers=2, checked=script)
-    assert time.monotonic() - t0 < 8
+    assert len(list(ready.iterdir())) == 2
+    assert time.monotonic() - stopped_at[0] < fc.STOP_GRACE_S      # stopped by the signal, not killed
     assert res["interrupted"] and not res["crashed"] and res["findings"] == []
     assert res["executions"] == 14200 and "replay" not in res
 
