@@ -125,6 +125,12 @@ static inline int64_t now_ns(void)
     return (int64_t)ts.tv_sec * RT_NS_PER_S + ts.tv_nsec;
 }
 
+/* the index of the last deadline at or before t_ns (t_ns >= t0_ns) */
+static inline uint64_t deadline_index(const rt_run *r, int64_t t_ns)
+{
+    return (uint64_t)((t_ns - r->t0_ns) / r->period_ns);
+}
+
 static inline void sleep_until(int64_t t_ns)
 {
     struct timespec ts = {(time_t)(t_ns / RT_NS_PER_S), (long)(t_ns % RT_NS_PER_S)};
@@ -375,7 +381,7 @@ int rt_loop_run(rt_loop *l)
          * with its own n they would look as old as the lateness once the ticks
          * missed are skipped, and the next tick would time out a TCU that kept
          * sending */
-        uint64_t rx_n = (uint64_t)((start - r.t0_ns) / r.period_ns);
+        uint64_t rx_n = deadline_index(&r, start);
         if (rx_n < n)
             rx_n = n;
 
@@ -448,7 +454,7 @@ int rt_loop_run(rt_loop *l)
             r.c.overruns++;
             if (!l->cfg.overrun_stop) {
                 /* the first deadline after the end of this tick */
-                next = (uint64_t)((end - r.t0_ns) / r.period_ns) + 1u;
+                next = deadline_index(&r, end) + 1u;
                 if (limit && next > limit)
                     next = limit; /* only deadlines of the run count as skipped */
                 r.c.skipped_ticks += next - (n + 1);

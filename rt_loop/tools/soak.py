@@ -33,7 +33,8 @@ so is what the Python heap's allocation sites (``--tracemalloc`` frames,
 end (the middle's snapshot taken ``mid_snapshot_s`` ahead of the judged half:
 its sites stay for the run's end, and Python places them among the snapshot's
 objects, so they keep one of Python's 1 MiB arenas, resident under mlockall:
-a step of the instrument's own that must not fall in the half it judges): a growth is told apart at once (Python objects, memory malloc holds
+a step of the instrument's own that must not fall in the half it judges): a
+growth is told apart at once (Python objects, memory malloc holds
 free, or memory allocated outside Python's view); glibc's own account of its
 arenas (``malloc_info``: free chunks by size) at the middle and the end goes to
 ``malloc-mid.xml`` and ``malloc-end.xml``, which tell holes left in the heap from
@@ -419,9 +420,21 @@ def _column(rows: Any, key: str) -> Sequence:
     return rows.column(key) if hasattr(rows, "column") else [r[key] for r in rows]
 
 
-def _first_at(t: list[float], t_from: float) -> int:
+def _first_at(t: Sequence[float], t_from: float) -> int:
     """The index of the first row at or after ``t_from`` (len(t): none)."""
     return next((i for i, x in enumerate(t) if x >= t_from), len(t))
+
+
+def _second_half(t: Sequence[float]) -> int:
+    """The index of the first row of the second half, which the verdict judges."""
+    return _first_at(t, t[-1] / 2.0) if len(t) else 0
+
+
+def _max_of(rows: Any, key: str, missing: Any = None) -> Any:
+    """The largest of a figure over the rows (None: no rows; ``missing``: not a figure of theirs)."""
+    if not len(rows):
+        return None
+    return max(_column(rows, key)) if key in rows[0] else missing
 
 
 def second_half_slopes(rows: Any) -> dict:
@@ -429,7 +442,7 @@ def second_half_slopes(rows: Any) -> dict:
     if not len(rows):
         return {}
     t = _column(rows, "t_s")
-    i0 = _first_at(t, t[-1] / 2.0)
+    i0 = _second_half(t)
     keys = rows[0].keys()
     return {key: slope_per_hour(t[i0:], _column(rows, key)[i0:]) for key, _unit in SLOPES if key in keys}
 
@@ -440,7 +453,7 @@ def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
     # minute, and lists of them grew Python's heap with the run
     t = _column(rows, "t_s")
     rss = _column(rows, "rss_mb") if len(rows) else []
-    i_half = _first_at(t, t[-1] / 2.0) if t else 0
+    i_half = _second_half(t)
     slopes = second_half_slopes(rows) if len(rows) else {}
     rss_slope = slopes.get("rss_mb")
     growth = (rss[-1] - rss[i_half]) if len(rss) - i_half >= 2 else 0.0
@@ -508,17 +521,16 @@ def _verdict(rows: Any, args: argparse.Namespace, run: dict) -> dict:
         "notes": notes,
         "rss_start_mb": rows[0]["rss_mb"] if rows else None,
         "rss_end_mb": last.get("rss_mb"),
-        "rss_max_mb": max(rss, default=None),
+        "rss_max_mb": _max_of(rows, "rss_mb"),
         "rss_slope_mb_h_second_half": rss_slope,
         "rss_slope_mb_h_all": slope_per_hour(t, rss),
         "rss_growth_second_half_mb": growth,
         "rx_stall_max_s": stall,
         "slopes_second_half": slopes,
         "slope_units": dict(SLOPES),
-        "py_heap_peak_mb": (max(_column(rows, "py_heap_peak_mb"), default=None)
-                            if rows and "py_heap_peak_mb" in rows[0] else 0.0 if rows else None),
+        "py_heap_peak_mb": _max_of(rows, "py_heap_peak_mb", 0.0),
         "fds_start": rows[0]["fds"] if rows else None, "fds_end": last.get("fds"),
-        "fds_max": max(_column(rows, "fds"), default=None) if rows else None,
+        "fds_max": _max_of(rows, "fds"),
         "threads_start": rows[0]["threads"] if rows else None,
         "threads_end": last.get("threads"),
         "overruns": last.get("overruns"),
