@@ -116,6 +116,11 @@ class StatsReader:
                             if m.direction == "receive"]
         self.tx_messages = [(i, names[i]) for i, (_, m) in enumerate(channels.messages)
                             if m.direction == "send"]
+        #: {received message: (its cycle, the loop's timeout of it), ms of model time}:
+        #: timed out after timeout_cycles cycles of silence (RT_TIMEOUT_CYCLES when unset)
+        self.rx_timing = {names[i]: (float(m.cycle_ms), float(m.cycle_ms) * float(
+            m.timeout_cycles or lib.RT_TIMEOUT_CYCLES))
+            for i, (_, m) in enumerate(channels.messages) if m.direction == "receive"}
         self.command_names = list(channels.command_names)
         self.read_failures = 0
         self.reads = 0
@@ -156,7 +161,8 @@ class StatsReader:
             tcu[name] = {"accepted": int(m.frames), "bad_length": int(m.bad_length),
                          "bad_crc": int(m.bad_crc), "bad_counter": int(m.bad_counter),
                          "timeouts": int(m.timeouts), "timed_out": bool(m.timed_out),
-                         "optional": name in self.optional}
+                         "optional": name in self.optional,
+                         "cycle_ms": self.rx_timing[name][0], "timeout_ms": self.rx_timing[name][1]}
         plant = {name: {"sent": int(s.msgs[i].frames), "dropped": int(s.msgs[i].dropped),
                         "saturated": int(s.msgs[i].saturated)}
                  for i, name in self.tx_messages}

@@ -56,7 +56,10 @@ socket buffer); slow motion (time scale below 1); frames seen waiting in the
 bridge's rings at the status reads (a sampled figure: a delay between two
 reads is not seen); bus state changes; traffic log entries or recorder samples
 lost; the TCU's skipped ticks, its pauses (``CanTcu.pause``) and plant frames
-it saw far apart; the per-shift time differences from the offline run; a shift
+it saw far apart; TCU message timeouts that its own thread's stall log explains
+(``timeouts_held_by_stalls``: the thread woke up so late that the message's
+silence outlasted its timeout: the machine held the TCU, the loop only counted
+it; the timeout stays a finding); the per-shift time differences from the offline run; a shift
 comparison that was not made (an interrupted run).
 
 ``exit_code`` maps a verdict onto the exit status: with ``--strict`` an
@@ -81,7 +84,9 @@ __all__ = [
     "make_verdict",
     "serve_verdict",
     "shift_rules",
+    "stall_limit_ms",
     "tcu_report_rules",
+    "timeouts_held_by_stalls",
     "verdict_lines",
     "warning_line",
 ]
@@ -414,6 +419,70 @@ def tcu_report_rules(tcu: dict | None, maneuver_end_s: float | None = None
     return findings, notes
 
 
+def stall_limit_ms(timeout_ms: float, cycle_ms: float, tcu_period_ms: float,
+                   time_scale: float = 1.0) -> float:
+    """The shortest late wake-up of the TCU's thread (wall ms) that explains a
+    timeout of a message it sends every ``cycle_ms``: the loop times the message
+    out after ``timeout_ms`` of silence (both in model time, stretched by
+    ``time_scale``), draining what the TCU sent meanwhile first; the TCU sends it
+    every cycle, so its silence is at most a cycle plus how late the thread woke,
+    less up to one TCU period of phase between the two threads."""
+    return (float(timeout_ms) - float(cycle_ms)) / float(time_scale) - float(tcu_period_ms)
+
+
+def timeouts_held_by_stalls(serve_report: dict | None, tcu_report: dict | None) -> dict:
+    """{received message: {"timeouts", "explained", "limit_ms"}} for the messages
+    that timed out: ``explained`` of them by the TCU thread's own stall log (the
+    ``stalls`` of an in-process C TCU node's report: its wake-ups later than
+    ``over_ms``, each with ``at_s`` and ``late_ms``): one stall at least
+    ``stall_limit_ms`` long explains one timeout of the message. A report
+    without a stall log or the messages' timing explains none."""
+    counts = _d(_d(serve_report).get("counts"))
+    cfg = _d(_d(serve_report).get("config"))
+    tcu = _d(tcu_report)
+    stalls = _d(tcu.get("stalls"))
+    listed = [_f(_d(e).get("late_ms")) for e in stalls.get("last") or ()]
+    listed = [x for x in listed if x is not None]
+    unlisted = max(0, _n(stalls.get("count")) - len(listed))   # overwritten in the node's ring
+    longest = _f(stalls.get("longest_ms"))
+    period_ms = 1e3 * (_f(tcu.get("period_wall_s")) or _f(tcu.get("period_s")) or 0.0)
+    scale = _f(cfg.get("time_scale")) or 1.0
+    out = {}
+    for name, m in _d(counts.get("tcu_messages")).items():
+        m = _d(m)
+        n = _n(m.get("timeouts"))
+        if not n:
+            continue
+        timeout, cycle = _f(m.get("timeout_ms")), _f(m.get("cycle_ms"))
+        if timeout is None or cycle is None or not stalls or not period_ms:
+            out[name] = {"timeouts": n, "explained": 0, "limit_ms": None}
+            continue
+        limit = stall_limit_ms(timeout, cycle, period_ms, scale)
+        held = sum(1 for x in listed if x >= limit)
+        if unlisted and longest is not None and longest >= limit:
+            held += unlisted
+        out[name] = {"timeouts": n, "explained": min(n, held), "limit_ms": round(limit, 3)}
+    return out
+
+
+def _stall_note(serve_report: dict | None, tcu_report: dict | None) -> list[str]:
+    """The note naming the TCU thread's stalls that explain message timeouts."""
+    held = {k: v for k, v in timeouts_held_by_stalls(serve_report, tcu_report).items()
+            if v["explained"]}
+    if not held:
+        return []
+    stalls = _d(_d(tcu_report).get("stalls"))
+    limit = min(v["limit_ms"] for v in held.values())
+    long = [_d(e) for e in stalls.get("last") or () if (_f(_d(e).get("late_ms")) or 0.0) >= limit]
+    when = ", ".join(f"{_f(e.get('late_ms')):.1f} ms at {_f(e.get('at_s')) or 0.0:.2f} s"
+                     for e in long[:3]) or f"up to {_f(stalls.get('longest_ms')) or 0.0:.1f} ms"
+    which = "; ".join(f"{name} {_times(v['explained'])} (a stall of {v['limit_ms']:g} ms or more "
+                      "times it out)" for name, v in held.items())
+    return [f"TCU message timeouts explained by the TCU thread's own stall log: it woke up late by "
+            f"{when} (TCU time), the messages silent meanwhile: {which}: the machine held the "
+            "TCU's thread, the loop counted the silence"]
+
+
 def _shift_list(shifts: Iterable | None) -> list[tuple[float, int, int]]:
     """[(time_s, from, to)] from tuples or the summary's dicts; malformed entries are left out."""
     out = []
@@ -527,6 +596,7 @@ def demo_verdict(serve_report: dict | None, tcu_report: dict | None, shifts: Ite
                  shift_rules(shifts, offline_shifts, end, not_compared)):
         findings += f
         notes += n
+    notes += _stall_note(serve_report, tcu_report)
     return make_verdict(findings, notes)
 
 

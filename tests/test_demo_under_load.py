@@ -16,17 +16,18 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-#: the largest difference of a shift's time from the offline run's held here: issue
-#: 26's 10 ms. The offline run is the server's loop without a bus (the same send
+#: the largest difference of a shift's time from the offline run's held here in a run
+#: the host did not disturb (no tick skipped by the loop or the TCU): issue 26's 10 ms. The offline run is the server's loop without a bus (the same send
 #: schedule and matrix, the maneuver from the live run's tick): runs whose TCU frames
 #: land on their ticks match it to the 2 ms sample. Measured 2026-12-04 (12 runs, 6 on
 #: each matrix): 9 within 10 ms (6 at 0 ms), 3 at 14-20 ms where the TCU's frames
 #: landed a tick late in a share of its periods (its 2 ms phase near the loop's tick)
 #: or the loop skipped ticks. The embedded TCU's periods now begin half a tick after a
 #: loop tick (rt_loop.embedded: lock_phase), so its frames land on their tick; what
-#: remains is the loop's skipped ticks (the host not waking it: 25 skipped, +14 ms),
-#: which the verdict reports and which the bound below adds.
-SHIFT_TOLERANCE_S = 0.010
+#: remains is the loop's skipped ticks (the host not waking it: 25 skipped, +14 ms)
+#: and the TCU's, which the verdict reports: such a run is held to the verdict's own
+#: bound (rt_loop.verdict.SHIFT_TOLERANCE_S) plus the time the loop lost.
+SHIFT_TOLERANCE_S_UNDISTURBED = 0.010
 DURATION_S = 8.0
 
 
@@ -54,32 +55,48 @@ def _demo_under_load(tmp_path, *args):
 def _assert_held(summary, stats):
     tcu = summary["tcu"]
     assert tcu["impl"] == "c" and summary["transport"]["tcu_impl"] == "c"
-    from rt_loop.verdict import END_MARGIN_S
+    # both threads above the hogs: what the hogs could change, they cannot reach
+    assert tcu["sched"]["policy"] == "SCHED_FIFO" and stats["config"]["rt_policy_ok"], \
+        (tcu["sched"], stats["config"]["rt_policy_ok"])
+    from rt_loop.verdict import END_MARGIN_S, SHIFT_TOLERANCE_S, timeouts_held_by_stalls
 
     end = summary["maneuver_time_s"]
     counted = [ep for ep in tcu["stale"]["episodes"]       # not the start-up, not the plant stopping
                if not all(why == "missing" for why in ep["causes"].values())
                and not (ep["end_s"] is None and ep["start_s"] >= end - END_MARGIN_S)]
     assert not counted, counted
-    timeouts = {n: m["timeouts"] for n, m in stats["counts"]["tcu_messages"].items()}
-    assert not any(timeouts.values()), timeouts
+    # a timeout only where the TCU thread's own stall log shows the machine held it
+    # that long (CI 2026-12-05, beside the guest: one of a 2 ms message, 20 ms of
+    # silence), and then the verdict names the stall
+    held = timeouts_held_by_stalls(stats, tcu)
+    unexplained = {n: h for n, h in held.items() if h["explained"] < h["timeouts"]}
+    assert not unexplained, (unexplained, tcu["stalls"])
+    if held:
+        assert any("stall log" in n for n in summary["verdict"]["notes"]), summary["verdict"]
     run = [(s["from"], s["to"]) for s in summary["shifts"]]
     offline = [(s["from"], s["to"]) for s in summary["offline_shifts"]]
     assert run == offline and len(run) == 2, (summary["shifts"], summary["offline_shifts"])
     deltas = [a["time_s"] - b["time_s"] for a, b in zip(summary["shifts"], summary["offline_shifts"])]
     # ticks the loop skipped (the machine did not wake it: the host's floor, not
     # the hogs, which run below SCHED_FIFO) put the plant behind the TCU's wall
-    # clock by that long; the verdict must then say so, and the shifts may be
-    # that much later
+    # clock by that long; the TCU's periods skipped (its thread woken late) send its
+    # frames late; the verdict must then say so, and the shifts may be off by what the
+    # verdict holds (a handover moved by up to a 10 ms message cycle or two: measured
+    # +12 and +22 ms with 3 and 6 skipped ticks beside the guest, 2026-12-05) and the
+    # time lost. Undisturbed: issue 26's 10 ms.
     skipped = int(stats["counts"]["skipped_ticks"])
+    tcu_skipped = int(tcu["skipped_ticks"])
     lost_s = skipped / float(stats["config"]["rate_hz"]) if skipped else 0.0
     if skipped:
         assert not summary["verdict"]["valid"] and any("skipped tick" in f for f in summary["verdict"]["findings"]), \
             summary["verdict"]
+    if tcu_skipped:
+        assert any("TCU task skipped" in n for n in summary["verdict"]["notes"]), summary["verdict"]
+    bound = (SHIFT_TOLERANCE_S if skipped or tcu_skipped or held else SHIFT_TOLERANCE_S_UNDISTURBED) + lost_s
     # (+1 us: the times are sums of 10 ms steps in floating point; a shift one record
     # late, 10 ms, came out as 0.010000000001)
-    assert max(abs(d) for d in deltas) <= SHIFT_TOLERANCE_S + lost_s + 1e-6, (deltas, skipped)
-    if not skipped:   # with ticks lost the verdict also names what followed from them (gaps, shift times)
+    assert max(abs(d) for d in deltas) <= bound + 1e-6, (deltas, skipped, tcu_skipped)
+    if not (skipped or held):   # with ticks lost the verdict also names what followed from them
         assert not any("stale" in f or "timeout" in f or "shift" in f for f in summary["verdict"]["findings"]), \
             summary["verdict"]
 

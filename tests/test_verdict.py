@@ -228,6 +228,56 @@ def test_every_timeout_during_a_maneuver_invalidates():
     assert "TCU_EngineCmd timed out once, still timed out at the end" in text
 
 
+def test_the_stall_that_times_a_message_out():
+    # 10 cycles of 2 ms: silent 20 ms; the TCU sends every cycle and its period's phase
+    # is up to 2 ms: a wake-up 16 ms late is enough, in slow motion (scale 0.5) 34 ms
+    assert vd.stall_limit_ms(20.0, 2.0, 2.0) == pytest.approx(16.0)
+    assert vd.stall_limit_ms(100.0, 10.0, 2.0) == pytest.approx(88.0)
+    assert vd.stall_limit_ms(20.0, 2.0, 4.0, time_scale=0.5) == pytest.approx(32.0)
+
+
+def _timed_out_with_stalls(*late_ms, count=None, timeouts=1):
+    r = clean_report()
+    for name, cycle in (("TCU_ClutchCmd", 2.0), ("TCU_ShiftCmd", 10.0), ("TCU_EngineCmd", 10.0)):
+        r["counts"]["tcu_messages"][name].update(cycle_ms=cycle, timeout_ms=10 * cycle)
+    r["counts"]["tcu_messages"]["TCU_ClutchCmd"].update(timeouts=timeouts)
+    tcu = clean_tcu()
+    tcu["period_wall_s"] = 0.002
+    tcu["stalls"] = {"longest_ms": max(late_ms, default=3.0), "over_ms": 10.0,
+                     "count": len(late_ms) if count is None else count,
+                     "last": [{"index": i, "at_s": 3.0 + i, "late_ms": x} for i, x in enumerate(late_ms)]}
+    return r, tcu
+
+
+def test_a_timeout_the_tcu_threads_stall_log_explains_is_named_and_still_a_finding():
+    r, tcu = _timed_out_with_stalls(12.0, 25.3)
+    assert vd.timeouts_held_by_stalls(r, tcu) == {
+        "TCU_ClutchCmd": {"timeouts": 1, "explained": 1, "limit_ms": 16.0}}
+    v = vd.demo_verdict(r, tcu, OFFLINE, OFFLINE)
+    assert not v["valid"] and any(f.startswith("TCU messages timed out during the maneuver")
+                                  for f in v["findings"])
+    (note,) = [n for n in v["notes"] if "stall log" in n]
+    assert "25.3 ms at 4.00 s" in note and "12.0" not in note
+    assert "TCU_ClutchCmd once (a stall of 16 ms or more times it out)" in note
+
+
+def test_a_timeout_without_a_stall_long_enough_is_not_explained():
+    for r, tcu in (_timed_out_with_stalls(12.0, 15.9),        # too short for 16 ms
+                   _timed_out_with_stalls(25.0, timeouts=2),  # one stall, two timeouts
+                   (_timed_out_with_stalls(25.0)[0], clean_tcu())):   # no stall log (a foreign TCU)
+        held = vd.timeouts_held_by_stalls(r, tcu)["TCU_ClutchCmd"]
+        assert held["explained"] < held["timeouts"]
+        v = vd.demo_verdict(r, tcu, OFFLINE, OFFLINE)
+        assert not [n for n in v["notes"] if "stall log" in n] or held["explained"]
+    r, tcu = _timed_out_with_stalls(12.0, 15.9)
+    assert not [n for n in vd.demo_verdict(r, tcu, OFFLINE, OFFLINE)["notes"] if "stall log" in n]
+    # stalls overwritten in the node's ring count when the longest is long enough
+    r, tcu = _timed_out_with_stalls(25.0, count=3, timeouts=3)
+    assert vd.timeouts_held_by_stalls(r, tcu)["TCU_ClutchCmd"]["explained"] == 3
+    r, tcu = _timed_out_with_stalls(11.0, count=3, timeouts=3)
+    assert vd.timeouts_held_by_stalls(r, tcu)["TCU_ClutchCmd"]["explained"] == 0
+
+
 def test_without_a_maneuver_the_last_timeout_is_the_tcu_leaving():
     r = clean_report(maneuver="none", maneuver_time_s=None)
     r["counts"]["tcu_messages"]["TCU_ClutchCmd"].update(timeouts=1, timed_out=True)

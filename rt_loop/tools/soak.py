@@ -369,23 +369,14 @@ def rx_stall_s(rows: Any) -> float:
 
 
 def timeout_limits_ms(server: Any) -> dict[str, float]:
-    """{received message: the shortest stall of the TCU's thread that times it out}.
-    The loop times a message out after timeout_cycles of its cycle times of
-    silence (wall time), draining what the TCU sent meanwhile first; the TCU
-    sends it every cycle, so the silence is at most a cycle plus how late the
-    TCU's thread woke: a wake-up later than timeout - cycle - one TCU period
-    (the two threads' phase) explains the timeout."""
-    from rt_loop import _rt_loop
+    """{received message: the shortest stall of the TCU's thread that times it out}
+    (``rt_loop.verdict.stall_limit_ms`` of the loop's timeout and cycle of each
+    received message, the TCU's period; the soak runs in real time)."""
+    from rt_loop.verdict import stall_limit_ms
     from tcu_stub.logic import PERIOD_S
 
-    names = server.channels.message_names()
-    out = {}
-    for name, (_bus, m) in zip(names, server.channels.messages):
-        if m.direction != "receive":
-            continue
-        cycles = m.timeout_cycles or _rt_loop.lib.RT_TIMEOUT_CYCLES
-        out[name] = (cycles - 1) * float(m.cycle_ms) - PERIOD_S * 1e3
-    return out
+    return {name: stall_limit_ms(timeout_ms, cycle_ms, PERIOD_S * 1e3)
+            for name, (cycle_ms, timeout_ms) in server.stats.rx_timing.items()}
 
 
 def timeout_rows(rows: Any, limits: dict[str, float]) -> dict:
