@@ -30,6 +30,8 @@ import sys
 import threading
 import time
 
+from plant.stop_signals import StopEvent
+
 from . import codec
 from .channels import open_bus
 from .node import ReceivingNode, RxStats
@@ -393,7 +395,7 @@ def main(argv=None):
     except (ConnectionError, ValueError) as e:
         return fail(str(e))
 
-    done = threading.Event()
+    done = StopEvent()            # set by the SIGTERM handler: no lock (plant.stop_signals)
     in_main = threading.current_thread() is threading.main_thread()
     old_term = signal.signal(signal.SIGTERM, lambda *_: done.set()) if in_main else None
     try:

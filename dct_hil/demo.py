@@ -379,8 +379,8 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
         if missing_extra(e) != "plots":
             raise
         write_plots = None
+    from plant.stop_signals import StopSignals
     from rt_loop import verdict as vd
-    from rt_loop.console import StopSignals
     from rt_loop.measure.recorder import read_recording
     from tcu_stub.c_node import IMPLS
 
@@ -593,7 +593,7 @@ def run_demo(maneuver: str = "paper-cycle", out_dir: str | os.PathLike = "out/de
 def _keep_serving(view, stopped: bool, out) -> None:
     """After the run: the page keeps its last figures until Ctrl-C or SIGTERM
     (at once when the run itself was stopped that way)."""
-    from rt_loop.console import StopSignals
+    from plant.stop_signals import StopSignals
 
     try:
         if not stopped:

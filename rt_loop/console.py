@@ -3,8 +3,8 @@
 ``run_console(server, stats_path)`` starts the server (Ctrl-C or SIGTERM
 during start-up abandon it), prints the banner and a live status line, stops
 on a signal, the duration or the loop's own end, and writes the report with
-its timing verdict; ``StopSignals`` turns SIGINT and SIGTERM into an event
-for any such watcher (the demo uses it too).
+its timing verdict (the signals through ``plant.stop_signals.StopSignals``,
+whose event a signal handler may set).
 """
 
 from __future__ import annotations
@@ -12,44 +12,14 @@ from __future__ import annotations
 import os
 import signal
 import sys
-import threading
 from typing import Any, TextIO
 
+from plant.stop_signals import StopSignals
 from rt_loop import status as _status
 from rt_loop import verdict as _verdict
 from rt_loop.server import Server, ServerError
 
-__all__ = ["StopSignals", "run_console"]
-
-
-class StopSignals:
-    """SIGINT and SIGTERM turned into an event while the block runs (main
-    thread only; elsewhere the handlers stay as they are). ``received`` lists
-    the signals in order; ``interrupted`` is True after a Ctrl-C."""
-
-    def __init__(self) -> None:
-        self.event = threading.Event()
-        self.received: list[int] = []
-        self._previous: dict = {}
-
-    def _on_signal(self, signum: int, _frame: Any) -> None:
-        self.received.append(signum)
-        self.event.set()
-
-    def __enter__(self) -> StopSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._on_signal)
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-        self._previous = {}
-
-    @property
-    def interrupted(self) -> bool:
-        return bool(self.received) and self.received[0] == signal.SIGINT
+__all__ = ["run_console"]
 
 
 def run_console(server: Server, stats_path: str | os.PathLike, quiet: bool = False,

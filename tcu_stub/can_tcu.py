@@ -160,6 +160,7 @@ from can_dbc.options import add_matrix_options
 from can_dbc.own_frames import OwnFrames, is_echoing_bus
 from can_dbc.peer import CanPeer
 from plant import argtypes
+from plant.stop_signals import StopEvent
 from tcu_stub.diagnostics import ENGINE_SIGNALS, decode_active_faults
 from tcu_stub.logic import PERIOD_S, TcuLogic
 from tcu_stub.mapped_link import MissingSignalError, TcuMatrix, cycle_ticks, message_key
@@ -1295,7 +1296,7 @@ def run(args, out=None, err=None, prog="dct-hil tcu", open_node=None):
     except (ConnectionError, RuntimeError) as e:
         return fail(1, e)
 
-    done = threading.Event()
+    done = StopEvent()            # set by the signal handler: no lock (plant.stop_signals)
     received = []
     in_main = threading.current_thread() is threading.main_thread()
     old = {}

@@ -78,6 +78,7 @@ import time
 
 from plant import argtypes
 from plant.machine import write_figures
+from plant.stop_signals import StopEvent
 
 TURNAROUND_P99_9_TARGET_US = 35.0
 LATENCY_RATIO_TARGET = 1.25
@@ -1111,7 +1112,7 @@ class StopOnSignal:
     the next one acts as usual. Main thread only; elsewhere nothing is installed."""
 
     def __init__(self, progress):
-        self.event = threading.Event()
+        self.event = StopEvent()      # set by the handler: no lock (plant.stop_signals)
         self.signum = None
         self._progress = progress
         self._previous = {}

@@ -81,7 +81,7 @@ from can_dbc.channels import open_bus
 from can_dbc.python_can import python_can
 from plant import argtypes
 from plant.machine import write_figures
-from rt_loop.console import StopSignals
+from plant.stop_signals import StopSignals
 
 __all__ = ["KINDS", "FuzzError", "main", "run_fuzz"]
 

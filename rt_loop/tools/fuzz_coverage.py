@@ -52,13 +52,14 @@ import time
 from pathlib import Path
 
 from plant.machine import machine_info, write_figures
+from plant.stop_signals import StopEvent
 
 ROOT = Path(__file__).resolve().parents[2]
 FUZZ = ROOT / "fuzz"
 BUILD = ROOT / "build" / "fuzz"
 OUT_JSON = ROOT / "out" / "fuzz-coverage.json"
 #: set by SIGINT / SIGTERM: the running fuzzers are stopped, their figures kept, no new one starts
-_STOP = threading.Event()
+_STOP = StopEvent()   # set by the signal handlers: no lock (plant.stop_signals)
 STOP_GRACE_S = 10.0
 CRASHES = ROOT / "out" / "fuzz-crashes"
 

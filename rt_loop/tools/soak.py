@@ -93,7 +93,7 @@ from pathlib import Path
 from typing import Any
 
 from plant import argtypes
-from rt_loop.console import StopSignals
+from plant.stop_signals import StopSignals
 
 __all__ = ["SLOPES", "Samples", "SoakError", "heap_figures", "heap_sites", "main",
            "proc_figures", "run_soak", "rx_stall_s", "second_half_slopes", "slope_per_hour",
