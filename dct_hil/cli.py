@@ -46,6 +46,18 @@ class _Parser(argparse.ArgumentParser):
         raise UserError(message)
 
 
+def _stacks_on_sigusr1():
+    """``kill -USR1 <pid>`` prints every thread's Python stack to stderr: a process
+    that hangs says where (the process goes on)."""
+    import faulthandler
+    import signal
+
+    try:
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    except (AttributeError, OSError, RuntimeError, ValueError):   # no stderr file (embedded)
+        pass
+
+
 def build_parser():
     """The whole command line: every subcommand of ``dct_hil.commands``."""
     parser = _Parser(
@@ -79,6 +91,7 @@ def main(argv=None):
         return 2
 
     _single_threaded_blas(argv)
+    _stacks_on_sigusr1()
     try:
         parser = build_parser()     # a Ctrl-C this early is one line too
         args = parser.parse_args(argv)

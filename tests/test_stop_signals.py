@@ -118,3 +118,30 @@ def test_once_gives_the_next_signal_back_to_the_previous_handler():
         assert s.received == [signal.SIGUSR1] and seen == ["previous"]
     finally:
         signal.signal(signal.SIGUSR1, old)
+
+
+def test_a_serve_prints_its_stacks_on_sigusr1_and_stops_on_sigterm(tmp_path):
+    err_path = tmp_path / "serve.err"
+    with open(err_path, "w") as err:
+        p = subprocess.Popen([sys.executable, "-m", "dct_hil.cli", "serve", "--priority", "0",
+                              "--no-pm-qos", "--quiet", "--duration", "60",
+                              "--stats", str(tmp_path / "s.json")],
+                             cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True)
+        try:
+            assert p.stdout.readline().startswith("dct-hil serve"), err_path.read_text()
+            p.send_signal(signal.SIGUSR1)              # stacks: the process goes on
+            deadline = time.monotonic() + 30
+            while "most recent call first" not in err_path.read_text() and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert p.poll() is None
+            p.send_signal(signal.SIGTERM)
+            p.stdout.read()
+            assert p.wait(timeout=60) == 0
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    text = err_path.read_text()
+    # every thread: the main one in the console's watch, the loop's in the C loop
+    assert "in run_console" in text and "in _run" in text, text
+    assert (tmp_path / "s.json").exists()

@@ -1,7 +1,11 @@
 """Helpers shared by the tests that wait for a behaviour of a running server."""
 
+import signal
 import socket
+import subprocess
 import time
+
+import pytest
 
 #: the longest any such wait lasts: nothing is timed, a wait only bounds a failure
 WAIT_S = 30.0
@@ -31,3 +35,22 @@ def free_udp_port():
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("", 0))
         return s.getsockname()[1]
+
+
+def stop_server(p, err_path, timeout=120.0):
+    """SIGTERM to a ``dct-hil`` process and its exit status; one that has not ended
+    within ``timeout`` prints every thread's stack (SIGUSR1: the CLI's faulthandler)
+    into its stderr file, is killed, and fails the test with that file's end, so that
+    no server outlives its test (one left running sends into vcan0 under the next)."""
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+    try:
+        return p.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        p.send_signal(signal.SIGUSR1)
+        time.sleep(3.0)
+        p.kill()
+        p.wait()
+        text = err_path.read_text(errors="replace") if err_path.exists() else ""
+        pytest.fail(f"the process did not stop within {timeout:g} s of SIGTERM; its stacks "
+                    f"and stderr:\n{text[-6000:]}")

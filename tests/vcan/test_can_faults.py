@@ -11,13 +11,12 @@ again runs on it.
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
 
 import pytest
-from waiting import wait_for
+from waiting import stop_server, wait_for
 
 pytestmark = pytest.mark.vcan
 
@@ -71,8 +70,7 @@ def test_the_interface_going_down_ends_the_server_with_one_line_and_whole_files(
     finally:
         bus.shutdown()
         if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-            p.wait(timeout=WAIT_S)
+            stop_server(p, tmp_path / "down.err")
         out.close()
         err.close()
     text = (tmp_path / "down.err").read_text()
@@ -93,8 +91,7 @@ def test_the_interface_going_down_ends_the_server_with_one_line_and_whole_files(
         assert _plant_frame(bus, WAIT_S, p), (tmp_path / "up.err").read_text()
     finally:
         bus.shutdown()
-        p.send_signal(signal.SIGTERM)
-        rc = p.wait(timeout=WAIT_S)
+        rc = stop_server(p, tmp_path / "up.err")
         out.close()
         err.close()
     assert rc == 0, (tmp_path / "up.err").read_text()
