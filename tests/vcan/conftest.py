@@ -61,4 +61,3 @@ def vcan0():
         if f.read().strip() == "down":
             pytest.fail("vcan0 is down: ip link set up vcan0", pytrace=False)
     return "vcan0"
-
