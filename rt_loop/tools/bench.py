@@ -78,7 +78,7 @@ import time
 
 from plant import argtypes
 from plant.machine import write_figures
-from plant.stop_signals import StopEvent
+from plant.stop_signals import StopSignals
 
 TURNAROUND_P99_9_TARGET_US = 35.0
 LATENCY_RATIO_TARGET = 1.25
@@ -1107,34 +1107,22 @@ def _check_writable(path):
         raise BenchError(f"--json {path}: not writable")
 
 
-class StopOnSignal:
-    """The first SIGINT/SIGTERM sets ``event`` (the run stops and writes what it has);
-    the next one acts as usual. Main thread only; elsewhere nothing is installed."""
+class StopOnSignal(StopSignals):
+    """The first SIGINT/SIGTERM sets ``event`` (the run stops and writes what it has)
+    and says so; the next one acts as usual (``StopSignals(once=True)``)."""
 
     def __init__(self, progress):
-        self.event = StopEvent()      # set by the handler: no lock (plant.stop_signals)
-        self.signum = None
+        super().__init__(once=True)
         self._progress = progress
-        self._previous = {}
 
-    def _handler(self, signum, _frame):
-        self.signum = signum
-        self.event.set()
-        for sig, old in self._previous.items():
-            signal.signal(sig, old)
+    def _on_signal(self, signum, frame):
+        super()._on_signal(signum, frame)
         _note(self._progress, "stopping: the figures measured so far will be written "
                               "(again to abort)")
 
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handler)
-        return self
-
-    def __exit__(self, *exc):
-        for sig, old in self._previous.items():
-            signal.signal(sig, old)
-        self._previous = {}
+    @property
+    def signum(self):
+        return self.received[0] if self.received else None
 
 
 def main(argv=None, progress=None):
