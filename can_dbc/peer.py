@@ -30,7 +30,7 @@ import sys
 import threading
 import time
 
-from plant.stop_signals import StopEvent
+from plant.stop_signals import StopSignals
 
 from . import codec
 from .channels import open_bus
@@ -395,16 +395,13 @@ def main(argv=None):
     except (ConnectionError, ValueError) as e:
         return fail(str(e))
 
-    done = StopEvent()            # set by the SIGTERM handler: no lock (plant.stop_signals)
-    in_main = threading.current_thread() is threading.main_thread()
-    old_term = signal.signal(signal.SIGTERM, lambda *_: done.set()) if in_main else None
+    stop = StopSignals(signals=(signal.SIGTERM,)).__enter__()   # SIGTERM: stop (restored below)
     try:
-        done.wait(args.duration)
+        stop.event.wait(args.duration)
     except KeyboardInterrupt:
         pass
     finally:
-        if in_main:
-            signal.signal(signal.SIGTERM, old_term)
+        stop.__exit__()
         peer.close()
     rep = peer.report()
     rep["interface"] = args.interface

@@ -423,8 +423,9 @@ def stall_limit_ms(timeout_ms: float, cycle_ms: float, tcu_period_ms: float,
                    time_scale: float = 1.0) -> float:
     """The shortest late wake-up of the TCU's thread (wall ms) that explains a
     timeout of a message it sends every ``cycle_ms``: the loop times the message
-    out after ``timeout_ms`` of silence (both in model time, stretched by
-    ``time_scale``), draining what the TCU sent meanwhile first; the TCU sends it
+    out after ``timeout_ms`` of silence (both in model time: wall time is model
+    time over ``time_scale``, below 1 in slow motion), draining what the TCU sent
+    meanwhile first; the TCU sends it
     every cycle, so its silence is at most a cycle plus how late the thread woke,
     less up to one TCU period of phase between the two threads."""
     return (float(timeout_ms) - float(cycle_ms)) / float(time_scale) - float(tcu_period_ms)

@@ -147,7 +147,6 @@ import collections
 import json
 import math
 import os
-import signal
 import socket
 import sys
 import threading
@@ -160,7 +159,7 @@ from can_dbc.options import add_matrix_options
 from can_dbc.own_frames import OwnFrames, is_echoing_bus
 from can_dbc.peer import CanPeer
 from plant import argtypes
-from plant.stop_signals import StopEvent
+from plant.stop_signals import StopSignals
 from tcu_stub.diagnostics import ENGINE_SIGNALS, decode_active_faults
 from tcu_stub.logic import PERIOD_S, TcuLogic
 from tcu_stub.mapped_link import MissingSignalError, TcuMatrix, cycle_ticks, message_key
@@ -1296,18 +1295,8 @@ def run(args, out=None, err=None, prog="dct-hil tcu", open_node=None):
     except (ConnectionError, RuntimeError) as e:
         return fail(1, e)
 
-    done = StopEvent()            # set by the signal handler: no lock (plant.stop_signals)
-    received = []
-    in_main = threading.current_thread() is threading.main_thread()
-    old = {}
-
-    def on_signal(signum, _frame):
-        received.append(signum)
-        done.set()
-
-    if in_main:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            old[sig] = signal.signal(sig, on_signal)
+    signals = StopSignals().__enter__()      # SIGINT, SIGTERM: stop (restored below)
+    done = signals.event
     tty = hasattr(out, "isatty") and out.isatty()
     try:
         if not args.quiet:
@@ -1330,9 +1319,7 @@ def run(args, out=None, err=None, prog="dct-hil tcu", open_node=None):
                 print(("\r\x1b[K" + line) if tty else line, end="" if tty else "\n", file=out, flush=True)
     finally:
         tcu.close()
-        if in_main:
-            for sig, handler in old.items():
-                signal.signal(sig, handler)
+        signals.__exit__()
     if tty and not args.quiet:
         print(file=out)
     rep = tcu.report()
@@ -1349,7 +1336,7 @@ def run(args, out=None, err=None, prog="dct-hil tcu", open_node=None):
         print(f"{prog}: send errors: {rep['send_errors']}, last: {_one_line(rep['last_send_error'])}", file=err)
     if tcu.error:
         return fail(1, tcu.error)
-    if received and received[0] == signal.SIGINT:
+    if signals.interrupted:
         return 130                       # Ctrl-C, as everywhere in dct-hil
     return 0
 
